@@ -1,0 +1,1 @@
+//! LeanGate: geometric-utility frame gating for monocular SLAM, as a GStreamer plugin.
