@@ -1,0 +1,78 @@
+//! The `leangate` element: thin GStreamer glue over [`crate::policy`], [`crate::scorer`],
+//! [`crate::preprocess`] and [`crate::meta`].
+
+use gst::glib;
+use gst::prelude::*;
+
+mod imp;
+
+/// `mode` property: what happens to frames the gate rejects.
+#[derive(Debug, Eq, PartialEq, Ord, PartialOrd, Hash, Clone, Copy, glib::Enum, Default)]
+#[repr(u32)]
+#[enum_type(name = "GstLeanGateMode")]
+pub enum GateMode {
+    #[default]
+    #[enum_value(
+        name = "Drop: only frames that add geometry leave the element",
+        nick = "drop"
+    )]
+    Drop = 0,
+    #[enum_value(
+        name = "Annotate: every frame leaves, tagged with its score and decision",
+        nick = "annotate"
+    )]
+    Annotate = 1,
+}
+
+/// `execution-provider` property.
+#[derive(Debug, Eq, PartialEq, Ord, PartialOrd, Hash, Clone, Copy, glib::Enum, Default)]
+#[repr(u32)]
+#[enum_type(name = "GstLeanGateExecutionProvider")]
+pub enum ExecutionProviderChoice {
+    #[default]
+    #[enum_value(
+        name = "Auto: TensorRT, then CUDA, then CPU (each failure logged as a warning)",
+        nick = "auto"
+    )]
+    Auto = 0,
+    #[enum_value(name = "CPU", nick = "cpu")]
+    Cpu = 1,
+    #[enum_value(name = "CUDA (an error if unavailable)", nick = "cuda")]
+    Cuda = 2,
+    #[enum_value(name = "TensorRT (an error if unavailable)", nick = "tensorrt")]
+    TensorRt = 3,
+}
+
+impl From<ExecutionProviderChoice> for crate::scorer::ExecutionProvider {
+    fn from(c: ExecutionProviderChoice) -> Self {
+        use crate::scorer::ExecutionProvider as E;
+        match c {
+            ExecutionProviderChoice::Auto => E::Auto,
+            ExecutionProviderChoice::Cpu => E::Cpu,
+            ExecutionProviderChoice::Cuda => E::Cuda,
+            ExecutionProviderChoice::TensorRt => E::TensorRt,
+        }
+    }
+}
+
+glib::wrapper! {
+    pub struct LeanGate(ObjectSubclass<imp::LeanGate>) @extends gst_base::BaseTransform, gst::Element, gst::Object;
+}
+
+/// Name of the custom event (upstream or downstream) that keeps the next frame.
+pub const FORCE_KEYFRAME_EVENT: &str = "leangate-force-keyframe";
+/// Name of the custom event (upstream or downstream) that drops the reference.
+pub const RESET_EVENT: &str = "leangate-reset";
+/// Name of the element message with running statistics.
+pub const STATS_MESSAGE: &str = "leangate-stats";
+
+pub fn register(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
+    GateMode::static_type().mark_as_plugin_api(gst::PluginAPIFlags::empty());
+    ExecutionProviderChoice::static_type().mark_as_plugin_api(gst::PluginAPIFlags::empty());
+    gst::Element::register(
+        Some(plugin),
+        "leangate",
+        gst::Rank::NONE,
+        LeanGate::static_type(),
+    )
+}

@@ -1,0 +1,121 @@
+//! `LeanGateMeta`: the per-buffer verdict, as a `GstCustomMeta` so that C, Python and Rust
+//! consumers can all read it (`buf.get_custom_meta("LeanGateMeta").get_structure()` in Python).
+//!
+//! Fields of the structure:
+//! | field | type | meaning |
+//! |---|---|---|
+//! | `utility` | double | predicted tau (NaN for a frame with no reference, or when inference failed) |
+//! | `keep` | boolean | the gate's decision |
+//! | `reason` | string | `first`, `warmup`, `score`, `max-gap`, `forced`, `error` |
+//! | `keyframe-index` | guint64 | frames kept so far, this one included |
+//! | `reference-pts` | guint64 | PTS (ns) of the reference the frame was scored against (its own PTS for `first`; `GST_CLOCK_TIME_NONE` when unknown) |
+//! | `frames-since-keyframe` | guint | frames since that reference (0 for a kept frame) |
+//! | `inference-us` | guint64 | time spent preprocessing and scoring this frame, microseconds |
+
+use crate::policy::Reason;
+
+/// The registered name of the custom meta.
+pub const META_NAME: &str = "LeanGateMeta";
+
+/// The verdict carried by every buffer leaving the element.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GateMeta {
+    pub utility: f64,
+    pub keep: bool,
+    pub reason: Reason,
+    pub keyframe_index: u64,
+    pub reference_pts: Option<gst::ClockTime>,
+    pub frames_since_keyframe: u32,
+    pub inference_us: u64,
+}
+
+/// Register the custom meta (idempotent). Called from `plugin_init`.
+pub fn register() {
+    if !gst::meta::CustomMeta::is_registered(META_NAME) {
+        // No tags: transforms that copy untagged metas (most do) carry it along.
+        gst::meta::CustomMeta::register(META_NAME, &[]);
+    }
+}
+
+impl GateMeta {
+    fn fill(&self, s: &mut gst::StructureRef) {
+        s.set("utility", self.utility);
+        s.set("keep", self.keep);
+        s.set("reason", self.reason.as_str());
+        s.set("keyframe-index", self.keyframe_index);
+        s.set(
+            "reference-pts",
+            self.reference_pts.map(|t| t.nseconds()).unwrap_or(u64::MAX),
+        );
+        s.set("frames-since-keyframe", self.frames_since_keyframe);
+        s.set("inference-us", self.inference_us);
+    }
+
+    /// Attach (or overwrite) the meta on a buffer.
+    pub fn attach(&self, buffer: &mut gst::BufferRef) -> Result<(), gst::glib::BoolError> {
+        if let Ok(mut m) = gst::meta::CustomMeta::from_mut_buffer(buffer, META_NAME) {
+            self.fill(m.mut_structure());
+            return Ok(());
+        }
+        let mut m = gst::meta::CustomMeta::add(buffer, META_NAME)?;
+        self.fill(m.mut_structure());
+        Ok(())
+    }
+
+    /// Read the meta back from a buffer, if it carries one.
+    pub fn read(buffer: &gst::BufferRef) -> Option<GateMeta> {
+        let m = gst::meta::CustomMeta::from_buffer(buffer, META_NAME).ok()?;
+        let s = m.structure();
+        let pts: u64 = s.get("reference-pts").ok()?;
+        Some(GateMeta {
+            utility: s.get("utility").ok()?,
+            keep: s.get("keep").ok()?,
+            reason: Reason::parse(s.get::<&str>("reason").ok()?)?,
+            keyframe_index: s.get("keyframe-index").ok()?,
+            reference_pts: if pts == u64::MAX {
+                None
+            } else {
+                Some(gst::ClockTime::from_nseconds(pts))
+            },
+            frames_since_keyframe: s.get("frames-since-keyframe").ok()?,
+            inference_us: s.get("inference-us").ok()?,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn meta_round_trip_and_overwrite() {
+        gst::init().unwrap();
+        register();
+        let mut buf = gst::Buffer::with_size(4).unwrap();
+        let m = GateMeta {
+            utility: 0.25,
+            keep: false,
+            reason: Reason::Score,
+            keyframe_index: 3,
+            reference_pts: Some(gst::ClockTime::from_mseconds(40)),
+            frames_since_keyframe: 2,
+            inference_us: 1234,
+        };
+        m.attach(buf.get_mut().unwrap()).unwrap();
+        assert_eq!(GateMeta::read(&buf), Some(m.clone()));
+        let m2 = GateMeta {
+            utility: f64::NAN,
+            keep: true,
+            reason: Reason::First,
+            reference_pts: None,
+            ..m
+        };
+        m2.attach(buf.get_mut().unwrap()).unwrap();
+        let back = GateMeta::read(&buf).unwrap();
+        assert!(back.utility.is_nan());
+        assert_eq!(back.reason, Reason::First);
+        assert_eq!(back.reference_pts, None);
+        let n = buf.iter_meta::<gst::Meta>().count();
+        assert_eq!(n, 1, "overwriting must not stack a second meta");
+    }
+}

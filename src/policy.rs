@@ -1,0 +1,355 @@
+//! The gating policy: which frames to keep, given the utility the scorer predicted.
+//!
+//! This is the one implementation of the gate. The element drives it with the student's utility,
+//! `leangate eval` drives it with the teacher's (the `oracle` policy), and the tests drive it by hand.
+//!
+//! Rules, in order of precedence, for each frame:
+//! 1. no reference yet (start, flush, stream-start, caps change, `leangate-reset`) → keep, `first`;
+//! 2. a force-keyframe request is pending → keep, `forced`;
+//! 3. fewer than `warmup` frames seen since the stream (re)started → keep, `warmup`;
+//! 4. the scorer failed (error, NaN) → keep, `error` (fail open: never lose a frame to a fault);
+//! 5. `utility >= threshold` → keep, `score`;
+//! 6. `max_gap > 0` and already `max_gap` consecutive drops → keep, `max-gap`;
+//! 7. otherwise drop (reason `score`).
+//!
+//! Every kept frame becomes the new reference.
+
+use std::fmt;
+
+/// Why a frame was kept (or, for `Score`, also why it was dropped).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Reason {
+    First,
+    Warmup,
+    Score,
+    MaxGap,
+    Forced,
+    Error,
+}
+
+impl Reason {
+    pub const ALL: [Reason; 6] = [
+        Reason::First,
+        Reason::Warmup,
+        Reason::Score,
+        Reason::MaxGap,
+        Reason::Forced,
+        Reason::Error,
+    ];
+
+    /// The string written into `LeanGateMeta`'s `reason` field.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Reason::First => "first",
+            Reason::Warmup => "warmup",
+            Reason::Score => "score",
+            Reason::MaxGap => "max-gap",
+            Reason::Forced => "forced",
+            Reason::Error => "error",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Reason> {
+        Reason::ALL.into_iter().find(|r| r.as_str() == s)
+    }
+}
+
+impl fmt::Display for Reason {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// What the scorer said about the current frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Score {
+    /// There is no reference to score against (the gate asked for none: see [`Gate::has_reference`]).
+    NoReference,
+    /// The predicted utility tau (high = novel).
+    Utility(f64),
+    /// Inference failed or returned a non-finite value.
+    Failed,
+}
+
+/// Gate parameters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GateConfig {
+    /// tau_keep: a frame whose utility is at least this is kept.
+    pub threshold: f64,
+    /// The first `warmup` frames after a (re)start are always kept.
+    pub warmup: u64,
+    /// Force a keep after this many consecutive drops; 0 disables.
+    pub max_gap: u64,
+}
+
+impl Default for GateConfig {
+    fn default() -> Self {
+        GateConfig {
+            threshold: 0.5,
+            warmup: 0,
+            max_gap: 0,
+        }
+    }
+}
+
+/// The decision for one frame, with the bookkeeping the metadata carries.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Decision {
+    pub keep: bool,
+    pub reason: Reason,
+    /// Number of frames kept so far, this one included.
+    pub keyframe_index: u64,
+    /// Frames since the reference this frame was compared with (0 for a kept frame).
+    pub frames_since_keyframe: u64,
+}
+
+/// The gate's state machine.
+#[derive(Debug, Clone)]
+pub struct Gate {
+    cfg: GateConfig,
+    has_reference: bool,
+    frames_since_restart: u64,
+    since_keyframe: u64,
+    force_next: bool,
+    kept: u64,
+}
+
+impl Gate {
+    pub fn new(cfg: GateConfig) -> Gate {
+        Gate {
+            cfg,
+            has_reference: false,
+            frames_since_restart: 0,
+            since_keyframe: 0,
+            force_next: false,
+            kept: 0,
+        }
+    }
+
+    pub fn config(&self) -> &GateConfig {
+        &self.cfg
+    }
+
+    pub fn set_config(&mut self, cfg: GateConfig) {
+        self.cfg = cfg;
+    }
+
+    /// Whether the next frame can be scored against a reference.
+    pub fn has_reference(&self) -> bool {
+        self.has_reference
+    }
+
+    /// Number of frames kept since the gate was created.
+    pub fn kept(&self) -> u64 {
+        self.kept
+    }
+
+    /// Whether the next frame's fate is already decided whatever its score (then scoring it only
+    /// serves the metadata).
+    pub fn next_is_forced(&self) -> bool {
+        !self.has_reference
+            || self.force_next
+            || self.frames_since_restart < self.cfg.warmup
+            || (self.cfg.max_gap > 0 && self.since_keyframe >= self.cfg.max_gap)
+    }
+
+    /// Forget the reference: the next frame is kept as `first`. Warm-up is not restarted.
+    pub fn drop_reference(&mut self) {
+        self.has_reference = false;
+        self.since_keyframe = 0;
+    }
+
+    /// A new stream or a flush: forget the reference and restart the warm-up count.
+    pub fn restart(&mut self) {
+        self.drop_reference();
+        self.frames_since_restart = 0;
+        self.force_next = false;
+    }
+
+    /// Keep the next frame whatever its score (`leangate-force-keyframe`).
+    pub fn force_keyframe(&mut self) {
+        self.force_next = true;
+    }
+
+    /// Decide the fate of the next frame.
+    pub fn decide(&mut self, score: Score) -> Decision {
+        let reason = if !self.has_reference || score == Score::NoReference {
+            Some(Reason::First)
+        } else if self.force_next {
+            Some(Reason::Forced)
+        } else if self.frames_since_restart < self.cfg.warmup {
+            Some(Reason::Warmup)
+        } else {
+            match score {
+                Score::Failed => Some(Reason::Error),
+                Score::Utility(u) if !u.is_finite() => Some(Reason::Error),
+                Score::Utility(u) if u >= self.cfg.threshold => Some(Reason::Score),
+                _ if self.cfg.max_gap > 0 && self.since_keyframe >= self.cfg.max_gap => {
+                    Some(Reason::MaxGap)
+                }
+                _ => None,
+            }
+        };
+        self.frames_since_restart = self.frames_since_restart.saturating_add(1);
+        match reason {
+            Some(reason) => {
+                self.has_reference = true;
+                self.force_next = false;
+                self.since_keyframe = 0;
+                self.kept += 1;
+                Decision {
+                    keep: true,
+                    reason,
+                    keyframe_index: self.kept,
+                    frames_since_keyframe: 0,
+                }
+            }
+            None => {
+                self.since_keyframe += 1;
+                Decision {
+                    keep: false,
+                    reason: Reason::Score,
+                    keyframe_index: self.kept,
+                    frames_since_keyframe: self.since_keyframe,
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run(gate: &mut Gate, utilities: &[f64]) -> Vec<(bool, Reason)> {
+        utilities
+            .iter()
+            .map(|&u| {
+                let s = if gate.has_reference() {
+                    Score::Utility(u)
+                } else {
+                    Score::NoReference
+                };
+                let d = gate.decide(s);
+                (d.keep, d.reason)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn first_frame_kept_then_threshold() {
+        let mut g = Gate::new(GateConfig::default());
+        let out = run(&mut g, &[0.0, 0.1, 0.49, 0.5, 0.2, 0.9]);
+        assert_eq!(
+            out,
+            vec![
+                (true, Reason::First),
+                (false, Reason::Score),
+                (false, Reason::Score),
+                (true, Reason::Score),
+                (false, Reason::Score),
+                (true, Reason::Score)
+            ]
+        );
+        assert_eq!(g.kept(), 3);
+    }
+
+    #[test]
+    fn warmup_keeps_first_n_frames() {
+        let mut g = Gate::new(GateConfig {
+            warmup: 3,
+            ..Default::default()
+        });
+        let out = run(&mut g, &[0.0, 0.0, 0.0, 0.0, 0.0]);
+        let keeps: Vec<_> = out.iter().map(|o| o.1).collect();
+        assert_eq!(
+            keeps,
+            vec![
+                Reason::First,
+                Reason::Warmup,
+                Reason::Warmup,
+                Reason::Score,
+                Reason::Score
+            ]
+        );
+        assert_eq!(out.iter().filter(|o| o.0).count(), 3);
+    }
+
+    #[test]
+    fn max_gap_forces_keep_after_n_drops() {
+        let mut g = Gate::new(GateConfig {
+            max_gap: 2,
+            ..Default::default()
+        });
+        let out = run(&mut g, &[0.0; 7]);
+        let kept: Vec<_> = out.iter().map(|o| o.0).collect();
+        assert_eq!(kept, vec![true, false, false, true, false, false, true]);
+        assert_eq!(out[3].1, Reason::MaxGap);
+    }
+
+    #[test]
+    fn force_and_reset() {
+        let mut g = Gate::new(GateConfig::default());
+        run(&mut g, &[0.0, 0.0]);
+        g.force_keyframe();
+        assert!(g.next_is_forced());
+        let d = g.decide(Score::Utility(0.0));
+        assert_eq!((d.keep, d.reason), (true, Reason::Forced));
+        let d = g.decide(Score::Utility(0.0));
+        assert!(!d.keep, "force applies to one frame only");
+        g.drop_reference();
+        assert!(!g.has_reference());
+        let d = g.decide(Score::NoReference);
+        assert_eq!((d.keep, d.reason), (true, Reason::First));
+    }
+
+    #[test]
+    fn failure_keeps_frame_fail_open() {
+        let mut g = Gate::new(GateConfig::default());
+        g.decide(Score::NoReference);
+        let d = g.decide(Score::Failed);
+        assert_eq!((d.keep, d.reason), (true, Reason::Error));
+        let d = g.decide(Score::Utility(f64::NAN));
+        assert_eq!((d.keep, d.reason), (true, Reason::Error));
+    }
+
+    #[test]
+    fn bookkeeping_counts() {
+        let mut g = Gate::new(GateConfig::default());
+        let d0 = g.decide(Score::NoReference);
+        assert_eq!((d0.keyframe_index, d0.frames_since_keyframe), (1, 0));
+        let d1 = g.decide(Score::Utility(0.1));
+        let d2 = g.decide(Score::Utility(0.1));
+        assert_eq!((d1.keyframe_index, d1.frames_since_keyframe), (1, 1));
+        assert_eq!((d2.keyframe_index, d2.frames_since_keyframe), (1, 2));
+        let d3 = g.decide(Score::Utility(0.7));
+        assert_eq!((d3.keyframe_index, d3.frames_since_keyframe), (2, 0));
+    }
+
+    #[test]
+    fn restart_restarts_warmup() {
+        let mut g = Gate::new(GateConfig {
+            warmup: 2,
+            ..Default::default()
+        });
+        run(&mut g, &[0.0, 0.0, 0.0]);
+        g.restart();
+        let out = run(&mut g, &[0.0, 0.0, 0.0]);
+        assert_eq!(
+            out,
+            vec![
+                (true, Reason::First),
+                (true, Reason::Warmup),
+                (false, Reason::Score)
+            ]
+        );
+    }
+
+    #[test]
+    fn reason_strings_round_trip() {
+        for r in Reason::ALL {
+            assert_eq!(Reason::parse(r.as_str()), Some(r));
+        }
+        assert_eq!(Reason::parse("nope"), None);
+    }
+}

@@ -1,0 +1,788 @@
+//! Preprocessing: straight from a raw video frame (any supported format, any stride) to the model's
+//! float32 CHW input tensor, in one pass, so decoders can link to `leangate` without `videoconvert`.
+//!
+//! Steps, fused: colour conversion to RGB (YUV through the caps' matrix and range), geometric mapping
+//! (`short-side-crop`: scale so the short side fits, centre-crop the long side, as the paper's loader
+//! does; or `stretch`), area-averaging when shrinking / bilinear when enlarging (separable), scale
+//! to [0,1], then `(x - mean) / std` per channel.
+
+use std::fmt;
+
+/// Pixel formats accepted by the element (its caps list exactly these).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PixelFormat {
+    Rgb,
+    Bgr,
+    Rgbx,
+    Rgba,
+    Bgrx,
+    Bgra,
+    Gray8,
+    Nv12,
+    I420,
+}
+
+impl PixelFormat {
+    pub const ALL: [PixelFormat; 9] = [
+        PixelFormat::Rgb,
+        PixelFormat::Rgbx,
+        PixelFormat::Rgba,
+        PixelFormat::Bgr,
+        PixelFormat::Bgrx,
+        PixelFormat::Bgra,
+        PixelFormat::Gray8,
+        PixelFormat::Nv12,
+        PixelFormat::I420,
+    ];
+
+    pub fn from_video_format(f: gst_video::VideoFormat) -> Option<PixelFormat> {
+        use gst_video::VideoFormat as V;
+        Some(match f {
+            V::Rgb => PixelFormat::Rgb,
+            V::Bgr => PixelFormat::Bgr,
+            V::Rgbx => PixelFormat::Rgbx,
+            V::Rgba => PixelFormat::Rgba,
+            V::Bgrx => PixelFormat::Bgrx,
+            V::Bgra => PixelFormat::Bgra,
+            V::Gray8 => PixelFormat::Gray8,
+            V::Nv12 => PixelFormat::Nv12,
+            V::I420 => PixelFormat::I420,
+            _ => return None,
+        })
+    }
+
+    pub fn to_video_format(self) -> gst_video::VideoFormat {
+        use gst_video::VideoFormat as V;
+        match self {
+            PixelFormat::Rgb => V::Rgb,
+            PixelFormat::Bgr => V::Bgr,
+            PixelFormat::Rgbx => V::Rgbx,
+            PixelFormat::Rgba => V::Rgba,
+            PixelFormat::Bgrx => V::Bgrx,
+            PixelFormat::Bgra => V::Bgra,
+            PixelFormat::Gray8 => V::Gray8,
+            PixelFormat::Nv12 => V::Nv12,
+            PixelFormat::I420 => V::I420,
+        }
+    }
+
+    /// Number of planes.
+    pub fn n_planes(self) -> usize {
+        match self {
+            PixelFormat::Nv12 => 2,
+            PixelFormat::I420 => 3,
+            _ => 1,
+        }
+    }
+}
+
+/// How the frame is mapped onto the model's input rectangle.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ResizeMode {
+    /// Resize so the short side matches, then centre-crop (the paper's loader; the default).
+    #[default]
+    ShortSideCrop,
+    /// Resize each axis independently (aspect ratio not kept).
+    Stretch,
+}
+
+impl ResizeMode {
+    pub fn parse(s: &str) -> Option<ResizeMode> {
+        match s.trim() {
+            "short-side-crop" => Some(ResizeMode::ShortSideCrop),
+            "stretch" => Some(ResizeMode::Stretch),
+            _ => None,
+        }
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ResizeMode::ShortSideCrop => "short-side-crop",
+            ResizeMode::Stretch => "stretch",
+        }
+    }
+}
+
+/// YUV → RGB matrix and range.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct YuvMatrix {
+    pub kr: f32,
+    pub kb: f32,
+    pub full_range: bool,
+}
+
+impl YuvMatrix {
+    pub const BT601: YuvMatrix = YuvMatrix {
+        kr: 0.299,
+        kb: 0.114,
+        full_range: false,
+    };
+    pub const BT709: YuvMatrix = YuvMatrix {
+        kr: 0.2126,
+        kb: 0.0722,
+        full_range: false,
+    };
+
+    /// From the caps' colorimetry (unknown matrices fall back to BT.601 below 720 lines, BT.709 above,
+    /// as GStreamer does).
+    pub fn from_colorimetry(c: &gst_video::VideoColorimetry, height: u32) -> YuvMatrix {
+        use gst_video::VideoColorMatrix as M;
+        let (kr, kb) = match c.matrix() {
+            M::Bt601 => (0.299, 0.114),
+            M::Bt709 => (0.2126, 0.0722),
+            M::Bt2020 => (0.2627, 0.0593),
+            M::Smpte240m => (0.212, 0.087),
+            M::Fcc => (0.30, 0.11),
+            _ if height >= 720 => (0.2126, 0.0722),
+            _ => (0.299, 0.114),
+        };
+        YuvMatrix {
+            kr,
+            kb,
+            full_range: c.range() == gst_video::VideoColorRange::Range0_255,
+        }
+    }
+
+    #[inline(always)]
+    fn to_rgb(&self, y: u8, u: u8, v: u8) -> [f32; 3] {
+        let (y, cb, cr) = if self.full_range {
+            (y as f32, u as f32 - 128.0, v as f32 - 128.0)
+        } else {
+            (
+                (y as f32 - 16.0) * (255.0 / 219.0),
+                (u as f32 - 128.0) * (255.0 / 224.0),
+                (v as f32 - 128.0) * (255.0 / 224.0),
+            )
+        };
+        let kg = 1.0 - self.kr - self.kb;
+        let r = y + 2.0 * (1.0 - self.kr) * cr;
+        let b = y + 2.0 * (1.0 - self.kb) * cb;
+        let g = (y - self.kr * r - self.kb * b) / kg;
+        [
+            r.clamp(0.0, 255.0),
+            g.clamp(0.0, 255.0),
+            b.clamp(0.0, 255.0),
+        ]
+    }
+}
+
+/// A borrowed raw frame: up to three planes with their strides.
+#[derive(Debug, Clone, Copy)]
+pub struct RawFrame<'a> {
+    pub format: PixelFormat,
+    pub width: u32,
+    pub height: u32,
+    pub planes: [&'a [u8]; 3],
+    pub strides: [usize; 3],
+}
+
+/// Model-side parameters of the tensor.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TensorSpec {
+    pub width: u32,
+    pub height: u32,
+    pub resize: ResizeMode,
+    pub mean: [f32; 3],
+    pub std: [f32; 3],
+}
+
+impl TensorSpec {
+    pub fn len(&self) -> usize {
+        3 * self.width as usize * self.height as usize
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct PreprocessError(pub String);
+
+impl fmt::Display for PreprocessError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for PreprocessError {}
+
+/// Resampling taps for one output coordinate: source indices `start..start+weights.len()`.
+#[derive(Debug, Clone)]
+struct Taps {
+    start: usize,
+    weights: Vec<f32>,
+}
+
+fn make_taps(src_len: usize, dst_len: usize, src_off: f64, src_span: f64) -> Vec<Taps> {
+    let scale = src_span / dst_len as f64; // source pixels per output pixel
+    (0..dst_len)
+        .map(|o| {
+            if scale > 1.0 {
+                // Area average over [a, b).
+                let a = src_off + o as f64 * scale;
+                let b = a + scale;
+                let i0 = a.floor().max(0.0) as usize;
+                let i1 = (b.ceil() as usize).min(src_len);
+                let mut w: Vec<f32> = (i0..i1)
+                    .map(|i| {
+                        let lo = (i as f64).max(a);
+                        let hi = ((i + 1) as f64).min(b);
+                        (hi - lo).max(0.0) as f32
+                    })
+                    .collect();
+                let sum: f32 = w.iter().sum();
+                w.iter_mut().for_each(|x| *x /= sum);
+                Taps {
+                    start: i0,
+                    weights: w,
+                }
+            } else {
+                // Bilinear at the output pixel's centre.
+                let c = (src_off + (o as f64 + 0.5) * scale - 0.5).clamp(0.0, (src_len - 1) as f64);
+                let i0 = c.floor() as usize;
+                let f = (c - i0 as f64) as f32;
+                if i0 + 1 < src_len && f > 0.0 {
+                    Taps {
+                        start: i0,
+                        weights: vec![1.0 - f, f],
+                    }
+                } else {
+                    Taps {
+                        start: i0,
+                        weights: vec![1.0],
+                    }
+                }
+            }
+        })
+        .collect()
+}
+
+/// Converts frames of one format and size into tensors of one spec. Built once per caps.
+#[derive(Debug, Clone)]
+pub struct Preprocessor {
+    format: PixelFormat,
+    src_w: u32,
+    src_h: u32,
+    spec: TensorSpec,
+    yuv: YuvMatrix,
+    x_taps: Vec<Taps>,
+    y_taps: Vec<Taps>,
+    /// Source column range needed by the horizontal pass.
+    x_range: (usize, usize),
+}
+
+impl Preprocessor {
+    pub fn new(
+        format: PixelFormat,
+        src_w: u32,
+        src_h: u32,
+        yuv: YuvMatrix,
+        spec: TensorSpec,
+    ) -> Result<Preprocessor, PreprocessError> {
+        if src_w == 0 || src_h == 0 {
+            return Err(PreprocessError(format!(
+                "frame size {src_w}x{src_h} is empty"
+            )));
+        }
+        if spec.width == 0 || spec.height == 0 {
+            return Err(PreprocessError(format!(
+                "model input size {}x{} is empty",
+                spec.width, spec.height
+            )));
+        }
+        let (sw, sh) = (src_w as f64, src_h as f64);
+        let (dw, dh) = (spec.width as f64, spec.height as f64);
+        let (x_off, x_span, y_off, y_span) = match spec.resize {
+            ResizeMode::Stretch => (0.0, sw, 0.0, sh),
+            ResizeMode::ShortSideCrop => {
+                let s = (sw / dw).min(sh / dh);
+                let (cw, ch) = (dw * s, dh * s);
+                ((sw - cw) / 2.0, cw, (sh - ch) / 2.0, ch)
+            }
+        };
+        let x_taps = make_taps(src_w as usize, spec.width as usize, x_off, x_span);
+        let y_taps = make_taps(src_h as usize, spec.height as usize, y_off, y_span);
+        let x_range = (
+            x_taps.first().map(|t| t.start).unwrap_or(0),
+            x_taps
+                .last()
+                .map(|t| t.start + t.weights.len())
+                .unwrap_or(0),
+        );
+        Ok(Preprocessor {
+            format,
+            src_w,
+            src_h,
+            spec,
+            yuv,
+            x_taps,
+            y_taps,
+            x_range,
+        })
+    }
+
+    pub fn spec(&self) -> &TensorSpec {
+        &self.spec
+    }
+
+    /// Minimum bytes each plane must hold (for validation of mapped frames).
+    fn check(&self, f: &RawFrame) -> Result<(), PreprocessError> {
+        if f.format != self.format || f.width != self.src_w || f.height != self.src_h {
+            return Err(PreprocessError(format!(
+                "frame is {:?} {}x{}, preprocessor was built for {:?} {}x{}",
+                f.format, f.width, f.height, self.format, self.src_w, self.src_h
+            )));
+        }
+        let (w, h) = (f.width as usize, f.height as usize);
+        let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+        let need: [(usize, usize, usize); 3] = match f.format {
+            PixelFormat::Rgb | PixelFormat::Bgr => [(3 * w, h, 0), (0, 0, 0), (0, 0, 0)],
+            PixelFormat::Rgbx | PixelFormat::Rgba | PixelFormat::Bgrx | PixelFormat::Bgra => {
+                [(4 * w, h, 0), (0, 0, 0), (0, 0, 0)]
+            }
+            PixelFormat::Gray8 => [(w, h, 0), (0, 0, 0), (0, 0, 0)],
+            PixelFormat::Nv12 => [(w, h, 0), (2 * cw, ch, 1), (0, 0, 0)],
+            PixelFormat::I420 => [(w, h, 0), (cw, ch, 1), (cw, ch, 2)],
+        };
+        for (row_bytes, rows, p) in need {
+            if rows == 0 {
+                continue;
+            }
+            let stride = f.strides[p];
+            if stride < row_bytes {
+                return Err(PreprocessError(format!(
+                    "plane {p}: stride {stride} is smaller than a row ({row_bytes} bytes)"
+                )));
+            }
+            let len = stride * (rows - 1) + row_bytes;
+            if f.planes[p].len() < len {
+                return Err(PreprocessError(format!(
+                    "plane {p}: {} bytes, need {len}",
+                    f.planes[p].len()
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Fill `out` (length `3*H*W`, CHW) from the frame.
+    pub fn run(&self, frame: &RawFrame, out: &mut [f32]) -> Result<(), PreprocessError> {
+        self.check(frame)?;
+        if out.len() != self.spec.len() {
+            return Err(PreprocessError(format!(
+                "output tensor has {} elements, need {}",
+                out.len(),
+                self.spec.len()
+            )));
+        }
+        let [p0, p1, p2] = frame.planes;
+        let [s0, s1, s2] = frame.strides;
+        let yuv = self.yuv;
+        match self.format {
+            PixelFormat::Rgb => self.resample(out, |x, y| px3(p0, y * s0 + 3 * x, [0, 1, 2])),
+            PixelFormat::Bgr => self.resample(out, |x, y| px3(p0, y * s0 + 3 * x, [2, 1, 0])),
+            PixelFormat::Rgbx | PixelFormat::Rgba => {
+                self.resample(out, |x, y| px3(p0, y * s0 + 4 * x, [0, 1, 2]))
+            }
+            PixelFormat::Bgrx | PixelFormat::Bgra => {
+                self.resample(out, |x, y| px3(p0, y * s0 + 4 * x, [2, 1, 0]))
+            }
+            PixelFormat::Gray8 => self.resample(out, |x, y| {
+                let v = p0[y * s0 + x] as f32;
+                [v, v, v]
+            }),
+            PixelFormat::Nv12 => self.resample(out, |x, y| {
+                let c = (y / 2) * s1 + (x / 2) * 2;
+                yuv.to_rgb(p0[y * s0 + x], p1[c], p1[c + 1])
+            }),
+            PixelFormat::I420 => self.resample(out, |x, y| {
+                let c1 = (y / 2) * s1 + x / 2;
+                let c2 = (y / 2) * s2 + x / 2;
+                yuv.to_rgb(p0[y * s0 + x], p1[c1], p2[c2])
+            }),
+        }
+        Ok(())
+    }
+
+    /// Separable resampling: horizontal pass per needed source row (cached), vertical per output row.
+    #[inline(always)]
+    fn resample<F: Fn(usize, usize) -> [f32; 3]>(&self, out: &mut [f32], fetch: F) {
+        let ow = self.spec.width as usize;
+        let oh = self.spec.height as usize;
+        let plane = ow * oh;
+        let (x0, x1) = self.x_range;
+        let mut row_rgb = vec![[0f32; 3]; x1 - x0];
+        // Horizontally resampled rows, cached by source row index (rows are visited in order).
+        let mut cache: Vec<(usize, Vec<[f32; 3]>)> = Vec::new();
+        let mut acc = vec![[0f32; 3]; ow];
+        let scale = 1.0 / 255.0;
+        let (m, s) = (self.spec.mean, self.spec.std);
+        for (oy, ty) in self.y_taps.iter().enumerate() {
+            acc.iter_mut().for_each(|a| *a = [0.0; 3]);
+            for (k, &wy) in ty.weights.iter().enumerate() {
+                let sy = ty.start + k;
+                if !cache.iter().any(|(r, _)| *r == sy) {
+                    for (i, p) in row_rgb.iter_mut().enumerate() {
+                        *p = fetch(x0 + i, sy);
+                    }
+                    let mut h = vec![[0f32; 3]; ow];
+                    for (ox, tx) in self.x_taps.iter().enumerate() {
+                        let mut a = [0f32; 3];
+                        for (j, &wx) in tx.weights.iter().enumerate() {
+                            let p = row_rgb[tx.start - x0 + j];
+                            a[0] += wx * p[0];
+                            a[1] += wx * p[1];
+                            a[2] += wx * p[2];
+                        }
+                        h[ox] = a;
+                    }
+                    // Keep only rows still needed: the taps move forward monotonically.
+                    cache.retain(|(r, _)| *r + 8 > sy);
+                    cache.push((sy, h));
+                }
+                let h = &cache.iter().find(|(r, _)| *r == sy).unwrap().1;
+                for (a, p) in acc.iter_mut().zip(h) {
+                    a[0] += wy * p[0];
+                    a[1] += wy * p[1];
+                    a[2] += wy * p[2];
+                }
+            }
+            for (ox, a) in acc.iter().enumerate() {
+                for c in 0..3 {
+                    out[c * plane + oy * ow + ox] = (a[c] * scale - m[c]) / s[c];
+                }
+            }
+        }
+    }
+}
+
+#[inline(always)]
+fn px3(p: &[u8], i: usize, o: [usize; 3]) -> [f32; 3] {
+    [p[i + o[0]] as f32, p[i + o[1]] as f32, p[i + o[2]] as f32]
+}
+
+/// Test and tool helper: pack an RGB image (tightly packed rows) into `format` with the given
+/// row padding, using the BT.601 limited-range matrix for YUV. Returns the planes and strides.
+pub fn pack_rgb(
+    rgb: &[u8],
+    width: u32,
+    height: u32,
+    format: PixelFormat,
+    pad: usize,
+) -> (Vec<Vec<u8>>, Vec<usize>) {
+    let (w, h) = (width as usize, height as usize);
+    let px = |x: usize, y: usize| {
+        let i = 3 * (y * w + x);
+        [rgb[i] as f32, rgb[i + 1] as f32, rgb[i + 2] as f32]
+    };
+    let to_yuv = |p: [f32; 3]| {
+        let m = YuvMatrix::BT601;
+        let y = m.kr * p[0] + (1.0 - m.kr - m.kb) * p[1] + m.kb * p[2];
+        let cb = (p[2] - y) / (2.0 * (1.0 - m.kb));
+        let cr = (p[0] - y) / (2.0 * (1.0 - m.kr));
+        (
+            (16.0 + y * 219.0 / 255.0).round().clamp(0.0, 255.0) as u8,
+            (128.0 + cb * 224.0 / 255.0).round().clamp(0.0, 255.0) as u8,
+            (128.0 + cr * 224.0 / 255.0).round().clamp(0.0, 255.0) as u8,
+        )
+    };
+    let packed = |bpp: usize, order: &[usize]| {
+        let stride = w * bpp + pad;
+        let mut out = vec![0u8; stride * h];
+        for y in 0..h {
+            for x in 0..w {
+                let p = px(x, y);
+                for (k, &c) in order.iter().enumerate() {
+                    out[y * stride + x * bpp + k] = if c < 3 { p[c] as u8 } else { 255 };
+                }
+            }
+        }
+        (vec![out], vec![stride])
+    };
+    match format {
+        PixelFormat::Rgb => packed(3, &[0, 1, 2]),
+        PixelFormat::Bgr => packed(3, &[2, 1, 0]),
+        PixelFormat::Rgbx | PixelFormat::Rgba => packed(4, &[0, 1, 2, 3]),
+        PixelFormat::Bgrx | PixelFormat::Bgra => packed(4, &[2, 1, 0, 3]),
+        PixelFormat::Gray8 => {
+            let stride = w + pad;
+            let mut out = vec![0u8; stride * h];
+            for y in 0..h {
+                for x in 0..w {
+                    out[y * stride + x] = px(x, y)[1] as u8;
+                }
+            }
+            (vec![out], vec![stride])
+        }
+        PixelFormat::Nv12 | PixelFormat::I420 => {
+            let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+            let ys = w + pad;
+            let mut yp = vec![0u8; ys * h];
+            for y in 0..h {
+                for x in 0..w {
+                    yp[y * ys + x] = to_yuv(px(x, y)).0;
+                }
+            }
+            // Chroma: average of the 2x2 block's RGB.
+            let chroma = |cx: usize, cy: usize| {
+                let mut s = [0f32; 3];
+                let mut n = 0.0;
+                for dy in 0..2 {
+                    for dx in 0..2 {
+                        let (x, y) = (2 * cx + dx, 2 * cy + dy);
+                        if x < w && y < h {
+                            let p = px(x, y);
+                            s = [s[0] + p[0], s[1] + p[1], s[2] + p[2]];
+                            n += 1.0;
+                        }
+                    }
+                }
+                let (_, u, v) = to_yuv([s[0] / n, s[1] / n, s[2] / n]);
+                (u, v)
+            };
+            if format == PixelFormat::Nv12 {
+                let cs = 2 * cw + pad;
+                let mut uv = vec![0u8; cs * ch];
+                for cy in 0..ch {
+                    for cx in 0..cw {
+                        let (u, v) = chroma(cx, cy);
+                        uv[cy * cs + 2 * cx] = u;
+                        uv[cy * cs + 2 * cx + 1] = v;
+                    }
+                }
+                (vec![yp, uv], vec![ys, cs])
+            } else {
+                let cs = cw + pad;
+                let mut up = vec![0u8; cs * ch];
+                let mut vp = vec![0u8; cs * ch];
+                for cy in 0..ch {
+                    for cx in 0..cw {
+                        let (u, v) = chroma(cx, cy);
+                        up[cy * cs + cx] = u;
+                        vp[cy * cs + cx] = v;
+                    }
+                }
+                (vec![yp, up, vp], vec![ys, cs, cs])
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(w: u32, h: u32, resize: ResizeMode) -> TensorSpec {
+        TensorSpec {
+            width: w,
+            height: h,
+            resize,
+            mean: [0.0; 3],
+            std: [1.0; 3],
+        }
+    }
+
+    /// A smooth test picture (smooth so chroma subsampling stays within rounding).
+    fn picture(w: u32, h: u32, gray: bool) -> Vec<u8> {
+        let mut v = Vec::with_capacity((w * h * 3) as usize);
+        for y in 0..h {
+            for x in 0..w {
+                let fx = x as f32 / w as f32;
+                let fy = y as f32 / h as f32;
+                let r = (40.0 + 180.0 * fx) as u8;
+                let g = (60.0 + 150.0 * fy) as u8;
+                let b = (100.0 + 100.0 * (fx * fy)) as u8;
+                if gray {
+                    v.extend_from_slice(&[g, g, g]);
+                } else {
+                    v.extend_from_slice(&[r, g, b]);
+                }
+            }
+        }
+        v
+    }
+
+    fn tensor(
+        rgb: &[u8],
+        w: u32,
+        h: u32,
+        format: PixelFormat,
+        pad: usize,
+        s: &TensorSpec,
+    ) -> Vec<f32> {
+        let (planes, strides) = pack_rgb(rgb, w, h, format, pad);
+        let frame = RawFrame {
+            format,
+            width: w,
+            height: h,
+            planes: [
+                &planes[0],
+                planes.get(1).map(|p| &p[..]).unwrap_or(&[]),
+                planes.get(2).map(|p| &p[..]).unwrap_or(&[]),
+            ],
+            strides: [
+                strides[0],
+                *strides.get(1).unwrap_or(&0),
+                *strides.get(2).unwrap_or(&0),
+            ],
+        };
+        let p = Preprocessor::new(format, w, h, YuvMatrix::BT601, s.clone()).unwrap();
+        let mut out = vec![0.0; s.len()];
+        p.run(&frame, &mut out).unwrap();
+        out
+    }
+
+    fn max_diff(a: &[f32], b: &[f32]) -> f32 {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max)
+    }
+
+    #[test]
+    fn every_format_matches_rgb_odd_sizes_and_padding() {
+        for &(w, h) in &[(64u32, 48u32), (37, 23), (101, 75)] {
+            let s = spec(32, 32, ResizeMode::ShortSideCrop);
+            for gray in [false, true] {
+                let pic = picture(w, h, gray);
+                let reference = tensor(&pic, w, h, PixelFormat::Rgb, 0, &s);
+                for f in PixelFormat::ALL {
+                    if f == PixelFormat::Gray8 && !gray {
+                        continue;
+                    }
+                    for pad in [0usize, 5, 64] {
+                        let t = tensor(&pic, w, h, f, pad, &s);
+                        let d = max_diff(&reference, &t);
+                        let mean: f32 = reference
+                            .iter()
+                            .zip(&t)
+                            .map(|(a, b)| (a - b).abs())
+                            .sum::<f32>()
+                            / t.len() as f32;
+                        // YUV: 8-bit limited-range rounding plus 2x2 chroma subsampling of a
+                        // steep ramp (up to ~5 code values per pixel here): a few codes at most,
+                        // about one on average.
+                        let (tol, mean_tol) = if matches!(f, PixelFormat::Nv12 | PixelFormat::I420)
+                        {
+                            (6.0 / 255.0, 1.5 / 255.0)
+                        } else {
+                            (1e-6, 1e-7)
+                        };
+                        assert!(
+                            d <= tol && mean <= mean_tol,
+                            "{f:?} {w}x{h} pad {pad} gray {gray}: max diff {d}, mean {mean}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn constant_picture_gives_constant_normalised_tensor() {
+        let (w, h) = (50, 30);
+        let pic = vec![128u8; (w * h * 3) as usize];
+        let s = TensorSpec {
+            width: 16,
+            height: 16,
+            resize: ResizeMode::Stretch,
+            mean: [0.5, 0.25, 0.0],
+            std: [0.5, 0.25, 2.0],
+        };
+        let t = tensor(&pic, w, h, PixelFormat::Rgb, 0, &s);
+        let v = 128.0 / 255.0;
+        for (c, chunk) in t.chunks(256).enumerate() {
+            let want = (v - s.mean[c]) / s.std[c];
+            assert!(chunk.iter().all(|x| (x - want).abs() < 1e-5), "channel {c}");
+        }
+    }
+
+    #[test]
+    fn short_side_crop_keeps_centre_and_stretch_keeps_edges() {
+        // 40x20 image: left quarter red, right quarter blue, middle green.
+        let (w, h) = (40u32, 20u32);
+        let mut pic = vec![0u8; (w * h * 3) as usize];
+        for y in 0..h {
+            for x in 0..w {
+                let i = (3 * (y * w + x)) as usize;
+                let c = if x < 10 {
+                    0
+                } else if x >= 30 {
+                    2
+                } else {
+                    1
+                };
+                pic[i + c] = 255;
+            }
+        }
+        let crop = tensor(
+            &pic,
+            w,
+            h,
+            PixelFormat::Rgb,
+            0,
+            &spec(10, 10, ResizeMode::ShortSideCrop),
+        );
+        // Crop keeps x in [10, 30): only green.
+        assert!(
+            crop[..100].iter().all(|&r| r == 0.0),
+            "no red in the centre crop"
+        );
+        assert!(crop[100..200].iter().all(|&g| (g - 1.0).abs() < 1e-6));
+        let st = tensor(
+            &pic,
+            w,
+            h,
+            PixelFormat::Rgb,
+            0,
+            &spec(8, 8, ResizeMode::Stretch),
+        );
+        assert!(
+            (st[0] - 1.0).abs() < 1e-6,
+            "stretch keeps the red left edge"
+        );
+        assert!(
+            (st[2 * 64 + 7] - 1.0).abs() < 1e-6,
+            "and the blue right edge"
+        );
+    }
+
+    #[test]
+    fn upscaling_is_bilinear_and_bounded() {
+        let (w, h) = (4u32, 4u32);
+        let pic = picture(w, h, false);
+        let t = tensor(
+            &pic,
+            w,
+            h,
+            PixelFormat::Rgb,
+            0,
+            &spec(16, 16, ResizeMode::Stretch),
+        );
+        assert!(t.iter().all(|v| (0.0..=1.0).contains(v)));
+    }
+
+    #[test]
+    fn short_buffers_are_rejected_not_read() {
+        let p = Preprocessor::new(
+            PixelFormat::Rgb,
+            10,
+            10,
+            YuvMatrix::BT601,
+            spec(4, 4, ResizeMode::Stretch),
+        )
+        .unwrap();
+        let data = vec![0u8; 299];
+        let f = RawFrame {
+            format: PixelFormat::Rgb,
+            width: 10,
+            height: 10,
+            planes: [&data, &[], &[]],
+            strides: [30, 0, 0],
+        };
+        let mut out = vec![0.0; 48];
+        let e = p.run(&f, &mut out).unwrap_err();
+        assert!(e.0.contains("need 300"), "{e}");
+    }
+}

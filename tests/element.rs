@@ -1,0 +1,527 @@
+//! The `leangate` element through gst_check's Harness and real pipelines, with real ONNX Runtime.
+//! The fixture model `mad.onnx` scores a pair by the mean absolute difference of the two pictures
+//! (in [0,1]), so every expected decision below can be worked out by hand.
+
+mod common;
+
+use common::*;
+use gst::prelude::*;
+use gstleangate::policy::Reason;
+use gstleangate::preprocess::{pack_rgb, PixelFormat};
+use std::str::FromStr;
+
+const W: u32 = 64;
+const H: u32 = 48;
+
+#[test]
+fn static_picture_keeps_only_the_first_frame() {
+    let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));
+    let pic = texture(W, H, 1);
+    for i in 0..10 {
+        h.push(buffer(pic.clone(), i * 33)).unwrap();
+    }
+    let out = drain(&mut h);
+    assert_eq!(
+        out.len(),
+        1,
+        "a static picture adds nothing after the first frame"
+    );
+    let m = meta(&out[0]);
+    assert!(m.keep && m.reason == Reason::First && m.utility.is_nan());
+    assert_eq!(m.keyframe_index, 1);
+    let e = h.element().unwrap();
+    assert_eq!(e.property::<u64>("frames-in"), 10);
+    assert_eq!(e.property::<u64>("frames-kept"), 1);
+}
+
+#[test]
+fn alternating_pictures_are_all_kept() {
+    let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));
+    for i in 0..8u64 {
+        let c = if i % 2 == 0 { 0 } else { 255 };
+        h.push(buffer(solid(W, H, [c, c, c]), i * 33)).unwrap();
+    }
+    let out = drain(&mut h);
+    assert_eq!(out.len(), 8);
+    for (i, b) in out.iter().enumerate().skip(1) {
+        let m = meta(b);
+        assert!(m.keep, "frame {i}");
+        assert_eq!(m.reason, Reason::Score);
+        assert!((m.utility - 1.0).abs() < 1e-6, "utility {}", m.utility);
+        assert_eq!(m.keyframe_index, i as u64 + 1);
+        assert_eq!(
+            m.reference_pts,
+            Some(gst::ClockTime::from_mseconds((i as u64 - 1) * 33))
+        );
+    }
+}
+
+#[test]
+fn threshold_boundary() {
+    // MAD(black, grey g) = g/255: 127 is just under 0.5, 128 just over.
+    let mut h = harness(
+        &format!("model={} threshold=0.5 mode=annotate", fixture("mad.onnx")),
+        &rgb_caps(W, H),
+    );
+    h.push(buffer(solid(W, H, [0, 0, 0]), 0)).unwrap();
+    h.push(buffer(solid(W, H, [127, 127, 127]), 33)).unwrap();
+    h.push(buffer(solid(W, H, [128, 128, 128]), 66)).unwrap();
+    let out = drain(&mut h);
+    let m: Vec<_> = out.iter().map(meta).collect();
+    assert!(!m[1].keep && (m[1].utility - 127.0 / 255.0).abs() < 1e-5);
+    assert!(m[2].keep && (m[2].utility - 128.0 / 255.0).abs() < 1e-5);
+    assert_eq!(m[2].reason, Reason::Score);
+}
+
+#[test]
+fn threshold_comes_from_model_metadata_unless_set() {
+    // mad_meta.onnx carries leangate.threshold=0.3; grey 90 vs black: 0.353 >= 0.3.
+    let run = |props: String| {
+        let mut h = harness(&props, &rgb_caps(W, H));
+        h.push(buffer(solid(W, H, [0, 0, 0]), 0)).unwrap();
+        h.push(buffer(solid(W, H, [90, 90, 90]), 33)).unwrap();
+        drain(&mut h).len()
+    };
+    assert_eq!(run(format!("model={}", fixture("mad_meta.onnx"))), 2);
+    assert_eq!(
+        run(format!("model={} threshold=0.5", fixture("mad_meta.onnx"))),
+        1
+    );
+    assert_eq!(
+        run(format!("model={}", fixture("mad.onnx"))),
+        1,
+        "default 0.5"
+    );
+}
+
+#[test]
+fn warmup_keeps_the_first_frames() {
+    let mut h = harness(
+        &format!("model={} warmup=3 mode=annotate", fixture("mad.onnx")),
+        &rgb_caps(W, H),
+    );
+    let pic = texture(W, H, 2);
+    for i in 0..6 {
+        h.push(buffer(pic.clone(), i * 33)).unwrap();
+    }
+    let reasons: Vec<_> = drain(&mut h)
+        .iter()
+        .map(|b| (meta(b).keep, meta(b).reason))
+        .collect();
+    assert_eq!(
+        reasons,
+        vec![
+            (true, Reason::First),
+            (true, Reason::Warmup),
+            (true, Reason::Warmup),
+            (false, Reason::Score),
+            (false, Reason::Score),
+            (false, Reason::Score)
+        ]
+    );
+}
+
+#[test]
+fn max_gap_forces_a_keep() {
+    let mut h = harness(
+        &format!("model={} max-gap=3", fixture("mad.onnx")),
+        &rgb_caps(W, H),
+    );
+    let pic = texture(W, H, 3);
+    for i in 0..9 {
+        h.push(buffer(pic.clone(), i * 33)).unwrap();
+    }
+    let out = drain(&mut h);
+    let pts: Vec<_> = out.iter().map(|b| b.pts().unwrap().mseconds()).collect();
+    assert_eq!(pts, vec![0, 4 * 33, 8 * 33]);
+    assert_eq!(meta(&out[1]).reason, Reason::MaxGap);
+}
+
+#[test]
+fn force_keyframe_event_from_both_directions() {
+    let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));
+    let pic = texture(W, H, 4);
+    let force = || gst::Structure::new_empty(gstleangate::leangate::FORCE_KEYFRAME_EVENT);
+    h.push(buffer(pic.clone(), 0)).unwrap();
+    h.push(buffer(pic.clone(), 33)).unwrap();
+    // From downstream (a SLAM sink that lost tracking): upstream event.
+    h.push_upstream_event(gst::event::CustomUpstream::new(force()));
+    h.push(buffer(pic.clone(), 66)).unwrap();
+    h.push(buffer(pic.clone(), 99)).unwrap();
+    // From the application upstream: serialized downstream event.
+    h.push_event(gst::event::CustomDownstream::new(force()));
+    h.push(buffer(pic.clone(), 132)).unwrap();
+    h.push(buffer(pic.clone(), 165)).unwrap();
+    let out = drain(&mut h);
+    let got: Vec<_> = out
+        .iter()
+        .map(|b| (b.pts().unwrap().mseconds(), meta(b).reason))
+        .collect();
+    assert_eq!(
+        got,
+        vec![
+            (0, Reason::First),
+            (66, Reason::Forced),
+            (132, Reason::Forced)
+        ]
+    );
+}
+
+#[test]
+fn reset_event_drops_the_reference() {
+    let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));
+    let pic = texture(W, H, 5);
+    h.push(buffer(pic.clone(), 0)).unwrap();
+    h.push(buffer(pic.clone(), 33)).unwrap();
+    h.push_event(gst::event::CustomDownstream::new(
+        gst::Structure::new_empty(gstleangate::leangate::RESET_EVENT),
+    ));
+    h.push(buffer(pic.clone(), 66)).unwrap();
+    let out = drain(&mut h);
+    assert_eq!(out.len(), 2);
+    assert_eq!(meta(&out[1]).reason, Reason::First);
+}
+
+#[test]
+fn annotate_mode_passes_every_buffer_with_meta() {
+    let mut h = harness(
+        &format!("model={} mode=annotate threshold=0.3", fixture("mad.onnx")),
+        &rgb_caps(W, H),
+    );
+    let pics = [
+        solid(W, H, [0, 0, 0]),
+        solid(W, H, [0, 0, 0]),
+        texture(W, H, 1),
+        texture(W, H, 1),
+    ];
+    for (i, p) in pics.iter().enumerate() {
+        h.push(buffer(p.clone(), i as u64 * 33)).unwrap();
+    }
+    let out = drain(&mut h);
+    assert_eq!(out.len(), 4);
+    let m: Vec<_> = out.iter().map(meta).collect();
+    assert_eq!(
+        m.iter().map(|m| m.keep).collect::<Vec<_>>(),
+        vec![true, false, true, false]
+    );
+    assert_eq!(m[1].utility, 0.0);
+    assert_eq!(m[1].frames_since_keyframe, 1);
+    assert_eq!(m[1].keyframe_index, 1);
+    assert_eq!(m[1].reference_pts, Some(gst::ClockTime::ZERO));
+    assert!(m[2].utility > 0.3, "texture vs black: {}", m[2].utility);
+    assert_eq!(m[3].reference_pts, Some(gst::ClockTime::from_mseconds(66)));
+    assert!(m[1].inference_us > 0);
+    // Zero-copy: the pixels that leave are the pixels that came in.
+    let map = out[3].map_readable().unwrap();
+    assert_eq!(map.as_slice(), &pics[3][..]);
+}
+
+#[test]
+fn flush_resets_the_reference() {
+    let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));
+    let pic = texture(W, H, 6);
+    h.push(buffer(pic.clone(), 0)).unwrap();
+    h.push(buffer(pic.clone(), 33)).unwrap();
+    assert!(h.push_event(gst::event::FlushStart::new()));
+    assert!(h.push_event(gst::event::FlushStop::new(true)));
+    h.push_event(gst::event::Segment::new(&gst::FormattedSegment::<
+        gst::ClockTime,
+    >::new()));
+    h.push(buffer(pic.clone(), 66)).unwrap();
+    let out = drain(&mut h);
+    assert_eq!(out.len(), 2);
+    assert_eq!(meta(&out[1]).reason, Reason::First);
+}
+
+#[test]
+fn caps_change_mid_stream_restarts_from_a_new_reference() {
+    let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));
+    h.push(buffer(texture(W, H, 7), 0)).unwrap();
+    h.push(buffer(texture(W, H, 7), 33)).unwrap();
+    h.set_src_caps_str(&rgb_caps(32, 24));
+    h.push(buffer(texture(32, 24, 7), 66)).unwrap();
+    h.push(buffer(texture(32, 24, 7), 99)).unwrap();
+    let out = drain(&mut h);
+    let got: Vec<_> = out.iter().map(|b| (b.size(), meta(b).reason)).collect();
+    assert_eq!(
+        got,
+        vec![
+            ((W * H * 3) as usize, Reason::First),
+            (32 * 24 * 3, Reason::First)
+        ]
+    );
+}
+
+/// Push black then `pic` in `format` (with row padding `pad`, described by a VideoMeta) and
+/// return the utility of `pic` against black: the mean of its normalised pixels.
+fn utility_in_format(pic: &[u8], w: u32, h: u32, format: PixelFormat, pad: usize) -> f64 {
+    let caps = gst_video::VideoInfo::builder(format.to_video_format(), w, h)
+        .fps(gst::Fraction::new(30, 1))
+        .build()
+        .unwrap()
+        .to_caps()
+        .unwrap();
+    let e = element(&format!("model={} mode=annotate", fixture("mad.onnx")));
+    let mut hs = gst_check::Harness::with_element(&e, Some("sink"), Some("src"));
+    hs.set_src_caps(caps);
+    hs.play();
+    let black = solid(w, h, [0, 0, 0]);
+    for (i, p) in [&black[..], pic].iter().enumerate() {
+        let (planes, strides) = pack_rgb(p, w, h, format, pad);
+        let mut data = Vec::new();
+        let mut offsets = Vec::new();
+        for pl in &planes {
+            offsets.push(data.len());
+            data.extend_from_slice(pl);
+        }
+        let mut b = gst::Buffer::from_mut_slice(data);
+        {
+            let bm = b.get_mut().unwrap();
+            bm.set_pts(gst::ClockTime::from_mseconds(i as u64 * 33));
+            let strides: Vec<i32> = strides.iter().map(|s| *s as i32).collect();
+            gst_video::VideoMeta::add_full(
+                bm,
+                gst_video::VideoFrameFlags::empty(),
+                format.to_video_format(),
+                w,
+                h,
+                &offsets,
+                &strides,
+            )
+            .unwrap();
+        }
+        hs.push(b).unwrap();
+    }
+    let out = drain(&mut hs);
+    assert_eq!(out.len(), 2);
+    meta(&out[1]).utility
+}
+
+#[test]
+fn every_format_scores_like_rgb_including_odd_sizes_and_padded_strides() {
+    for &(w, h) in &[(64u32, 48u32), (37, 23)] {
+        // A smooth colour ramp (chroma subsampling then stays within rounding).
+        let mut pic = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                pic.extend_from_slice(&[(40 + 3 * x) as u8, (60 + 4 * y) as u8, 150]);
+            }
+        }
+        let grey: Vec<u8> = pic.chunks(3).flat_map(|p| [p[1], p[1], p[1]]).collect();
+        let want = utility_in_format(&pic, w, h, PixelFormat::Rgb, 0);
+        let want_grey = utility_in_format(&grey, w, h, PixelFormat::Rgb, 0);
+        assert!(want > 0.2);
+        for f in PixelFormat::ALL {
+            for pad in [0usize, 7] {
+                let (src, reference) = if f == PixelFormat::Gray8 {
+                    (&grey, want_grey)
+                } else {
+                    (&pic, want)
+                };
+                let got = utility_in_format(src, w, h, f, pad);
+                let tol = if matches!(f, PixelFormat::Nv12 | PixelFormat::I420) {
+                    3.0 / 255.0
+                } else {
+                    1e-6
+                };
+                assert!(
+                    (got - reference).abs() <= tol,
+                    "{f:?} {w}x{h} pad {pad}: {got} vs RGB {reference}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn unsupported_caps_are_refused_at_negotiation() {
+    let e = element(&format!("model={}", fixture("mad.onnx")));
+    let sink = e.static_pad("sink").unwrap();
+    let yuy2 = gst::Caps::from_str("video/x-raw,format=YUY2,width=64,height=48").unwrap();
+    assert!(!sink.query_accept_caps(&yuy2));
+    for f in PixelFormat::ALL {
+        let caps = gst_video::VideoCapsBuilder::new()
+            .format(f.to_video_format())
+            .width(64)
+            .height(48)
+            .build();
+        assert!(sink.query_accept_caps(&caps), "{f:?} must be accepted");
+    }
+    let err = gst::parse::launch("videotestsrc ! video/x-raw,format=YUY2 ! leangate ! fakesink")
+        .unwrap_err();
+    assert!(err.to_string().contains("can't handle caps"), "{err}");
+}
+
+#[test]
+fn stats_message_at_eos_and_interval() {
+    let msgs = run_pipeline(
+        &format!(
+            "videotestsrc num-buffers=30 pattern=ball ! video/x-raw,width=64,height=48,framerate=30/1 ! \
+             leangate model={} stats-interval=300000000 ! fakesink",
+            fixture("mad.onnx")
+        ),
+        30,
+    );
+    assert!(error_text(&msgs).is_none(), "{:?}", error_text(&msgs));
+    let stats = element_message(&msgs, "leangate-stats");
+    assert!(
+        stats.len() >= 3,
+        "periodic (every 0.3 s of 1 s) plus EOS, got {}",
+        stats.len()
+    );
+    let last = stats.last().unwrap();
+    assert_eq!(last.get::<u64>("frames-in").unwrap(), 30);
+    let kept = last.get::<u64>("frames-kept").unwrap();
+    assert!(kept >= 1 && kept <= 30);
+    let ratio = last.get::<f64>("keep-ratio").unwrap();
+    assert!((ratio - kept as f64 / 30.0).abs() < 1e-9);
+    assert!(last.get::<f64>("inference-mean-us").unwrap() > 0.0);
+    assert!(last.get::<u64>("inference-p99-us").unwrap() > 0);
+    assert_eq!(last.get::<&str>("execution-provider").unwrap(), "cpu");
+}
+
+#[test]
+fn nan_model_keeps_frames_and_warns() {
+    let msgs = run_pipeline(
+        &format!(
+            "videotestsrc num-buffers=5 ! video/x-raw,width=32,height=32 ! leangate model={} ! fakesink",
+            fixture("nan.onnx")
+        ),
+        30,
+    );
+    assert!(error_text(&msgs).is_none());
+    let warnings: Vec<_> = msgs
+        .iter()
+        .filter_map(|m| match m.view() {
+            gst::MessageView::Warning(w) => Some(w.error().to_string()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(warnings.len(), 1, "rate-limited to one: {warnings:?}");
+    assert!(
+        warnings[0].contains("not finite") && warnings[0].contains("kept"),
+        "{warnings:?}"
+    );
+    let stats = element_message(&msgs, "leangate-stats");
+    assert_eq!(stats.last().unwrap().get::<u64>("frames-kept").unwrap(), 5);
+}
+
+fn start_error(model_prop: &str) -> String {
+    let msgs = run_pipeline(
+        &format!("videotestsrc num-buffers=2 ! leangate {model_prop} ! fakesink"),
+        20,
+    );
+    error_text(&msgs).expect("the element must fail to start")
+}
+
+#[test]
+fn missing_model_names_the_path() {
+    let e = start_error("model=/nonexistent/student.onnx");
+    assert!(
+        e.contains("/nonexistent/student.onnx") && e.contains("No such file"),
+        "{e}"
+    );
+}
+
+#[test]
+fn no_model_property_is_a_clear_error() {
+    let e = start_error("");
+    assert!(e.contains("model"), "{e}");
+}
+
+#[test]
+fn garbage_model_is_rejected() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("garbage.onnx");
+    std::fs::write(&p, b"this is not a protobuf at all \x00\x01\x02").unwrap();
+    let e = start_error(&format!("model={}", p.display()));
+    assert!(
+        e.contains(&p.display().to_string()) && e.contains("not a valid ONNX model"),
+        "{e}"
+    );
+}
+
+#[test]
+fn wrong_shape_and_wrong_names_are_rejected_with_the_contract() {
+    let e = start_error(&format!("model={}", fixture("wrong_shape.onnx")));
+    assert!(
+        e.contains("wrong_shape.onnx") && e.contains("shape") && e.contains("[N,3,H,W]"),
+        "{e}"
+    );
+    let e = start_error(&format!("model={}", fixture("wrong_names.onnx")));
+    assert!(e.contains("no `reference`") && e.contains("\"a\""), "{e}");
+    let e = start_error(&format!("model={}", fixture("bad_meta.onnx")));
+    assert!(
+        e.contains("leangate.input_size") && e.contains("WxH"),
+        "{e}"
+    );
+}
+
+#[test]
+fn explicit_gpu_provider_that_is_missing_is_an_error() {
+    if std::env::var_os("LEANGATE_EXPECT_CUDA").is_some() {
+        eprintln!("SKIPPED: CUDA expected on this machine");
+        return;
+    }
+    let e = start_error(&format!(
+        "model={} execution-provider=cuda",
+        fixture("mad.onnx")
+    ));
+    assert!(e.contains("execution provider `cuda` failed"), "{e}");
+}
+
+#[test]
+fn every_property_is_documented() {
+    init();
+    let e = gst::ElementFactory::make("leangate").build().unwrap();
+    let props = e.list_properties();
+    for name in [
+        "model",
+        "threshold",
+        "warmup",
+        "max-gap",
+        "mode",
+        "execution-provider",
+        "device-id",
+        "threads",
+        "stats-interval",
+        "frames-in",
+        "frames-kept",
+    ] {
+        let p = props
+            .iter()
+            .find(|p| p.name() == name)
+            .unwrap_or_else(|| panic!("property {name} missing"));
+        assert!(
+            p.blurb().is_some_and(|b| b.len() > 10),
+            "{name} needs a blurb"
+        );
+    }
+}
+
+#[test]
+fn real_clip_through_decodebin() {
+    let Some(clip) = shared_data("cotracker_clips/bear.mp4") else {
+        return;
+    };
+    let msgs = run_pipeline(
+        &format!(
+            "filesrc location={} ! decodebin ! leangate model={} threshold=0.05 ! fakesink",
+            clip.display(),
+            fixture("mad.onnx")
+        ),
+        120,
+    );
+    assert!(error_text(&msgs).is_none(), "{:?}", error_text(&msgs));
+    let stats = element_message(&msgs, "leangate-stats");
+    let s = stats.last().expect("stats at EOS");
+    let (fin, kept) = (
+        s.get::<u64>("frames-in").unwrap(),
+        s.get::<u64>("frames-kept").unwrap(),
+    );
+    assert!(fin > 20, "decoded {fin} frames");
+    assert!(
+        kept >= 1 && kept < fin,
+        "a slow pan keeps some, not all: {kept}/{fin}"
+    );
+}
