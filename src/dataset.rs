@@ -297,7 +297,7 @@ pub fn read_trajectory(path: &Path) -> Result<Vec<(f64, Isometry3<f64>)>, Datase
         let n = parse_numbers(path, no, &line, 8, "t tx ty tz qx qy qz qw")?;
         let q = Quaternion::new(n[7], n[4], n[5], n[6]);
         let norm = q.norm();
-        if !(norm > 1e-6) {
+        if norm.is_nan() || norm <= 1e-6 {
             return Err(DatasetError::Parse {
                 path: path.to_path_buf(),
                 line: no,
@@ -781,13 +781,16 @@ pub fn format_pose(p: &Isometry3<f64>) -> String {
     )
 }
 
+/// One frame for [`write_sequence_files`]: `(timestamp, rgb, depth, camera-to-world pose)`.
+pub type FrameData = (f64, RgbImage, Option<DepthImage>, Option<Isometry3<f64>>);
+
 /// Convenience: writes a whole sequence at once (see [`SequenceWriter`]); frames are
 /// `(timestamp, rgb, depth, pose)`.
 pub fn write_sequence_files(
     root: &Path,
     intrinsics: Intrinsics,
     rgb_format: RgbFormat,
-    frames: &[(f64, RgbImage, Option<DepthImage>, Option<Isometry3<f64>>)],
+    frames: &[FrameData],
 ) -> Result<PathBuf, DatasetError> {
     let w = SequenceWriter::create(root, intrinsics, rgb_format)?;
     for (i, (t, rgb, d, p)) in frames.iter().enumerate() {
@@ -946,15 +949,15 @@ mod tests {
         assert_eq!(seq.len(), 3);
         assert!(seq.has_ground_truth());
         assert_eq!(seq.intrinsics, Some(intr));
-        for i in 0..3 {
-            assert_eq!(seq.load_rgb(i).unwrap(), frames[i].1);
+        for (i, frame) in frames.iter().enumerate() {
+            assert_eq!(seq.load_rgb(i).unwrap(), frame.1);
             let d = seq.load_depth_m(i).unwrap();
-            let orig = frames[i].2.as_ref().unwrap();
+            let orig = frame.2.as_ref().unwrap();
             for (a, b) in d.data.iter().zip(&orig.data) {
                 assert!((a - b).abs() < 0.0006, "{a} {b}");
             }
             let p = seq.frames[i].pose.unwrap();
-            let q = frames[i].3.unwrap();
+            let q = frame.3.unwrap();
             assert!((p.inverse() * q).translation.vector.norm() < 1e-6);
             assert!((p.inverse() * q).rotation.angle() < 1e-6);
         }

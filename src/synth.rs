@@ -424,7 +424,7 @@ impl Scene {
 
     /// A random room from `seed`; about half of the surfaces use one of `textures` (tiled).
     pub fn with_textures(seed: u64, textures: &[RgbImage]) -> Scene {
-        let mut rng = SplitMix64::new(seed ^ 0x5EED_0F_5CE4E);
+        let mut rng = SplitMix64::new(seed ^ 0x05EE_D0F5_CE4E);
         let images: Vec<TextureImage> = textures.iter().map(TextureImage::from_rgb).collect();
         let n_img = images.len();
         let room = [
@@ -910,7 +910,7 @@ fn generate_path(
     frames: usize,
     seed: u64,
 ) -> (Vec<Isometry3<f64>>, Vec<Segment>) {
-    let mut rng = SplitMix64::new(seed ^ 0xCA3E_8A_7A);
+    let mut rng = SplitMix64::new(seed ^ 0xCA3E_8A7A);
     let dt = 1.0 / (fps * SUBSTEPS as f64);
     let n_samples = frames * SUBSTEPS + SUBSTEPS;
     let (rlo, rhi) = scene.camera_region;
@@ -1261,7 +1261,8 @@ pub fn render_sequence(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, Sy
             cfg.frames, cfg.width, cfg.height
         )));
     }
-    if !(cfg.fps > 0.0 && cfg.fps.is_finite()) || !(cfg.noise >= 0.0) {
+    let valid = cfg.fps > 0.0 && cfg.fps.is_finite() && cfg.noise >= 0.0 && cfg.noise.is_finite();
+    if !valid {
         return Err(SynthError::Config(format!(
             "fps must be positive and noise non-negative (got {} and {})",
             cfg.fps, cfg.noise
