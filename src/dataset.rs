@@ -884,6 +884,78 @@ mod tests {
     }
 
     #[test]
+    fn image_folder_without_lists() {
+        let dir = tempfile::tempdir().unwrap();
+        let rgb = dir.path().join("rgb");
+        fs::create_dir(&rgb).unwrap();
+        for name in ["b.png", "a.png", "c.jpg"] {
+            RgbImage::new(8, 6).save(rgb.join(name)).unwrap();
+        }
+        fs::write(rgb.join("notes.txt"), "not an image").unwrap();
+        let seq = Sequence::open(dir.path()).unwrap();
+        assert_eq!(seq.len(), 3);
+        assert!(seq.frames[0].rgb.ends_with("a.png"));
+        assert!((seq.frames[2].timestamp - 2.0 / 30.0).abs() < 1e-12);
+        assert!(!seq.has_ground_truth());
+        assert_eq!(seq.load_rgb(1).unwrap().dimensions(), (8, 6));
+        // the folder itself also works
+        assert_eq!(Sequence::open(&rgb).unwrap().len(), 3);
+
+        let webcam = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../shared/data/webcam_classroom"
+        );
+        if present(webcam) {
+            assert_eq!(Sequence::open(Path::new(webcam)).unwrap().len(), 220);
+        }
+    }
+
+    #[test]
+    fn bad_intrinsics_and_depth_format() {
+        let dir = tempfile::tempdir().unwrap();
+        fs::write(dir.path().join("rgb.txt"), "0.0 a.png\n").unwrap();
+        fs::write(dir.path().join("intrinsics.txt"), "# c\n500 500 320\n").unwrap();
+        let err = Sequence::open(dir.path()).unwrap_err().to_string();
+        assert!(
+            err.contains("intrinsics.txt` line 2: expected 5 numbers"),
+            "{err}"
+        );
+        fs::write(dir.path().join("intrinsics.txt"), "500 500 320 240 abc\n").unwrap();
+        let err = Sequence::open(dir.path()).unwrap_err().to_string();
+        assert!(err.contains("`abc` is not a finite number"), "{err}");
+        // an 8-bit image where a 16-bit depth PNG is expected
+        let p = dir.path().join("d8.png");
+        image::GrayImage::new(4, 4).save(&p).unwrap();
+        let err = read_depth_png(&p, 1000.0).unwrap_err().to_string();
+        assert!(err.contains("16-bit"), "{err}");
+        assert!(read_depth_png(&dir.path().join("none.png"), 1000.0).is_err());
+    }
+
+    #[test]
+    fn unmatched_frames_dropped_or_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        fs::write(
+            dir.path().join("rgb.txt"),
+            "0.00 a.png\n0.10 b.png\n0.20 c.png\n",
+        )
+        .unwrap();
+        fs::write(dir.path().join("depth.txt"), "0.005 da.png\n0.19 dc.png\n").unwrap();
+        let seq = Sequence::open(dir.path()).unwrap();
+        assert_eq!(seq.timestamps(), vec![0.0, 0.2]);
+        assert!(seq.frames[1].depth.as_ref().unwrap().ends_with("dc.png"));
+        let all = Sequence::open_with(
+            dir.path(),
+            &OpenOptions {
+                drop_unmatched: false,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(all.len(), 3);
+        assert!(all.frames[1].depth.is_none());
+    }
+
+    #[test]
     fn bad_groundtruth_line_is_reported() {
         let dir = tempfile::tempdir().unwrap();
         fs::write(dir.path().join("rgb.txt"), "# c\n0.0 rgb/a.png\n").unwrap();

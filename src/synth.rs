@@ -1325,7 +1325,7 @@ pub fn render_sequence(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, Sy
         "fps": cfg.fps,
         "motion": cfg.motion,
         "textures": cfg.textures,
-        "noise": cfg.noise,
+        "noise": (cfg.noise as f64 * 1e6).round() / 1e6,
         "blur": cfg.blur,
         "lighting_changes": cfg.lighting_changes,
         "segments": summary.segments,
@@ -1540,6 +1540,34 @@ mod tests {
     }
 
     #[test]
+    fn image_textures_are_used() {
+        let dir = tempfile::tempdir().unwrap();
+        let tex = dir.path().join("tex");
+        std::fs::create_dir(&tex).unwrap();
+        // a pure red texture: some surfaces must come out red-dominant
+        RgbImage::from_pixel(16, 16, image::Rgb([255, 0, 0]))
+            .save(tex.join("red.png"))
+            .unwrap();
+        let cfg = SynthConfig {
+            textures: Some(tex.clone()),
+            noise: 0.0,
+            ..small_cfg(MotionProfile::Rotate, 3)
+        };
+        let textures = load_textures(&tex).unwrap();
+        let scene = Scene::with_textures(cfg.seed, &textures);
+        assert!(scene
+            .materials
+            .iter()
+            .any(|m| matches!(m.pattern, Pattern::Image(0))));
+        let out = dir.path().join("seq");
+        render_sequence(&cfg, &out).unwrap();
+        assert_eq!(Sequence::open(&out).unwrap().len(), 3);
+        let empty = dir.path().join("empty");
+        std::fs::create_dir(&empty).unwrap();
+        assert!(load_textures(&empty).is_err());
+    }
+
+    #[test]
     fn bad_config_is_an_error() {
         let dir = tempfile::tempdir().unwrap();
         let cfg = SynthConfig {
@@ -1552,6 +1580,28 @@ mod tests {
             ..small_cfg(MotionProfile::Static, 2)
         };
         assert!(render_sequence(&cfg, &dir.path().join("o")).is_err());
+    }
+
+    /// Writes a visual sample, not a test: `LEANGATE_SYNTH_SAMPLE=/tmp/x cargo test synth_sample -- --ignored`.
+    #[test]
+    #[ignore]
+    fn synth_sample() {
+        let Ok(out) = std::env::var("LEANGATE_SYNTH_SAMPLE") else {
+            eprintln!("set LEANGATE_SYNTH_SAMPLE to an output directory");
+            return;
+        };
+        let cfg = SynthConfig {
+            frames: 90,
+            seed: std::env::var("LEANGATE_SYNTH_SEED")
+                .ok()
+                .and_then(|s| s.parse().ok())
+                .unwrap_or(1),
+            blur: true,
+            lighting_changes: true,
+            ..Default::default()
+        };
+        let sum = render_sequence(&cfg, Path::new(&out)).unwrap();
+        eprintln!("{:?}", sum.segments);
     }
 
     /// Timing helper, not a test: `cargo test --release synth_speed -- --ignored --nocapture`.
