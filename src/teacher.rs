@@ -33,7 +33,7 @@
 //! precomputed once per view while memory stays at 4 bytes per working pixel (77 KB per frame
 //! at 160x120), which matters for sequences of thousands of frames.
 
-use std::cell::RefCell;
+use std::cell::Cell;
 use std::fmt;
 use std::io::Write;
 
@@ -242,7 +242,7 @@ impl PairScore {
 
 thread_local! {
     /// Reusable bitmap of keyframe pixels already hit (one bit per working pixel).
-    static HIT_BITMAP: RefCell<Vec<u64>> = const { RefCell::new(Vec::new()) };
+    static HIT_BITMAP: Cell<Vec<u64>> = const { Cell::new(Vec::new()) };
 }
 
 /// Scores the pair (current `cur` at `cur_pose`, keyframe `key` at `key_pose`); poses are
@@ -271,73 +271,72 @@ pub fn score_pair(
     let ki = &key.intrinsics;
     let (kfx, kfy, kcx, kcy) = (ki.fx as f32, ki.fy as f32, ki.cx as f32, ki.cy as f32);
     let (kw, kh) = (key.width as usize, key.height as usize);
-    let (kwf, khf) = (kw as f32 - 0.5, kh as f32 - 0.5);
+    let (kwf, khf) = (kw as f32, kh as f32);
     let max_d2 = (max_dist_m * max_dist_m) as f32;
     let cw = cur.width as usize;
 
-    HIT_BITMAP.with(|bm| {
-        let mut bm = bm.borrow_mut();
-        let words = (kw * kh).div_ceil(64);
-        bm.clear();
-        bm.resize(words, 0);
-        let mut valid = 0usize;
-        let mut distinct = 0usize;
-        for (v, row) in cur.depth.chunks_exact(cw).enumerate() {
-            let yr = cur.yr[v];
-            // Row-constant parts of R * (x z, y z, z) = z * (R (x, y, 1)).
-            let (b0, b1, b2) = (
-                rm[0][1] * yr + rm[0][2],
-                rm[1][1] * yr + rm[1][2],
-                rm[2][1] * yr + rm[2][2],
-            );
-            for (&z, &xr) in row.iter().zip(&cur.xr) {
-                if z <= 0.0 {
-                    continue;
-                }
-                let qz = z * (rm[2][0] * xr + b2) + tz;
-                if qz <= 0.0 {
-                    continue;
-                }
-                let qx = z * (rm[0][0] * xr + b0) + tx;
-                let qy = z * (rm[1][0] * xr + b1) + ty;
-                let inv = 1.0 / qz;
-                let uf = kfx * qx * inv + kcx;
-                let vf = kfy * qy * inv + kcy;
-                // round-to-nearest lands inside iff -0.5 <= uf < W - 0.5
-                if !(uf >= -0.5 && uf < kwf && vf >= -0.5 && vf < khf) {
-                    continue;
-                }
-                let ku = ((uf + 0.5).floor() as usize).min(kw - 1);
-                let kv = ((vf + 0.5).floor() as usize).min(kh - 1);
-                let idx = kv * kw + ku;
-                let kz = key.depth[idx];
-                if kz <= 0.0 {
-                    continue;
-                }
-                let dx = key.xr[ku] * kz - qx;
-                let dy = key.yr[kv] * kz - qy;
-                let dz = kz - qz;
-                if dx * dx + dy * dy + dz * dz >= max_d2 {
-                    continue;
-                }
-                valid += 1;
-                let (w, b) = (idx >> 6, 1u64 << (idx & 63));
-                if bm[w] & b == 0 {
-                    bm[w] |= b;
-                    distinct += 1;
-                }
+    // Take the thread's bitmap out of the thread-local so the hot loop works on locals.
+    let mut bm = HIT_BITMAP.with(|b| b.take());
+    let words = (kw * kh).div_ceil(64);
+    bm.clear();
+    bm.resize(words, 0);
+    let mut valid = 0usize;
+    let mut distinct = 0usize;
+    for (v, row) in cur.depth.chunks_exact(cw).enumerate() {
+        let yr = cur.yr[v];
+        // Row-constant parts of R * (x z, y z, z) = z * (R (x, y, 1)).
+        let (b0, b1, b2) = (
+            rm[0][1] * yr + rm[0][2],
+            rm[1][1] * yr + rm[1][2],
+            rm[2][1] * yr + rm[2][2],
+        );
+        for (&z, &xr) in row.iter().zip(&cur.xr) {
+            if z <= 0.0 {
+                continue;
             }
+            let qz = z * (rm[2][0] * xr + b2) + tz;
+            if qz <= 0.0 {
+                continue;
+            }
+            let qx = z * (rm[0][0] * xr + b0) + tx;
+            let qy = z * (rm[1][0] * xr + b1) + ty;
+            let inv = 1.0 / qz;
+            let uf = kfx * qx * inv + kcx + 0.5;
+            let vf = kfy * qy * inv + kcy + 0.5;
+            // round-to-nearest lands inside iff 0 <= u + 0.5 < W; then truncation is floor
+            if !(uf >= 0.0 && uf < kwf && vf >= 0.0 && vf < khf) {
+                continue;
+            }
+            let ku = (uf as usize).min(kw - 1);
+            let kv = (vf as usize).min(kh - 1);
+            let idx = kv * kw + ku;
+            let kz = key.depth[idx];
+            if kz <= 0.0 {
+                continue;
+            }
+            let dx = key.xr[ku] * kz - qx;
+            let dy = key.yr[kv] * kz - qy;
+            let dz = kz - qz;
+            if dx * dx + dy * dy + dz * dz >= max_d2 {
+                continue;
+            }
+            valid += 1;
+            let (w, b) = (idx >> 6, 1u64 << (idx & 63));
+            let word = &mut bm[w];
+            distinct += (*word & b == 0) as usize;
+            *word |= b;
         }
-        let f_m = valid as f64 / cur.valid_count as f64;
-        let f_u = distinct as f64 / key.valid_count as f64;
-        let s = f_m.min(f_u);
-        PairScore {
-            f_m,
-            f_u,
-            s,
-            tau: 1.0 - s,
-        }
-    })
+    }
+    HIT_BITMAP.with(|b| b.set(bm));
+    let f_m = valid as f64 / cur.valid_count as f64;
+    let f_u = distinct as f64 / key.valid_count as f64;
+    let s = f_m.min(f_u);
+    PairScore {
+        f_m,
+        f_u,
+        s,
+        tau: 1.0 - s,
+    }
 }
 
 /// All depth views and poses of a sequence, ready to score any pair.
