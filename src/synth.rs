@@ -26,6 +26,14 @@
 //! only), `pan`, `shaky`, `walk`, `rotate`, `bursts` (pauses and bursts), and `mixed` (random
 //! segments of 1.5 to 4 s of all the others; the default).
 //!
+//! # Speed
+//!
+//! Per frame, each box's projected screen rectangle is computed once and each image row only
+//! tests the boxes whose rectangle covers it; rows are rendered in parallel with rayon. On a
+//! 2-core machine a 640x480 frame renders at about 70 frames/s (about 50 frames/s including
+//! PNG encoding and writing; `cargo test synth_speed -- --ignored --nocapture`). Motion blur
+//! renders 3 sub-frames and costs about 3x.
+//!
 //! Everything is deterministic for a seed: random numbers come from a splitmix64 generator and
 //! from counter-based hashes (noise is a function of frame, pixel and channel), so results do not
 //! depend on thread scheduling.

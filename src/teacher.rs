@@ -32,6 +32,14 @@
 //! `(u - cx)/fx`, `(v - cy)/fy`, so a 3-D point is `(xr[u] z, yr[v] z, z)`: the unprojection is
 //! precomputed once per view while memory stays at 4 bytes per working pixel (77 KB per frame
 //! at 160x120), which matters for sequences of thousands of frames.
+//!
+//! # Speed
+//!
+//! [`score_pair`] is one pass over the current view with `f32` arithmetic and a reusable
+//! per-thread bitmap for distinct hits (no allocation per pair). On the 7-Scenes clip at 160x120
+//! (strongly overlapping pairs, the slow case) it scores about 4,000 pairs/s per core
+//! (`cargo test teacher_speed -- --ignored --nocapture`); [`Teacher::score_pairs`] spreads pairs
+//! over rayon's pool.
 
 use std::cell::Cell;
 use std::fmt;
