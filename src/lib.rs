@@ -4,10 +4,13 @@
 //! ONNX "student" that predicts MASt3R-SLAM's keyframe utility `tau = 1 - min(f_m, f_u)`, and drops
 //! frames whose utility is below the threshold. Everything but the glue is plain Rust:
 //! [`policy`] (the gate), [`scorer`] (ONNX Runtime), [`preprocess`] (frame → tensor), [`meta`]
-//! (`LeanGateMeta`), [`runtime`] (finding libonnxruntime), [`stats`].
+//! (`LeanGateMeta`), [`runtime`] (finding libonnxruntime), [`stats`]; and for the tools:
+//! [`dataset`] (TUM-layout sequences), [`teacher`] (the exact geometric score), [`synth`]
+//! (procedural RGB-D scenes).
 
 use gst::glib;
 
+pub mod dataset;
 pub mod leangate;
 pub mod meta;
 pub mod policy;
@@ -15,6 +18,8 @@ pub mod preprocess;
 pub mod runtime;
 pub mod scorer;
 pub mod stats;
+pub mod synth;
+pub mod teacher;
 
 fn plugin_init(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     meta::register();
