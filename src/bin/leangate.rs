@@ -1,1 +1,416 @@
-fn main() {}
+//! `leangate`: the command-line tool around the plugin's library.
+//!
+//! - `leangate synth`: render a synthetic RGB-D sequence (TUM layout) with a human-like camera path;
+//! - `leangate label`: the exact geometric teacher on pairs of a sequence with depth and poses;
+//! - `leangate eval`: judge gating policies (the model in the real element, the oracle, stride,
+//!   pixel difference) against the teacher.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+use gstleangate::dataset::{RgbFormat, Sequence};
+use gstleangate::eval;
+use gstleangate::policy::GateConfig;
+use gstleangate::synth::{self, MotionProfile, SynthConfig};
+use gstleangate::teacher::{self, Teacher, TeacherConfig};
+
+#[derive(Parser)]
+#[command(
+    name = "leangate",
+    version,
+    about = "LeanGate: geometric-utility frame gating for monocular SLAM"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a synthetic indoor RGB-D sequence (rgb/, depth/, rgb.txt, depth.txt,
+    /// groundtruth.txt, intrinsics.txt).
+    Synth {
+        /// Output directory (created).
+        #[arg(long)]
+        out: PathBuf,
+        /// Seed: scene, textures, camera path and noise are determined by it.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Number of frames.
+        #[arg(long, default_value_t = 300)]
+        frames: usize,
+        /// Camera path: static, pan, shaky, walk, rotate, bursts, mixed.
+        #[arg(long, default_value = "mixed")]
+        motion: MotionProfile,
+        /// Folder of jpg/png images tiled on some surfaces.
+        #[arg(long)]
+        textures: Option<PathBuf>,
+        #[arg(long, default_value_t = 640)]
+        width: u32,
+        #[arg(long, default_value_t = 480)]
+        height: u32,
+        #[arg(long, default_value_t = 30.0)]
+        fps: f64,
+        /// Gaussian sensor noise (standard deviation, 0..1 intensity).
+        #[arg(long, default_value_t = 0.01)]
+        noise: f32,
+        /// Motion blur (3 sub-frame renders per frame).
+        #[arg(long)]
+        blur: bool,
+        /// Exposure drift and a dimming in the middle of the sequence.
+        #[arg(long)]
+        lighting: bool,
+        /// Write colour frames as JPEG (quality 90) instead of PNG.
+        #[arg(long)]
+        jpeg: bool,
+    },
+    /// Label pairs with the exact geometric teacher (needs depth, poses and intrinsics).
+    /// Without --pairs/--within/--random: every frame against the oracle gate's reference.
+    Label {
+        /// Sequence directory (TUM layout).
+        #[arg(long)]
+        sequence: PathBuf,
+        /// CSV of pairs `i,j` (current, keyframe; frame indices; a header line is allowed).
+        #[arg(long, conflicts_with_all = ["within", "random"])]
+        pairs: Option<PathBuf>,
+        /// Every frame against each of its K predecessors.
+        #[arg(long, value_name = "K", conflicts_with = "random")]
+        within: Option<usize>,
+        /// N random pairs (i != j, |i-j| <= --max-gap), both orders, trajectory-agnostic.
+        #[arg(long, value_name = "N")]
+        random: Option<usize>,
+        /// Largest frame gap for --random.
+        #[arg(long, default_value_t = 90)]
+        max_gap: usize,
+        /// Seed for --random.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Threshold of the oracle gate (gate mode).
+        #[arg(long, default_value_t = 0.5)]
+        threshold: f64,
+        /// Working width of the depth (subsampled by an integer step).
+        #[arg(long, default_value_t = 160)]
+        working_width: u32,
+        /// 3-D distance below which a match is valid, metres.
+        #[arg(long, default_value_t = 0.1)]
+        max_dist: f64,
+        /// Output CSV (default: standard output).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Run the gating policies over a sequence or video and judge them against the teacher.
+    Eval {
+        /// Sequence directory (TUM layout, or rgb.txt/images only) or a video file.
+        #[arg(long)]
+        sequence: PathBuf,
+        /// Pair model (.onnx).
+        #[arg(long)]
+        model: Option<PathBuf>,
+        /// tau_keep (default: the model's leangate.threshold, else 0.5).
+        #[arg(long)]
+        threshold: Option<f64>,
+        /// Write the JSON report here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        /// Write the plot (PNG) here.
+        #[arg(long)]
+        plot: Option<PathBuf>,
+        #[arg(long, default_value_t = 160)]
+        working_width: u32,
+        #[arg(long, default_value_t = 0.1)]
+        max_dist: f64,
+    },
+}
+
+fn main() -> ExitCode {
+    match run(Cli::parse()) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("leangate: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+type Res = Result<(), Box<dyn std::error::Error>>;
+
+fn run(cli: Cli) -> Res {
+    match cli.command {
+        Command::Synth {
+            out,
+            seed,
+            frames,
+            motion,
+            textures,
+            width,
+            height,
+            fps,
+            noise,
+            blur,
+            lighting,
+            jpeg,
+        } => {
+            let cfg = SynthConfig {
+                seed,
+                frames,
+                width,
+                height,
+                fps,
+                motion,
+                textures,
+                noise,
+                blur,
+                lighting_changes: lighting,
+                rgb_format: if jpeg {
+                    RgbFormat::Jpeg(90)
+                } else {
+                    RgbFormat::Png
+                },
+            };
+            let s = synth::render_sequence(&cfg, &out)?;
+            eprintln!(
+                "wrote {} frames {}x{} to {} (render {:.1} frames/s, with writing {:.1} frames/s)",
+                s.frames,
+                s.width,
+                s.height,
+                out.display(),
+                s.render_fps(),
+                s.total_fps()
+            );
+            Ok(())
+        }
+        Command::Label {
+            sequence,
+            pairs,
+            within,
+            random,
+            max_gap,
+            seed,
+            threshold,
+            working_width,
+            max_dist,
+            out,
+        } => {
+            let seq = Sequence::open(&sequence)?;
+            let cfg = TeacherConfig {
+                working_width,
+                max_dist_m: max_dist,
+            };
+            let teacher = Teacher::from_sequence(&seq, &cfg)?;
+            let mut sink: Box<dyn Write> = match &out {
+                Some(p) => Box::new(std::io::BufWriter::new(
+                    std::fs::File::create(p).map_err(|e| format!("`{}`: {e}", p.display()))?,
+                )),
+                None => Box::new(std::io::BufWriter::new(std::io::stdout().lock())),
+            };
+            let list = if let Some(p) = pairs {
+                Some(read_pairs(&p, teacher.len())?)
+            } else if let Some(k) = within {
+                Some(teacher::pairs_within(teacher.len(), k))
+            } else {
+                random.map(|n| random_pairs(teacher.len(), n, max_gap, seed))
+            };
+            match list {
+                Some(list) => teacher::label_pairs_csv(&teacher, &list, &mut sink)?,
+                None => {
+                    let (trace, used) = eval::oracle_gate(
+                        &teacher,
+                        GateConfig {
+                            threshold,
+                            ..Default::default()
+                        },
+                    );
+                    let ts = teacher.timestamps();
+                    writeln!(sink, "i,ref,t_i,t_ref,f_m,f_u,s,tau,keep")?;
+                    for (i, u) in used.iter().enumerate() {
+                        match u {
+                            Some((r, s)) => writeln!(
+                                sink,
+                                "{i},{r},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{}",
+                                ts[i], ts[*r], s.f_m, s.f_u, s.s, s.tau, trace.keep[i] as u8
+                            )?,
+                            None => writeln!(sink, "{i},,{:.6},,,,,,1", ts[i])?,
+                        }
+                    }
+                    eprintln!(
+                        "oracle gate at threshold {threshold}: kept {} of {} frames",
+                        trace.kept(),
+                        trace.keep.len()
+                    );
+                }
+            }
+            sink.flush()?;
+            Ok(())
+        }
+        Command::Eval {
+            sequence,
+            model,
+            threshold,
+            json,
+            plot,
+            working_width,
+            max_dist,
+        } => {
+            let model = model.ok_or(
+                "no --model given: pass a LeanGate pair model (.onnx); see models/README.md",
+            )?;
+            eval_cmd(
+                &sequence,
+                &model,
+                threshold,
+                json,
+                plot,
+                working_width,
+                max_dist,
+            )
+        }
+    }
+}
+
+fn eval_cmd(
+    sequence: &Path,
+    model: &Path,
+    threshold: Option<f64>,
+    json: Option<PathBuf>,
+    plot: Option<PathBuf>,
+    working_width: u32,
+    max_dist: f64,
+) -> Res {
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{msg:>8} [{bar:40}] {pos}/{len} frames")
+            .unwrap()
+            .progress_chars("=> "),
+    );
+    let cfg = TeacherConfig {
+        working_width,
+        max_dist_m: max_dist,
+    };
+    let (report, data) = eval::evaluate(sequence, model, threshold, &cfg, |stage, done, total| {
+        bar.set_message(stage.to_string());
+        if total > 0 {
+            bar.set_length(total as u64);
+        }
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    let text = serde_json::to_string_pretty(&report)?;
+    if let Some(p) = &json {
+        std::fs::write(p, &text).map_err(|e| format!("`{}`: {e}", p.display()))?;
+    }
+    print_summary(&report);
+    if let Some(p) = &plot {
+        let title = format!(
+            "{} — threshold {:.3}",
+            sequence
+                .file_name()
+                .map(|s| s.to_string_lossy().to_string())
+                .unwrap_or_default(),
+            report.threshold
+        );
+        eval::plot(&data, &title, p)?;
+        eprintln!("plot written to {}", p.display());
+    }
+    Ok(())
+}
+
+fn print_summary(r: &eval::EvalReport) {
+    println!(
+        "{}: {} frames, threshold {:.3}",
+        r.sequence, r.frames, r.threshold
+    );
+    println!(
+        "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7}",
+        "policy",
+        "kept",
+        "ratio",
+        "x",
+        "breaks",
+        "late",
+        "min S",
+        "med S",
+        "overdue",
+        "rmse",
+        "fps"
+    );
+    let f = |v: &serde_json::Value, digits: usize| match v.as_f64() {
+        Some(x) if v.is_u64() => format!("{x:.0}"),
+        Some(x) => format!("{x:.digits$}"),
+        None => "-".to_string(),
+    };
+    for (name, p) in &r.policies {
+        let g = |k: &str| p.get(k).cloned().unwrap_or(serde_json::Value::Null);
+        println!(
+            "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7}",
+            name,
+            f(&g("kept"), 0),
+            f(&g("keep_ratio"), 3),
+            f(&g("downsample"), 1),
+            f(&g("breaks"), 0),
+            f(&g("late_keeps"), 0),
+            f(&g("min_pair_S"), 3),
+            f(&g("median_pair_S"), 3),
+            f(&g("overdue_drops"), 0),
+            f(&g("utility_rmse"), 3),
+            f(&g("fps"), 1),
+        );
+    }
+}
+
+fn read_pairs(path: &Path, n: usize) -> Result<Vec<(usize, usize)>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("`{}`: {e}", path.display()))?;
+    let mut out = Vec::new();
+    for (k, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let mut it = line.split([',', ' ', '\t']).filter(|s| !s.is_empty());
+        let (a, b) = (it.next(), it.next());
+        let parsed = a
+            .zip(b)
+            .and_then(|(a, b)| Some((a.parse::<usize>().ok()?, b.parse::<usize>().ok()?)));
+        match parsed {
+            Some((i, j)) if i < n && j < n => out.push((i, j)),
+            Some((i, j)) => {
+                return Err(format!(
+                    "`{}` line {}: pair ({i}, {j}) out of range ({n} frames)",
+                    path.display(),
+                    k + 1
+                ))
+            }
+            None if out.is_empty() && k == 0 => {} // header
+            None => {
+                return Err(format!(
+                    "`{}` line {}: expected `i,j` frame indices, got {line:?}",
+                    path.display(),
+                    k + 1
+                ))
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn random_pairs(n: usize, count: usize, max_gap: usize, seed: u64) -> Vec<(usize, usize)> {
+    let mut rng = synth::SplitMix64::new(seed ^ 0x5eed_1abe1);
+    let mut out = Vec::with_capacity(count);
+    if n < 2 {
+        return out;
+    }
+    while out.len() < count {
+        let i = rng.below(n);
+        let gap = 1 + rng.below(max_gap.max(1).min(n - 1));
+        let j = if rng.below(2) == 0 {
+            i.checked_sub(gap)
+        } else {
+            Some(i + gap).filter(|&j| j < n)
+        };
+        if let Some(j) = j {
+            out.push((i, j));
+        }
+    }
+    out
+}
