@@ -1,6 +1,6 @@
 //! Finding and loading ONNX Runtime (`libonnxruntime.so`), once per process.
 //!
-//! Search order: `$ORT_DYLIB_PATH`, then the path baked in at build time (the project-local copy that
+//! Search order: `$ORT_DYLIB_PATH` (alone, when set), else the path baked in at build time (the project-local copy that
 //! `make setup` extracts from the `onnxruntime==1.31.1` wheel), then the system loader
 //! (`libonnxruntime.so.1`, `libonnxruntime.so`). No ort API may be touched before this succeeds: ort
 //! would otherwise try its own default and panic.
@@ -42,17 +42,20 @@ impl std::error::Error for RuntimeError {}
 
 static ENV: Mutex<Option<(ort::environment::Environment, String)>> = Mutex::new(None);
 
-/// Candidate library paths, in search order, each with a description.
+/// Candidate library paths, in search order, each with a description. An explicit
+/// `$ORT_DYLIB_PATH` is the only candidate: a wrong explicit path is an error, not a silent
+/// fallback to another library.
 pub fn candidates() -> Vec<(String, PathBuf)> {
-    let mut v = Vec::new();
     match std::env::var("ORT_DYLIB_PATH") {
-        Ok(p) if !p.is_empty() => v.push((format!("ORT_DYLIB_PATH={p}"), PathBuf::from(p))),
+        Ok(p) if !p.is_empty() => {
+            return vec![(format!("ORT_DYLIB_PATH={p}"), PathBuf::from(p))];
+        }
         _ => {}
     }
-    v.push((
+    let mut v = vec![(
         format!("built-in path {BAKED_ORT_LIB}"),
         PathBuf::from(BAKED_ORT_LIB),
-    ));
+    )];
     for name in ["libonnxruntime.so.1", "libonnxruntime.so"] {
         v.push((format!("system loader ({name})"), PathBuf::from(name)));
     }
@@ -67,7 +70,7 @@ pub fn environment() -> Result<(ort::environment::Environment, String), RuntimeE
         return Ok(env.clone());
     }
     let mut attempts = Vec::new();
-    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
+    if std::env::var_os("ORT_DYLIB_PATH").is_none_or(|v| v.is_empty()) {
         attempts.push(("ORT_DYLIB_PATH".to_string(), "not set".to_string()));
     }
     for (what, path) in candidates() {

@@ -56,7 +56,12 @@ impl ExecutionProvider {
 #[derive(Debug, Clone)]
 pub enum ModelSource {
     File(PathBuf),
-    Memory { name: String, bytes: &'static [u8] },
+    /// Bytes compiled into the binary; `head` is the second half of a split model.
+    Memory {
+        name: String,
+        bytes: &'static [u8],
+        head: Option<&'static [u8]>,
+    },
 }
 
 impl ModelSource {
@@ -151,9 +156,30 @@ pub struct ModelInfo {
     pub threshold: Option<f64>,
 }
 
-/// A loaded pair model.
+/// The two model forms.
+enum Kind {
+    /// One graph: (reference, current) → utility.
+    Pair(Session),
+    /// `encoder` (image → features) and `head` (features, features → utility); the reference's
+    /// features are computed once and kept until the next keep.
+    Split {
+        encoder: Session,
+        head: Session,
+        reference: Option<Features>,
+        current: Option<Features>,
+        encoder_runs: u64,
+    },
+}
+
+#[derive(Debug, Clone)]
+struct Features {
+    shape: Vec<usize>,
+    data: Vec<f32>,
+}
+
+/// A loaded model (pair or split).
 pub struct Scorer {
-    session: Session,
+    kind: Kind,
     info: ModelInfo,
     provider: &'static str,
     /// Warnings collected while choosing the provider (`auto` fallbacks).
@@ -221,9 +247,46 @@ impl Scorer {
         for &provider in order {
             match build_session(&env, bytes, provider, opts) {
                 Ok(session) => {
-                    let info = validate(&session, &model)?;
+                    let (kind, info) =
+                        match model_kind(&session, &model)? {
+                            "pair" => {
+                                let info = validate_pair(&session, &model)?;
+                                (Kind::Pair(session), info)
+                            }
+                            "encoder" => {
+                                let info = validate_encoder(&session, &model)?;
+                                let (head_name, head_bytes) = head_bytes(source, &session, &model)?;
+                                let head = build_session(&env, &head_bytes, provider, opts)
+                                    .map_err(|e| match e {
+                                        BuildError::Parse(reason)
+                                        | BuildError::Provider(reason) => ScorerError::Parse {
+                                            model: head_name.clone(),
+                                            reason,
+                                        },
+                                    })?;
+                                validate_head(&head, &head_name)?;
+                                (
+                                    Kind::Split {
+                                        encoder: session,
+                                        head,
+                                        reference: None,
+                                        current: None,
+                                        encoder_runs: 0,
+                                    },
+                                    info,
+                                )
+                            }
+                            _ => {
+                                return Err(ScorerError::Contract {
+                                    model,
+                                    reason: "it is the head of a split model; set `model` to its \
+                                         encoder (leangate.kind = encoder)"
+                                        .into(),
+                                })
+                            }
+                        };
                     return Ok(Scorer {
-                        session,
+                        kind,
                         info,
                         provider: provider.as_str(),
                         warnings,
@@ -258,7 +321,21 @@ impl Scorer {
         self.provider
     }
 
-    /// Score one pair of preprocessed tensors (CHW, `spec.len()` elements each).
+    /// Whether this is a split model (encoder + head, with the reference's features cached).
+    pub fn is_split(&self) -> bool {
+        matches!(self.kind, Kind::Split { .. })
+    }
+
+    /// Encoder runs so far (split models; 0 for pair models).
+    pub fn encoder_runs(&self) -> u64 {
+        match &self.kind {
+            Kind::Split { encoder_runs, .. } => *encoder_runs,
+            Kind::Pair(_) => 0,
+        }
+    }
+
+    /// Score one pair of preprocessed tensors (CHW, `spec.len()` elements each). A split model
+    /// encodes `reference` only when it has no cached features for it (see [`Scorer::on_keep`]).
     pub fn score(&mut self, reference: &[f32], current: &[f32]) -> Result<f32, ScorerError> {
         let spec = &self.info.spec;
         let shape = [1usize, 3, spec.height as usize, spec.width as usize];
@@ -271,29 +348,152 @@ impl Scorer {
                 spec.width
             )));
         }
-        let r = TensorRef::from_array_view((shape, reference))
-            .map_err(|e| ScorerError::Inference(e.to_string()))?;
-        let c = TensorRef::from_array_view((shape, current))
-            .map_err(|e| ScorerError::Inference(e.to_string()))?;
-        let outputs = self
-            .session
-            .run(ort::inputs!["reference" => r, "current" => c])
-            .map_err(|e| ScorerError::Inference(e.to_string()))?;
-        let out = outputs
-            .get("utility")
-            .ok_or_else(|| ScorerError::Inference("no `utility` output".into()))?;
-        let (_, data) = out
-            .try_extract_tensor::<f32>()
-            .map_err(|e| ScorerError::Inference(e.to_string()))?;
-        let u = *data
-            .first()
-            .ok_or_else(|| ScorerError::Inference("`utility` output is empty".into()))?;
+        let inf = |e: ort::Error| ScorerError::Inference(e.to_string());
+        let u = match &mut self.kind {
+            Kind::Pair(session) => {
+                let r = TensorRef::from_array_view((shape, reference)).map_err(inf)?;
+                let c = TensorRef::from_array_view((shape, current)).map_err(inf)?;
+                let outputs = session
+                    .run(ort::inputs!["reference" => r, "current" => c])
+                    .map_err(inf)?;
+                first_utility(&outputs)?
+            }
+            Kind::Split {
+                encoder,
+                head,
+                reference: ref_feat,
+                current: cur_feat,
+                encoder_runs,
+            } => {
+                if ref_feat.is_none() {
+                    *ref_feat = Some(encode(encoder, shape, reference)?);
+                    *encoder_runs += 1;
+                }
+                let cf = encode(encoder, shape, current)?;
+                *encoder_runs += 1;
+                let rf = ref_feat.as_ref().unwrap();
+                let r =
+                    TensorRef::from_array_view((rf.shape.clone(), &rf.data[..])).map_err(inf)?;
+                let c =
+                    TensorRef::from_array_view((cf.shape.clone(), &cf.data[..])).map_err(inf)?;
+                let outputs = head
+                    .run(ort::inputs!["reference_features" => r, "current_features" => c])
+                    .map_err(inf)?;
+                let u = first_utility(&outputs)?;
+                drop(outputs);
+                *cur_feat = Some(cf);
+                u
+            }
+        };
         if !u.is_finite() {
             return Err(ScorerError::Inference(format!(
                 "`utility` is not finite ({u})"
             )));
         }
         Ok(u)
+    }
+
+    /// The frame just decided was kept and is the new reference. `scored`: it was scored by the
+    /// last [`Scorer::score`] call (its features can be reused); otherwise the reference's
+    /// features are recomputed at the next score.
+    pub fn on_keep(&mut self, scored: bool) {
+        if let Kind::Split {
+            reference, current, ..
+        } = &mut self.kind
+        {
+            *reference = if scored { current.take() } else { None };
+            *current = None;
+        }
+    }
+
+    /// Forget the reference (reset, flush, caps change).
+    pub fn reset_reference(&mut self) {
+        self.on_keep(false);
+    }
+}
+
+fn encode(
+    encoder: &mut Session,
+    shape: [usize; 4],
+    image: &[f32],
+) -> Result<Features, ScorerError> {
+    let inf = |e: ort::Error| ScorerError::Inference(e.to_string());
+    let t = TensorRef::from_array_view((shape, image)).map_err(inf)?;
+    let outputs = encoder.run(ort::inputs!["image" => t]).map_err(inf)?;
+    let f = outputs
+        .get("features")
+        .ok_or_else(|| ScorerError::Inference("no `features` output".into()))?;
+    let (shape, data) = f.try_extract_tensor::<f32>().map_err(inf)?;
+    Ok(Features {
+        shape: shape.iter().map(|&d| d.max(0) as usize).collect(),
+        data: data.to_vec(),
+    })
+}
+
+fn first_utility(outputs: &ort::session::SessionOutputs) -> Result<f32, ScorerError> {
+    let out = outputs
+        .get("utility")
+        .ok_or_else(|| ScorerError::Inference("no `utility` output".into()))?;
+    let (_, data) = out
+        .try_extract_tensor::<f32>()
+        .map_err(|e| ScorerError::Inference(e.to_string()))?;
+    data.first()
+        .copied()
+        .ok_or_else(|| ScorerError::Inference("`utility` output is empty".into()))
+}
+
+/// `leangate.kind`: `pair` (default), `encoder` or `head`.
+fn model_kind(session: &Session, model: &str) -> Result<&'static str, ScorerError> {
+    let meta = session.metadata().map_err(|e| ScorerError::Metadata {
+        model: model.to_string(),
+        reason: format!("unreadable: {e}"),
+    })?;
+    match meta.custom("leangate.kind").as_deref().map(str::trim) {
+        None | Some("") | Some("pair") => Ok("pair"),
+        Some("encoder") => Ok("encoder"),
+        Some("head") => Ok("head"),
+        Some(other) => Err(ScorerError::Metadata {
+            model: model.to_string(),
+            reason: format!("leangate.kind = {other:?}, expected `pair`, `encoder` or `head`"),
+        }),
+    }
+}
+
+/// The head of a split model: embedded bytes, or the file named by `leangate.head` beside the
+/// encoder.
+fn head_bytes(
+    source: &ModelSource,
+    encoder: &Session,
+    model: &str,
+) -> Result<(String, std::borrow::Cow<'static, [u8]>), ScorerError> {
+    match source {
+        ModelSource::Memory {
+            name,
+            head: Some(h),
+            ..
+        } => Ok((format!("embedded model `{name}` (head)"), (*h).into())),
+        ModelSource::Memory { .. } => Err(ScorerError::Contract {
+            model: model.to_string(),
+            reason: "an embedded split encoder without its head".into(),
+        }),
+        ModelSource::File(p) => {
+            let meta = encoder.metadata().map_err(|e| ScorerError::Metadata {
+                model: model.to_string(),
+                reason: format!("unreadable: {e}"),
+            })?;
+            let name = meta
+                .custom("leangate.head")
+                .filter(|h| !h.trim().is_empty())
+                .ok_or_else(|| ScorerError::Metadata {
+                    model: model.to_string(),
+                    reason: "a split encoder (leangate.kind = encoder) must name its head file in \
+                             leangate.head"
+                        .into(),
+                })?;
+            let path = p.parent().unwrap_or(Path::new(".")).join(name.trim());
+            let bytes = read_model_file(&path)?;
+            Ok((format!("`{}`", path.display()), bytes.into()))
+        }
     }
 }
 
@@ -377,63 +577,130 @@ fn build_session(
     })
 }
 
-/// Check the graph against the contract and merge it with the metadata.
-fn validate(session: &Session, model: &str) -> Result<ModelInfo, ScorerError> {
+fn input_dims(
+    session: &Session,
+    want: &str,
+    rank4: bool,
+    model: &str,
+) -> Result<Vec<i64>, ScorerError> {
     let contract = |reason: String| ScorerError::Contract {
         model: model.to_string(),
         reason,
     };
-    let meta_err = |reason: String| ScorerError::Metadata {
+    let names: Vec<&str> = session.inputs().iter().map(|i| i.name()).collect();
+    let input = session
+        .inputs()
+        .iter()
+        .find(|i| i.name() == want)
+        .ok_or_else(|| contract(format!("it has inputs {names:?}, no `{want}`")))?;
+    let (ty, dims) = tensor_dims(input.dtype())
+        .ok_or_else(|| contract(format!("input `{want}` is not a tensor")))?;
+    if ty != TensorElementType::Float32 {
+        return Err(contract(format!("input `{want}` is {ty:?}, not float32")));
+    }
+    if rank4 && (dims.len() != 4 || (dims[1] != 3 && dims[1] >= 0)) {
+        return Err(contract(format!("input `{want}` has shape {dims:?}")));
+    }
+    Ok(dims)
+}
+
+fn check_inputs_count(session: &Session, n: usize, model: &str) -> Result<(), ScorerError> {
+    let names: Vec<&str> = session.inputs().iter().map(|i| i.name()).collect();
+    if names.len() != n {
+        return Err(ScorerError::Contract {
+            model: model.to_string(),
+            reason: format!("it has {} inputs {names:?}", names.len()),
+        });
+    }
+    Ok(())
+}
+
+fn check_output(
+    session: &Session,
+    want: &str,
+    utility: bool,
+    model: &str,
+) -> Result<(), ScorerError> {
+    let contract = |reason: String| ScorerError::Contract {
         model: model.to_string(),
         reason,
     };
-    let names: Vec<&str> = session.inputs().iter().map(|i| i.name()).collect();
-    let mut sizes = Vec::new();
-    for want in ["reference", "current"] {
-        let input = session
-            .inputs()
-            .iter()
-            .find(|i| i.name() == want)
-            .ok_or_else(|| contract(format!("it has inputs {names:?}, no `{want}`")))?;
-        let (ty, dims) = tensor_dims(input.dtype())
-            .ok_or_else(|| contract(format!("input `{want}` is not a tensor")))?;
-        if ty != TensorElementType::Float32 {
-            return Err(contract(format!("input `{want}` is {ty:?}, not float32")));
-        }
-        if dims.len() != 4 || (dims[1] != 3 && dims[1] >= 0) {
-            return Err(contract(format!("input `{want}` has shape {dims:?}")));
-        }
-        sizes.push((dims[3], dims[2]));
-    }
-    if names.len() != 2 {
-        return Err(contract(format!("it has {} inputs {names:?}", names.len())));
-    }
     let onames: Vec<&str> = session.outputs().iter().map(|o| o.name()).collect();
     let out = session
         .outputs()
         .iter()
-        .find(|o| o.name() == "utility")
-        .ok_or_else(|| contract(format!("it has outputs {onames:?}, no `utility`")))?;
+        .find(|o| o.name() == want)
+        .ok_or_else(|| contract(format!("it has outputs {onames:?}, no `{want}`")))?;
     let (ty, dims) = tensor_dims(out.dtype())
-        .ok_or_else(|| contract("output `utility` is not a tensor".into()))?;
+        .ok_or_else(|| contract(format!("output `{want}` is not a tensor")))?;
     if ty != TensorElementType::Float32 {
-        return Err(contract(format!("output `utility` is {ty:?}, not float32")));
+        return Err(contract(format!("output `{want}` is {ty:?}, not float32")));
     }
-    if !(dims.len() == 1 || (dims.len() == 2 && (dims[1] == 1 || dims[1] < 0))) {
-        return Err(contract(format!("output `utility` has shape {dims:?}")));
+    if utility && !(dims.len() == 1 || (dims.len() == 2 && (dims[1] == 1 || dims[1] < 0))) {
+        return Err(contract(format!("output `{want}` has shape {dims:?}")));
     }
-    if sizes[0] != sizes[1] {
-        return Err(contract(format!(
-            "inputs `reference` and `current` differ in size ({:?} vs {:?})",
-            sizes[0], sizes[1]
-        )));
-    }
+    Ok(())
+}
 
+/// Check a pair model against the contract and merge it with the metadata.
+fn validate_pair(session: &Session, model: &str) -> Result<ModelInfo, ScorerError> {
+    let r = input_dims(session, "reference", true, model)?;
+    let c = input_dims(session, "current", true, model)?;
+    check_inputs_count(session, 2, model)?;
+    check_output(session, "utility", true, model)?;
+    if (r[2], r[3]) != (c[2], c[3]) {
+        return Err(ScorerError::Contract {
+            model: model.to_string(),
+            reason: format!("inputs `reference` and `current` differ in size ({r:?} vs {c:?})"),
+        });
+    }
+    read_metadata(session, (r[3], r[2]), model)
+}
+
+/// The encoder of a split model: `image` [N,3,H,W] → `features`.
+fn validate_encoder(session: &Session, model: &str) -> Result<ModelInfo, ScorerError> {
+    let d = input_dims(session, "image", true, model).map_err(split_hint)?;
+    check_inputs_count(session, 1, model).map_err(split_hint)?;
+    check_output(session, "features", false, model).map_err(split_hint)?;
+    read_metadata(session, (d[3], d[2]), model)
+}
+
+/// The head of a split model: `reference_features`, `current_features` → `utility`.
+fn validate_head(session: &Session, model: &str) -> Result<(), ScorerError> {
+    input_dims(session, "reference_features", false, model).map_err(split_hint)?;
+    input_dims(session, "current_features", false, model).map_err(split_hint)?;
+    check_inputs_count(session, 2, model).map_err(split_hint)?;
+    check_output(session, "utility", true, model).map_err(split_hint)
+}
+
+fn split_hint(e: ScorerError) -> ScorerError {
+    match e {
+        ScorerError::Contract { model, reason } => ScorerError::Contract {
+            model,
+            reason: format!(
+                "{reason} (a split model is an encoder `image` [N,3,H,W] → `features` and a head \
+                 (`reference_features`, `current_features`) → `utility`)"
+            ),
+        },
+        e => e,
+    }
+}
+
+/// Merge the graph's input size (`(W, H)`, negative = dynamic) with the `leangate.*` metadata.
+fn read_metadata(
+    session: &Session,
+    size: (i64, i64),
+    model: &str,
+) -> Result<ModelInfo, ScorerError> {
+    let meta_err = |reason: String| ScorerError::Metadata {
+        model: model.to_string(),
+        reason,
+    };
     let meta = session
         .metadata()
         .map_err(|e| meta_err(format!("unreadable: {e}")))?;
     let get = |k: &str| meta.custom(k).filter(|v| !v.trim().is_empty());
-    let graph_size = match sizes[0] {
+    let graph_size = match size {
         (w, h) if w > 0 && h > 0 => Some((w as u32, h as u32)),
         _ => None,
     };

@@ -525,3 +525,35 @@ fn real_clip_through_decodebin() {
         "a slow pan keeps some, not all: {kept}/{fin}"
     );
 }
+
+#[test]
+fn split_model_in_the_element_matches_the_pair_model() {
+    let run = |model: &str| {
+        let mut h = harness(
+            &format!("model={} mode=annotate", fixture(model)),
+            &rgb_caps(W, H),
+        );
+        for (i, g) in [0u8, 40, 40, 200, 90, 90].iter().enumerate() {
+            h.push(buffer(solid(W, H, [*g, *g, *g]), i as u64 * 33))
+                .unwrap();
+        }
+        drain(&mut h).iter().map(meta).collect::<Vec<_>>()
+    };
+    let pair = run("mad.onnx");
+    let split = run("split_encoder.onnx");
+    assert_eq!(pair.len(), 6);
+    for (p, s) in pair.iter().zip(&split) {
+        assert_eq!((p.keep, p.reason), (s.keep, s.reason));
+        assert!(
+            (p.utility.is_nan() && s.utility.is_nan()) || (p.utility - s.utility).abs() < 1e-6,
+            "{} vs {}",
+            p.utility,
+            s.utility
+        );
+    }
+    assert_eq!(
+        pair.iter().filter(|m| m.keep).count(),
+        3,
+        "0, 200, 90 are kept"
+    );
+}

@@ -562,6 +562,8 @@ impl BaseTransformImpl for LeanGate {
             state.reference_pts
         };
         if decision.keep {
+            // A split model reuses the features it just computed for this frame.
+            state.scorer.on_keep(matches!(score, Score::Utility(_)));
             if !frame_readable {
                 // The frame could not be read: it cannot serve as a reference tensor.
                 state.gate.drop_reference();

@@ -1,0 +1,47 @@
+# LeanGate — the two commands a newcomer needs are `make demo` and `make test`; both install
+# what they need first (scripts/setup.sh: apt packages, ONNX Runtime, a Python venv).
+
+CARGO ?= cargo
+PLUGIN_DIR := $(CURDIR)/target/release
+DEMO_DIR ?= out/demo
+
+.PHONY: all setup build release fixtures test bench demo inspect clean
+
+all: build
+
+setup:
+	bash scripts/setup.sh
+
+build: setup
+	$(CARGO) build
+
+release: setup
+	$(CARGO) build --release
+
+# Regenerate the ONNX fixture models the tests use (deterministic).
+fixtures: setup
+	.venv/bin/python tests/fixtures/make_fixtures.py tests/fixtures
+
+# Everything: unit tests, element harness tests, pipeline tests on real clips (skipped when
+# ../shared is absent), the Python appsink client, the CLI end to end. `cargo build` first: the
+# gst-launch and Python tests load the cdylib target/debug/libgstleangate.so, which `cargo test`
+# alone does not rebuild.
+test: setup fixtures
+	$(CARGO) build --all-targets
+	$(CARGO) test --all-targets --no-fail-fast
+
+bench: release
+	$(CARGO) bench
+
+# The main job: gate a synthetic flythrough (pauses and bursts) with the element in a real
+# pipeline, print frames in/kept, write the eval plot and a contact sheet of the kept frames.
+demo: release
+	bash scripts/demo.sh $(DEMO_DIR)
+
+# gst-inspect-1.0 documentation of the element.
+inspect: release
+	GST_PLUGIN_PATH=$(PLUGIN_DIR) gst-inspect-1.0 leangate
+
+clean:
+	$(CARGO) clean
+	rm -rf out

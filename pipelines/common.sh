@@ -1,0 +1,69 @@
+# Shared set-up for the example pipelines (sourced, not run).
+#
+# - REPO: the checkout holding these scripts.
+# - Makes `leangate` findable: when gst-inspect-1.0 cannot find it, prepends the repository's
+#   target/release and target/debug to GST_PLUGIN_PATH; fails with a clear message if the
+#   plugin is still missing (build it with `cargo build`).
+# - MODEL / MODEL_PROP: the model file, from $LEANGATE_MODEL. Empty means "the element's
+#   default" (a trained model will be embedded in the plugin); until that ships, the fixture
+#   tests/fixtures/mad.onnx is used as the default (see pipelines/README.md).
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+
+leangate_require_plugin() {
+    if ! command -v gst-launch-1.0 >/dev/null 2>&1; then
+        echo "error: gst-launch-1.0 not found (apt install gstreamer1.0-tools)" >&2
+        exit 2
+    fi
+    if ! gst-inspect-1.0 leangate >/dev/null 2>&1; then
+        local d
+        for d in "$REPO/target/debug" "$REPO/target/release"; do
+            if [ -e "$d/libgstleangate.so" ]; then
+                export GST_PLUGIN_PATH="$d${GST_PLUGIN_PATH:+:$GST_PLUGIN_PATH}"
+            fi
+        done
+        if ! gst-inspect-1.0 leangate >/dev/null 2>&1; then
+            echo "error: GStreamer element 'leangate' not found. Build it (cd $REPO && cargo build)" \
+                 "and set GST_PLUGIN_PATH=$REPO/target/debug" >&2
+            exit 2
+        fi
+    fi
+}
+
+# Until the trained model is embedded in the plugin, default to the fixture model.
+# (Delete this line once `model` is optional: an empty MODEL then means the built-in model.)
+: "${LEANGATE_MODEL:=$REPO/tests/fixtures/mad.onnx}"
+
+MODEL="${LEANGATE_MODEL:-}"
+if [ -n "$MODEL" ]; then
+    if [ ! -f "$MODEL" ]; then
+        echo "error: model not found: $MODEL" >&2
+        exit 2
+    fi
+    MODEL_PROP="model=$MODEL"
+else
+    MODEL_PROP=""
+fi
+
+# Print the frames in/kept figures from `gst-launch-1.0 -m` output on stdin (the element's
+# `leangate-stats` message, posted at EOS), passing every line through.
+leangate_summarise() {
+    awk '
+        { print }
+        /leangate-stats/ {
+            stats = $0
+        }
+        END {
+            if (stats == "") { print "summary: no leangate-stats message (did the pipeline reach EOS?)"; exit }
+            n = split("frames-in frames-kept keep-ratio inference-mean-us inference-p99-us execution-provider threshold", k, " ")
+            line = "summary:"
+            for (i = 1; i <= n; i++) {
+                if (match(stats, k[i] "=\\([a-z0-9]+\\)[^,;]*")) {
+                    v = substr(stats, RSTART, RLENGTH)
+                    sub(/=\([a-z0-9]+\)/, "=", v)
+                    line = line " " v
+                }
+            }
+            print line
+        }'
+}

@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# file.sh — gate a video file with leangate and print how many frames were kept.
+#
+# Usage:  pipelines/file.sh VIDEO [THRESHOLD]
+# Env:    LEANGATE_MODEL  model (.onnx); default: the element's (fixture tests/fixtures/mad.onnx
+#                         until the trained model is embedded)
+#         SINK            where kept frames go; default "fakesink sync=false" (as fast as possible);
+#                         SINK="videoconvert ! autovideosink" to watch the kept frames
+#         MODE            drop (default) or annotate
+#
+# Equivalent gst-launch line (-m prints bus messages, including the `leangate-stats` element
+# message posted at EOS with frames-in, frames-kept, keep-ratio and inference timings):
+#
+#   GST_PLUGIN_PATH=target/debug gst-launch-1.0 -m \
+#       filesrc location=VIDEO ! decodebin ! \
+#       leangate model=tests/fixtures/mad.onnx threshold=0.05 ! fakesink sync=false
+#
+# decodebin's usual outputs (I420, NV12, RGB...) link to leangate directly: no videoconvert.
+set -euo pipefail
+. "$(dirname "$0")/common.sh"
+
+if [ $# -lt 1 ]; then
+    sed -n '2,20p' "$0" >&2
+    exit 2
+fi
+VIDEO="$1"
+THRESHOLD="${2:-}"
+[ -f "$VIDEO" ] || { echo "error: no such file: $VIDEO" >&2; exit 2; }
+leangate_require_plugin
+
+SINK="${SINK:-fakesink sync=false}"
+MODE="${MODE:-drop}"
+set -f # no globbing: the pipeline words below are passed as they are
+# shellcheck disable=SC2086
+gst-launch-1.0 -m \
+    filesrc location="$VIDEO" ! decodebin ! \
+    leangate $MODEL_PROP ${THRESHOLD:+threshold=$THRESHOLD} mode="$MODE" ! \
+    $SINK | leangate_summarise
+exit "${PIPESTATUS[0]}"

@@ -1,0 +1,64 @@
+#!/usr/bin/env bash
+# Install everything LeanGate needs on a Debian 12 machine, idempotently:
+#   1. GStreamer 1.22 development files, tools, plugins and Python bindings (apt);
+#   2. ONNX Runtime 1.31.1: libonnxruntime.so from the PyPI wheel, extracted into .deps/
+#      (ORT_FLAVOR=gpu takes onnxruntime-gpu==1.31.1, for CUDA 13, into .deps/onnxruntime-gpu);
+#   3. a project-local Python venv (.venv) with `onnx` to regenerate the test fixture models.
+# Safe to run again: each step is skipped when already done.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+ORT_VERSION=1.31.1
+ORT_FLAVOR=${ORT_FLAVOR:-cpu}
+
+APT_PACKAGES=(pkg-config libgstreamer1.0-dev libgstreamer-plugins-base1.0-dev gstreamer1.0-tools
+  gstreamer1.0-plugins-base gstreamer1.0-plugins-good gstreamer1.0-libav python3-gi
+  gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 python3-gst-1.0 python3-numpy
+  python3-venv fonts-dejavu-core unzip)
+
+missing=()
+for p in "${APT_PACKAGES[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if ((${#missing[@]})); then
+  echo "setup: installing apt packages: ${missing[*]}"
+  SUDO=""
+  if [ "$(id -u)" != 0 ]; then
+    command -v sudo >/dev/null || { echo "setup: need root or sudo to install: ${missing[*]}" >&2; exit 1; }
+    SUDO=sudo
+  fi
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
+fi
+
+# A Python with pip for downloading wheels (pyenv's or Debian's).
+PY=""
+for c in python3 /usr/bin/python3; do
+  if command -v "$c" >/dev/null && "$c" -m pip --version >/dev/null 2>&1; then PY=$c; break; fi
+done
+
+if [ "$ORT_FLAVOR" = gpu ]; then
+  ORT_DIR=.deps/onnxruntime-gpu; WHEEL=onnxruntime-gpu
+else
+  ORT_DIR=.deps/onnxruntime; WHEEL=onnxruntime
+fi
+if [ ! -f "$ORT_DIR/libonnxruntime.so.$ORT_VERSION" ]; then
+  [ -n "$PY" ] || { echo "setup: no python3 with pip to download the $WHEEL wheel" >&2; exit 1; }
+  echo "setup: downloading $WHEEL==$ORT_VERSION from PyPI"
+  tmp=$(mktemp -d)
+  "$PY" -m pip download -q --no-deps --only-binary=:all: -d "$tmp" "$WHEEL==$ORT_VERSION"
+  mkdir -p "$ORT_DIR"
+  # The shared libraries live in onnxruntime/capi/ inside the wheel.
+  unzip -q -o -j "$tmp"/*.whl 'onnxruntime/capi/libonnxruntime*.so*' -d "$ORT_DIR"
+  rm -rf "$tmp"
+  ln -sf "libonnxruntime.so.$ORT_VERSION" "$ORT_DIR/libonnxruntime.so"
+  echo "setup: ONNX Runtime in $ORT_DIR"
+fi
+
+if [ ! -x .venv/bin/python ] || ! .venv/bin/python -c 'import onnx' 2>/dev/null; then
+  [ -n "$PY" ] || PY=/usr/bin/python3
+  echo "setup: creating .venv with onnx"
+  "$PY" -m venv .venv
+  .venv/bin/pip install -q --disable-pip-version-check onnx==1.23.2 numpy
+fi
+echo "setup: done"

@@ -1,0 +1,340 @@
+//! The tools as a user runs them: `gst-inspect-1.0` / `gst-launch-1.0` on the built plugin, and the
+//! `leangate` CLI end to end (synth → label → eval).
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// target/debug (holds libgstleangate.so and the `leangate` binary).
+fn target_dir() -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    exe.parent().unwrap().parent().unwrap().to_path_buf()
+}
+
+fn gst_cmd(tool: &str) -> Command {
+    let mut c = Command::new(tool);
+    c.env("GST_PLUGIN_PATH", target_dir())
+        .env("GST_REGISTRY", target_dir().join("test-registry.bin"));
+    c
+}
+
+fn leangate() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_leangate"))
+}
+
+#[test]
+fn gst_inspect_documents_every_property() {
+    let out = gst_cmd("gst-inspect-1.0").arg("leangate").output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for p in [
+        "model",
+        "threshold",
+        "warmup",
+        "max-gap",
+        "mode",
+        "execution-provider",
+        "device-id",
+        "threads",
+        "stats-interval",
+        "frames-in",
+        "frames-kept",
+    ] {
+        assert!(
+            text.contains(&format!("  {p}  ")) || text.contains(&format!("  {p} ")),
+            "{p} not in gst-inspect output"
+        );
+    }
+    assert!(text.contains("tau_keep") && text.contains("annotate"));
+}
+
+#[test]
+fn gst_launch_missing_model_fails_cleanly_with_the_path() {
+    let out = gst_cmd("gst-launch-1.0")
+        .args([
+            "videotestsrc",
+            "num-buffers=3",
+            "!",
+            "leangate",
+            "model=/no/such/student.onnx",
+            "!",
+            "fakesink",
+        ])
+        .output()
+        .unwrap();
+    let err =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("/no/such/student.onnx"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+#[test]
+fn gst_launch_without_onnx_runtime_names_ort_dylib_path() {
+    let out = gst_cmd("gst-launch-1.0")
+        .env("ORT_DYLIB_PATH", "/nonexistent/libonnxruntime.so")
+        .args(["videotestsrc", "num-buffers=3", "!", "leangate"])
+        .arg(format!("model={}", common::fixture("mad.onnx")))
+        .args(["!", "fakesink"])
+        .output()
+        .unwrap();
+    let err =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("ORT_DYLIB_PATH=/nonexistent/libonnxruntime.so") && err.contains("make setup"),
+        "{err}"
+    );
+}
+
+#[test]
+fn gst_launch_runs_a_real_pipeline() {
+    let out = gst_cmd("gst-launch-1.0")
+        .args([
+            "-m",
+            "videotestsrc",
+            "num-buffers=20",
+            "pattern=ball",
+            "!",
+            "video/x-raw,width=160,height=120",
+            "!",
+            "leangate",
+        ])
+        .arg(format!("model={}", common::fixture("mad.onnx")))
+        .args(["threshold=0.01", "!", "fakesink"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        text.contains("leangate-stats") && text.contains("frames-in=(guint64)20"),
+        "{text}"
+    );
+}
+
+fn synth(dir: &Path, frames: usize, motion: &str, seed: u64) {
+    let out = leangate()
+        .args(["synth", "--out"])
+        .arg(dir)
+        .args([
+            "--seed",
+            &seed.to_string(),
+            "--frames",
+            &frames.to_string(),
+            "--motion",
+            motion,
+        ])
+        .args(["--width", "160", "--height", "120"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn synth_label_eval_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 40, "mixed", 7);
+
+    // label: explicit pairs, and the oracle gate mode.
+    let pairs = dir.path().join("pairs.csv");
+    std::fs::write(&pairs, "i,j\n0,0\n10,0\n39,0\n").unwrap();
+    let out = leangate()
+        .args(["label", "--sequence"])
+        .arg(&seq)
+        .arg("--pairs")
+        .arg(&pairs)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let csv = String::from_utf8(out.stdout).unwrap();
+    let rows: Vec<Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 3);
+    assert_eq!(rows[0][7], 0.0, "a frame against itself has tau 0");
+    assert!(rows.iter().all(|r| (0.0..=1.0).contains(&r[7])));
+
+    // eval: every policy judged; the oracle judged against itself is perfect.
+    let json = dir.path().join("eval.json");
+    let plot = dir.path().join("eval.png");
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&seq)
+        .args([
+            "--model",
+            &common::fixture("mad.onnx"),
+            "--threshold",
+            "0.05",
+            "--json",
+        ])
+        .arg(&json)
+        .arg("--plot")
+        .arg(&plot)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["frames"], 40);
+    assert_eq!(v["threshold"], 0.05);
+    let oracle = &v["policies"]["oracle"];
+    assert_eq!(oracle["overdue_drops"], 0);
+    assert_eq!(oracle["utility_mae"], 0.0);
+    assert_eq!(oracle["utility_rmse"], 0.0);
+    for name in ["model", "oracle", "stride", "pixel_diff"] {
+        let p = &v["policies"][name];
+        for k in [
+            "kept",
+            "keep_ratio",
+            "downsample",
+            "breaks",
+            "late_keeps",
+            "min_pair_S",
+            "median_pair_S",
+            "overdue_drops",
+        ] {
+            assert!(p.get(k).is_some(), "{name}.{k} missing");
+        }
+        assert!(p["kept"].as_u64().unwrap() >= 1);
+    }
+    assert!(v["policies"]["model"]["fps"].as_f64().unwrap() > 0.0);
+    assert!(v["policies"]["stride"].get("utility_rmse").is_none());
+    let png = std::fs::read(&plot).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+}
+
+#[test]
+fn eval_on_real_rgbd_has_every_key() {
+    let Some(seq) = common::shared_data("7scenes_redkitchen_dev") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("eval.json");
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&seq)
+        .args([
+            "--model",
+            &common::fixture("mad.onnx"),
+            "--threshold",
+            "0.02",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["frames"], 60);
+    let model = &v["policies"]["model"];
+    for k in [
+        "kept",
+        "keep_ratio",
+        "downsample",
+        "breaks",
+        "late_keeps",
+        "min_pair_S",
+        "median_pair_S",
+        "overdue_drops",
+        "utility_mae",
+        "utility_rmse",
+        "fps",
+    ] {
+        assert!(!model[k].is_null(), "model.{k} is null");
+    }
+}
+
+#[test]
+fn eval_without_depth_keeps_counts_and_nulls_teacher_keys() {
+    let Some(clip) = common::shared_data("cotracker_clips/apple.mp4") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("eval.json");
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&clip)
+        .args([
+            "--model",
+            &common::fixture("mad.onnx"),
+            "--threshold",
+            "0.05",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let model = &v["policies"]["model"];
+    assert!(model["kept"].as_u64().unwrap() >= 1);
+    assert!(model["breaks"].is_null() && model["utility_rmse"].is_null());
+    assert!(v["policies"].get("oracle").is_none());
+    assert!(v["policies"]["stride"]["kept"].as_u64().unwrap() >= 1);
+}
+
+#[test]
+fn clear_errors_for_bad_sequences() {
+    let out = leangate()
+        .args([
+            "eval",
+            "--sequence",
+            "/no/such/seq",
+            "--model",
+            &common::fixture("mad.onnx"),
+        ])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("/no/such/seq"), "{err}");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("rgb.txt"), "0.0 rgb/a.png\n").unwrap();
+    std::fs::write(dir.path().join("depth.txt"), "0.0 depth/a.png\n").unwrap();
+    std::fs::write(dir.path().join("groundtruth.txt"), "0.0 1 2 3\n").unwrap();
+    let out = leangate()
+        .args(["label", "--sequence"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("groundtruth.txt") && err.contains("line 1"),
+        "{err}"
+    );
+}

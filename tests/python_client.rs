@@ -1,0 +1,546 @@
+//! The Python hand-off (`pipelines/slam_client.py`) and the example scripts in `pipelines/`,
+//! run for real: Debian's /usr/bin/python3 with python3-gi, the `leangate` plugin built beside
+//! this test (target/<profile>/libgstleangate.so), ONNX Runtime, and the fixture model
+//! `mad.onnx` (utility = mean absolute difference of the two 64x64 pictures), so that the
+//! drop-mode and annotate-mode runs of the same deterministic input can be checked against each
+//! other.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+const PYTHON: &str = "/usr/bin/python3";
+const REASONS: [&str; 6] = ["first", "warmup", "score", "max-gap", "forced", "error"];
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn model() -> String {
+    repo().join("tests/fixtures/mad.onnx").display().to_string()
+}
+
+/// target/<profile>: the test binary lives in target/<profile>/deps, the cdylib one level up.
+fn plugin_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("current_exe");
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .expect("test binary in target/<profile>/deps")
+        .to_path_buf();
+    let lib = dir.join("libgstleangate.so");
+    assert!(
+        lib.exists(),
+        "{} missing: the cdylib is built with the tests (cargo test)",
+        lib.display()
+    );
+    dir
+}
+
+/// None (with a SKIPPED message) when /usr/bin/python3 cannot import the GStreamer bindings.
+fn python_ok() -> bool {
+    let out = Command::new(PYTHON)
+        .args([
+            "-c",
+            "import gi, numpy; gi.require_version('Gst', '1.0'); \
+             gi.require_version('GstVideo', '1.0'); from gi.repository import Gst, GstVideo",
+        ])
+        .output();
+    match out {
+        Ok(o) if o.status.success() => true,
+        Ok(o) => {
+            eprintln!(
+                "SKIPPED: {PYTHON} lacks python3-gi / GstVideo / numpy: {}",
+                String::from_utf8_lossy(&o.stderr).trim()
+            );
+            false
+        }
+        Err(e) => {
+            eprintln!("SKIPPED: cannot run {PYTHON}: {e}");
+            false
+        }
+    }
+}
+
+fn shared_clip(name: &str) -> Option<PathBuf> {
+    let p = repo().join("../shared/data/cotracker_clips").join(name);
+    if p.exists() {
+        Some(p)
+    } else {
+        eprintln!(
+            "SKIPPED: {} is absent (the shared development data lives beside the checkout)",
+            p.display()
+        );
+        None
+    }
+}
+
+fn command(program: &str) -> Command {
+    let mut c = Command::new(program);
+    c.current_dir(repo())
+        .env("GST_PLUGIN_PATH", plugin_dir())
+        .env("LEANGATE_MODEL", model())
+        .env_remove("GST_PLUGIN_PATH_1_0");
+    c
+}
+
+fn run(mut c: Command) -> Output {
+    let out = c.output().expect("spawn");
+    eprintln!("--- {c:?}\nstatus {}", out.status);
+    eprintln!("stderr:\n{}", String::from_utf8_lossy(&out.stderr));
+    out
+}
+
+fn client(args: &[&str]) -> Output {
+    let mut c = command(PYTHON);
+    c.arg("pipelines/slam_client.py").args(args);
+    run(c)
+}
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// `key=value` pairs of the client's `summary:` line.
+fn summary(o: &Output) -> std::collections::HashMap<String, String> {
+    let text = stdout(o);
+    let line = text
+        .lines()
+        .rev()
+        .find(|l| l.starts_with("summary:"))
+        .unwrap_or_else(|| panic!("no summary line in:\n{text}"));
+    line["summary:".len()..]
+        .split_whitespace()
+        .filter_map(|kv| kv.split_once('='))
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect()
+}
+
+fn num(s: &std::collections::HashMap<String, String>, k: &str) -> u64 {
+    s.get(k)
+        .unwrap_or_else(|| panic!("summary lacks {k}: {s:?}"))
+        .parse()
+        .unwrap()
+}
+
+#[derive(Debug, Clone)]
+struct Row {
+    frame: u64,
+    pts: u64,
+    utility: f64,
+    keep: bool,
+    reason: String,
+    keyframe_index: u64,
+    frames_since_keyframe: u64,
+    inference_us: u64,
+}
+
+fn read_csv(path: &Path) -> Vec<Row> {
+    let text = std::fs::read_to_string(path).expect("csv written");
+    let mut lines = text.lines();
+    assert_eq!(
+        lines.next(),
+        Some("frame,pts_ns,utility,keep,reason,keyframe_index,frames_since_keyframe,inference_us")
+    );
+    lines
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            assert_eq!(f.len(), 8, "row {l:?}");
+            Row {
+                frame: f[0].parse().unwrap(),
+                pts: f[1].parse().unwrap(),
+                utility: f[2].parse().unwrap(), // "nan" parses to NaN
+                keep: match f[3] {
+                    "1" => true,
+                    "0" => false,
+                    o => panic!("keep {o:?}"),
+                },
+                reason: f[4].to_string(),
+                keyframe_index: f[5].parse().unwrap(),
+                frames_since_keyframe: f[6].parse().unwrap(),
+                inference_us: f[7].parse().unwrap(),
+            }
+        })
+        .collect()
+}
+
+/// Invariants of an annotate-mode dump of a whole stream: one row per input frame, in order,
+/// and the bookkeeping (keyframe index, frames since keyframe, NaN only for the first frame)
+/// consistent with the keep decisions.
+fn check_annotate_rows(rows: &[Row], frames: u64, threshold: f64) {
+    assert_eq!(rows.len() as u64, frames, "one row per input frame");
+    let mut kf = 0;
+    let mut since = 0;
+    for (i, r) in rows.iter().enumerate() {
+        assert_eq!(r.frame, i as u64, "frame column counts input frames");
+        if i > 0 {
+            assert!(r.pts > rows[i - 1].pts, "pts increase");
+        }
+        assert!(
+            REASONS.contains(&r.reason.as_str()),
+            "reason {:?}",
+            r.reason
+        );
+        assert_eq!(
+            r.utility.is_nan(),
+            i == 0,
+            "utility NaN only for the first: {r:?}"
+        );
+        if i == 0 {
+            assert!(r.keep && r.reason == "first");
+        } else if r.reason == "score" {
+            assert_eq!(r.keep, r.utility >= threshold, "score decision {r:?}");
+        }
+        if r.keep {
+            kf += 1;
+            since = 0;
+        } else {
+            since += 1;
+        }
+        assert_eq!(r.keyframe_index, kf, "keyframe-index {r:?}");
+        assert_eq!(
+            r.frames_since_keyframe, since,
+            "frames-since-keyframe {r:?}"
+        );
+        assert!(r.inference_us > 0 && r.inference_us < 5_000_000, "{r:?}");
+    }
+}
+
+#[test]
+fn module_yields_rgb_arrays_with_their_meta() {
+    if !python_ok() {
+        return;
+    }
+    // 322 px wide RGB rows are 966 bytes, padded to a 968-byte stride: the arrays must not be
+    // skewed. The top 60% of SMPTE bars is the same in every row; the 6th of 7 bars is red.
+    let script = r#"
+import json, sys
+sys.path.insert(0, "pipelines")
+from slam_client import LeanGateSource
+src = LeanGateSource("test://smpte?num-buffers=12&width=322&height=242", model=sys.argv[1],
+                     threshold=0.5, mode="annotate")
+with src:
+    for f, m in src:
+        h, w = f.shape[:2]
+        u = m.pop("utility")
+        print(json.dumps({"shape": list(f.shape), "dtype": str(f.dtype),
+            "contiguous": bool(f.flags.c_contiguous),
+            "rows_equal": bool((f[: h * 6 // 10] == f[0]).all()),
+            "px_white": f[0, w // 14].tolist(), "px_red": f[0, int(w * 5.5 / 7)].tolist(),
+            "utility_nan": u != u, "utility": 0.0 if u != u else u, **m}))
+print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.received,
+                  "stats_frames_in": (src.stats or {}).get("frames-in"),
+                  "stats_model": (src.stats or {}).get("model")}))
+"#;
+    let mut c = command(PYTHON);
+    c.args(["-c", script, &model()]);
+    let out = run(c);
+    assert!(out.status.success());
+    let vals: Vec<serde_json::Value> = stdout(&out)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .collect();
+    let (end, frames) = vals.split_last().unwrap();
+    assert_eq!(end["end"], true);
+    assert_eq!(frames.len(), 12);
+    assert_eq!(end["frames_in"], 12);
+    assert_eq!(end["received"], 12);
+    assert_eq!(
+        end["stats_frames_in"], 12,
+        "leangate-stats read from the bus at EOS"
+    );
+    assert_eq!(end["stats_model"], "fixture-mad");
+    let mut last_pts = None;
+    for (i, v) in frames.iter().enumerate() {
+        assert_eq!(v["shape"], serde_json::json!([242, 322, 3]), "{v}");
+        assert_eq!(v["dtype"], "uint8");
+        assert_eq!(v["contiguous"], true);
+        assert_eq!(v["rows_equal"], true, "stride not honoured: {v}");
+        let px = |k: &str| -> Vec<i64> {
+            v[k].as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_i64().unwrap())
+                .collect()
+        };
+        let white = px("px_white");
+        assert!(white.iter().all(|&c| (150..=255).contains(&c)), "{white:?}");
+        let red = px("px_red");
+        assert!(red[0] > 150 && red[1] < 40 && red[2] < 40, "{red:?}");
+        assert_eq!(v["frame"], i as u64);
+        let pts = v["pts"].as_u64().unwrap();
+        assert!(last_pts.is_none_or(|p| pts > p));
+        last_pts = Some(pts);
+        assert_eq!(v["utility_nan"], i == 0);
+        assert!(REASONS.contains(&v["reason"].as_str().unwrap()));
+        // A static pattern (the SMPTE noise patch aside) is far below 0.5: only the first kept.
+        assert_eq!(v["keep"], i == 0, "{v}");
+        assert_eq!(v["keyframe_index"], 1);
+        assert_eq!(v["frames_since_keyframe"], i as u64);
+        if i == 0 {
+            assert_eq!(v["reason"], "first");
+            assert_eq!(v["reference_pts"], v["pts"]);
+        } else {
+            assert_eq!(v["reason"], "score");
+            assert!(v["utility"].as_f64().unwrap() < 0.5);
+            assert_eq!(v["reference_pts"], frames[0]["pts"]);
+        }
+    }
+}
+
+#[test]
+fn drop_mode_delivers_exactly_the_frames_annotate_mode_marks_kept() {
+    if !python_ok() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (drop_csv, ann_csv) = (dir.path().join("drop.csv"), dir.path().join("ann.csv"));
+    let src = "test://ball?num-buffers=45&width=320&height=240";
+    let threshold = 0.02;
+    let t = threshold.to_string();
+    let drop = client(&[src, "--threshold", &t, "--csv", drop_csv.to_str().unwrap()]);
+    assert!(drop.status.success());
+    let ann = client(&[
+        src,
+        "--threshold",
+        &t,
+        "--mode",
+        "annotate",
+        "--quiet",
+        "--csv",
+        ann_csv.to_str().unwrap(),
+    ]);
+    assert!(ann.status.success());
+
+    let ann_rows = read_csv(&ann_csv);
+    check_annotate_rows(&ann_rows, 45, threshold);
+    let drop_rows = read_csv(&drop_csv);
+    let s = summary(&drop);
+    assert_eq!(num(&s, "frames-in"), 45);
+    assert_eq!(num(&s, "received"), drop_rows.len() as u64);
+    assert_eq!(s["shape"], "240x320x3:uint8");
+    // The per-frame lines report each array's shape.
+    let shape_lines = stdout(&drop)
+        .lines()
+        .filter(|l| l.contains("shape (240, 320, 3)"))
+        .count();
+    assert_eq!(shape_lines, drop_rows.len());
+
+    // The moving ball crosses the threshold every few frames: some, not all, frames kept.
+    assert!(
+        drop_rows.len() > 2 && drop_rows.len() < 45,
+        "{} kept",
+        drop_rows.len()
+    );
+    for (i, r) in drop_rows.iter().enumerate() {
+        assert!(r.keep, "drop mode delivers only kept frames: {r:?}");
+        assert!(r.reason == "first" || r.reason == "score", "{r:?}");
+        assert_eq!(
+            r.keyframe_index,
+            i as u64 + 1,
+            "keyframe-index increases by one"
+        );
+        assert_eq!(r.frames_since_keyframe, 0);
+        assert_eq!(r.utility.is_nan(), i == 0, "NaN only for the first: {r:?}");
+        if i > 0 {
+            assert!(r.utility >= threshold && r.frame > drop_rows[i - 1].frame);
+        }
+    }
+    // Same deterministic input, same model: identical decisions in both modes.
+    let kept_ann: Vec<(u64, u64)> = ann_rows
+        .iter()
+        .filter(|r| r.keep)
+        .map(|r| (r.frame, r.pts))
+        .collect();
+    let kept_drop: Vec<(u64, u64)> = drop_rows.iter().map(|r| (r.frame, r.pts)).collect();
+    assert_eq!(kept_drop, kept_ann);
+    for (d, a) in drop_rows.iter().zip(ann_rows.iter().filter(|r| r.keep)) {
+        assert!((d.utility.is_nan() && a.utility.is_nan()) || (d.utility - a.utility).abs() < 1e-5);
+    }
+}
+
+#[test]
+fn force_every_produces_forced_keyframes() {
+    if !python_ok() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("forced.csv");
+    // threshold 1: no score can keep a frame (the MAD of two frames of the ball is far below
+    // 1), so every keep after the first must come from the upstream force-keyframe events.
+    let out = client(&[
+        "--source",
+        "videotestsrc",
+        "test://ball?num-buffers=60&width=320&height=240",
+        "--threshold",
+        "1",
+        "--mode",
+        "annotate",
+        "--force-every",
+        "7",
+        "--quiet",
+        "--csv",
+        csv.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let rows = read_csv(&csv);
+    check_annotate_rows(&rows, 60, 1.0);
+    let s = summary(&out);
+    let events = num(&s, "force-events");
+    assert_eq!(events, 60 / 7, "one event per 7 received frames");
+    let forced: Vec<&Row> = rows.iter().filter(|r| r.reason == "forced").collect();
+    assert_eq!(num(&s, "forced"), forced.len() as u64);
+    // Each event keeps exactly one later frame (the last may arrive after the last frame).
+    assert!(
+        forced.len() as u64 >= events - 1 && forced.len() as u64 <= events,
+        "{} forced for {events} events",
+        forced.len()
+    );
+    for r in &rows {
+        assert_eq!(
+            r.keep,
+            r.reason == "first" || r.reason == "forced",
+            "only first/forced frames kept at threshold 1: {r:?}"
+        );
+    }
+    // An event sent after the k-th batch of 7 frames lands on a later frame.
+    for (k, r) in forced.iter().enumerate() {
+        assert!(r.frame >= 7 * (k as u64 + 1), "{r:?}");
+        assert!(!r.utility.is_nan() && r.utility < 1.0);
+    }
+}
+
+#[test]
+fn annotate_csv_script_writes_one_row_per_frame() {
+    if !python_ok() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("scores.csv");
+    let mut c = command("bash");
+    c.args([
+        "pipelines/annotate_csv.sh",
+        "test://ball?num-buffers=30&width=160&height=120",
+        csv.to_str().unwrap(),
+        "0.03",
+    ]);
+    let out = run(c);
+    assert!(out.status.success());
+    let rows = read_csv(&csv);
+    check_annotate_rows(&rows, 30, 0.03);
+    let kept = rows.iter().filter(|r| r.keep).count();
+    assert!(kept > 1 && kept < 30, "{kept} kept");
+    assert_eq!(num(&summary(&out), "kept"), kept as u64);
+}
+
+#[test]
+fn real_clip_drop_and_annotate_agree() {
+    if !python_ok() {
+        return;
+    }
+    let Some(clip) = shared_clip("bear.mp4") else {
+        return;
+    };
+    let clip = clip.to_str().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let (drop_csv, ann_csv) = (dir.path().join("drop.csv"), dir.path().join("ann.csv"));
+    let drop = client(&[
+        clip,
+        "--threshold",
+        "0.05",
+        "--quiet",
+        "--csv",
+        drop_csv.to_str().unwrap(),
+    ]);
+    assert!(drop.status.success());
+    let ann = client(&[
+        clip,
+        "--threshold",
+        "0.05",
+        "--mode",
+        "annotate",
+        "--quiet",
+        "--csv",
+        ann_csv.to_str().unwrap(),
+    ]);
+    assert!(ann.status.success());
+    let s_ann = summary(&ann);
+    let frames = num(&s_ann, "frames-in");
+    assert!(frames > 30, "a few seconds of video: {frames}");
+    let ann_rows = read_csv(&ann_csv);
+    check_annotate_rows(&ann_rows, frames, 0.05);
+    let s = summary(&drop);
+    assert_eq!(num(&s, "frames-in"), frames);
+    assert_eq!(s["shape"], "480x854x3:uint8", "bear.mp4 is 854x480");
+    let drop_rows = read_csv(&drop_csv);
+    assert!(drop_rows.len() > 1 && (drop_rows.len() as u64) < frames);
+    let kept_ann: Vec<u64> = ann_rows
+        .iter()
+        .filter(|r| r.keep)
+        .map(|r| r.frame)
+        .collect();
+    let kept_drop: Vec<u64> = drop_rows.iter().map(|r| r.frame).collect();
+    assert_eq!(kept_drop, kept_ann);
+    for (i, r) in drop_rows.iter().enumerate() {
+        assert!(r.keep && r.keyframe_index == i as u64 + 1);
+    }
+    // The pipelines/file.sh example reports the same counts from gst-launch's -m output.
+    let mut c = command("bash");
+    c.args(["pipelines/file.sh", clip, "0.05"]);
+    let out = run(c);
+    assert!(out.status.success());
+    let s_file = summary(&out);
+    assert_eq!(num(&s_file, "frames-in"), frames);
+    assert_eq!(num(&s_file, "frames-kept"), drop_rows.len() as u64);
+}
+
+#[test]
+fn errors_are_reported_clearly() {
+    if !python_ok() {
+        return;
+    }
+    let out = client(&["/nonexistent/clip.mp4"]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("input file not found: /nonexistent/clip.mp4"),
+        "{err}"
+    );
+
+    // A model that violates the input contract: the element's error reaches the user.
+    let bad = repo().join("tests/fixtures/wrong_names.onnx");
+    let out = client(&[
+        "test://ball?num-buffers=5",
+        "--model",
+        bad.to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("pipeline error: gate:"), "{err}");
+
+    let out = client(&["test://nosuchpattern?num-buffers=5"]);
+    assert_ne!(out.status.code(), Some(0));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("slam_client:"), "{err}");
+}
+
+#[test]
+fn camera_pipeline_parses() {
+    if !python_ok() {
+        return;
+    }
+    let mut c = command("bash");
+    c.args(["pipelines/camera.sh", "--check"]);
+    let out = run(c);
+    assert!(out.status.success());
+    let text = stdout(&out);
+    let elements: BTreeSet<&str> = text
+        .lines()
+        .find_map(|l| l.strip_prefix("camera.sh: elements: "))
+        .expect("element list")
+        .split_whitespace()
+        .collect();
+    for e in ["v4l2src", "videoconvert", "leangate"] {
+        assert!(elements.contains(e), "{e} missing from {elements:?}");
+    }
+}

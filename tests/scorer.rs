@@ -1,0 +1,137 @@
+//! The scorer on its own (no pipeline): real ONNX Runtime on the fixture models.
+
+mod common;
+
+use common::fixture;
+use gstleangate::preprocess::ResizeMode;
+use gstleangate::scorer::{ExecutionProvider, ModelSource, Scorer, ScorerError, ScorerOptions};
+
+fn load(name: &str) -> Result<Scorer, ScorerError> {
+    Scorer::load(
+        &ModelSource::File(fixture(name).into()),
+        &ScorerOptions {
+            execution_provider: ExecutionProvider::Cpu,
+            ..Default::default()
+        },
+    )
+}
+
+fn constant(len: usize, v: f32) -> Vec<f32> {
+    vec![v; len]
+}
+
+#[test]
+fn pair_model_scores_and_reads_metadata() {
+    let mut s = load("mad.onnx").unwrap();
+    let info = s.info().clone();
+    assert_eq!((info.spec.width, info.spec.height), (64, 64));
+    assert_eq!(info.spec.resize, ResizeMode::Stretch);
+    assert_eq!(info.name, "fixture-mad");
+    assert_eq!(info.threshold, None);
+    assert!(!s.is_split());
+    let n = info.spec.len();
+    let u = s.score(&constant(n, 0.25), &constant(n, 0.75)).unwrap();
+    assert!((u - 0.5).abs() < 1e-6);
+    assert_eq!(s.provider(), "cpu");
+
+    let m = load("mad_meta.onnx").unwrap();
+    let i = m.info();
+    assert_eq!(
+        (i.spec.width, i.spec.height, i.threshold),
+        (48, 32, Some(0.3))
+    );
+    assert_eq!(i.spec.resize, ResizeMode::ShortSideCrop);
+
+    let f = load("mad_fixed.onnx").unwrap();
+    assert_eq!(
+        (f.info().spec.width, f.info().spec.height),
+        (48, 32),
+        "size from the graph"
+    );
+
+    let mut two = load("mad_2d.onnx").unwrap();
+    let n = two.info().spec.len();
+    assert!((two.score(&constant(n, 0.0), &constant(n, 0.2)).unwrap() - 0.2).abs() < 1e-6);
+}
+
+#[test]
+fn wrong_tensor_length_is_an_error_not_a_crash() {
+    let mut s = load("mad.onnx").unwrap();
+    let e = s.score(&[0.0; 10], &[0.0; 10]).unwrap_err();
+    assert!(e.to_string().contains("does not match [1,3,64,64]"), "{e}");
+}
+
+#[test]
+fn nan_output_is_an_inference_error() {
+    let mut s = load("nan.onnx").unwrap();
+    let n = s.info().spec.len();
+    let e = s.score(&constant(n, 0.0), &constant(n, 1.0)).unwrap_err();
+    assert!(
+        matches!(e, ScorerError::Inference(_)) && e.to_string().contains("not finite"),
+        "{e}"
+    );
+}
+
+#[test]
+fn split_model_matches_pair_and_caches_the_reference_features() {
+    let mut pair = load("mad.onnx").unwrap();
+    let mut split = load("split_encoder.onnx").unwrap();
+    assert!(split.is_split());
+    assert_eq!(split.info().name, "fixture-split");
+    let n = split.info().spec.len();
+    let frames: Vec<Vec<f32>> = (0..5).map(|k| constant(n, 0.1 * k as f32)).collect();
+    // Gate by hand: keep frames 0, 2, 3; the split model must encode each frame once, plus the
+    // reference once at the start (it was kept without being scored).
+    let keep = [true, false, true, true, false];
+    let mut reference = 0;
+    let mut scored_frames = 0;
+    for i in 1..5 {
+        let a = pair.score(&frames[reference], &frames[i]).unwrap();
+        let b = split.score(&frames[reference], &frames[i]).unwrap();
+        assert!((a - b).abs() < 1e-6, "frame {i}: pair {a} vs split {b}");
+        scored_frames += 1;
+        if keep[i] {
+            split.on_keep(true);
+            reference = i;
+        }
+    }
+    assert_eq!(split.encoder_runs(), scored_frames + 1);
+    // After a reset the reference is encoded again.
+    split.reset_reference();
+    split.score(&frames[0], &frames[1]).unwrap();
+    assert_eq!(split.encoder_runs(), scored_frames + 3);
+}
+
+#[test]
+fn split_head_alone_or_missing_is_rejected() {
+    let e = load("split_head.onnx").unwrap_err().to_string();
+    assert!(e.contains("head of a split model"), "{e}");
+    let dir = tempfile::tempdir().unwrap();
+    let enc = dir.path().join("split_encoder.onnx");
+    std::fs::copy(fixture("split_encoder.onnx"), &enc).unwrap();
+    let e = Scorer::load(&ModelSource::File(enc), &ScorerOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("split_head.onnx") && e.contains("No such file"),
+        "{e}"
+    );
+}
+
+#[test]
+fn auto_provider_falls_back_to_cpu_with_reasons() {
+    let s = Scorer::load(
+        &ModelSource::File(fixture("mad.onnx").into()),
+        &ScorerOptions::default(),
+    )
+    .unwrap();
+    if s.provider() != "cpu" {
+        eprintln!(
+            "SKIPPED: a GPU provider ({}) is available here",
+            s.provider()
+        );
+        return;
+    }
+    assert_eq!(s.warnings.len(), 2, "{:?}", s.warnings);
+    assert!(s.warnings[0].contains("tensorrt") && s.warnings[1].contains("cuda"));
+}

@@ -1,0 +1,149 @@
+"""LeanGate-S: a small siamese pair model predicting tau = 1 - S (MASt3R-SLAM keyframe score).
+
+  encoder (shared, one image)   3x120x160 -> features 96 x 8 x 10 (stride 16) -- ~0.09 GFLOP
+  head (pair)                   global cost volume between the two 80-cell feature grids (cosine,
+                                learned temperature), read from both sides: for each current cell the
+                                80 similarities to every reference cell (+ its max) -> small CNN ->
+                                "is this current cell matched, and where" (f_m-like); the same from the
+                                reference side (f_u-like); pooled -> 8-d latent refined in 4 iterations
+                                (GRU-style update, paper-like), tau = sigmoid(readout(latent)).
+Input RGB in [0,1] normalised outside the graph by the element: (x - MEAN) / STD.
+"""
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+IN_W, IN_H = 160, 120
+MEAN = (0.485, 0.456, 0.406)
+STD = (0.229, 0.224, 0.225)
+LATENT = 8
+ITERS = 4
+
+
+def conv_bn(cin, cout, stride=1):
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class Encoder(nn.Module):
+    def __init__(self, width=(16, 32, 64, 96)):
+        super().__init__()
+        c1, c2, c3, c4 = width
+        self.net = nn.Sequential(
+            conv_bn(3, c1, 2),  # 60x80
+            conv_bn(c1, c2, 2),  # 30x40
+            conv_bn(c2, c2),
+            conv_bn(c2, c3, 2),  # 15x20
+            conv_bn(c3, c3),
+            conv_bn(c3, c4, 2),  # 8x10
+            conv_bn(c4, c4),
+            nn.Conv2d(c4, c4, 1),
+        )
+        self.out_channels = c4
+
+    def forward(self, x):
+        return self.net(x)
+
+
+class Head(nn.Module):
+    def __init__(self, c=96, grid=(8, 10), hidden=64):
+        super().__init__()
+        self.gh, self.gw = grid
+        n = self.gh * self.gw
+        self.logit_scale = nn.Parameter(torch.tensor(2.3))  # exp -> temperature ~10
+        # read the cost volume from the current side (channels = reference cells) and the reference side
+        self.cur_net = nn.Sequential(nn.Conv2d(n + 2, hidden, 3, 1, 1), nn.ReLU(inplace=True),
+                                     nn.Conv2d(hidden, hidden, 3, 1, 1), nn.ReLU(inplace=True))
+        self.ref_net = nn.Sequential(nn.Conv2d(n + 2, hidden, 3, 1, 1), nn.ReLU(inplace=True),
+                                     nn.Conv2d(hidden, hidden, 3, 1, 1), nn.ReLU(inplace=True))
+        self.ctx = nn.Sequential(nn.Linear(4 * hidden, 128), nn.ReLU(inplace=True), nn.Linear(128, 64), nn.ReLU(inplace=True))
+        # iterative refinement of an 8-d latent (4 iterations)
+        self.init = nn.Linear(64, LATENT)
+        self.upd_in = nn.Linear(64 + LATENT + 1, 64)
+        self.upd_z = nn.Linear(64, LATENT)
+        self.upd_r = nn.Linear(64, LATENT)
+        self.upd_h = nn.Linear(64, LATENT)
+        self.readout = nn.Linear(LATENT, 1)
+
+    def side(self, corr, net, n):
+        # corr: [N, cells_this_side, cells_other_side]; softmax-sharpened row max as extra channels
+        b = corr.shape[0]
+        mx = corr.max(dim=2, keepdim=True).values
+        sm = torch.softmax(corr * 2.0, dim=2).max(dim=2, keepdim=True).values
+        x = torch.cat([corr, mx, sm], 2)  # [N, n, n+2]
+        x = x.transpose(1, 2).reshape(b, n + 2, self.gh, self.gw)
+        y = net(x)
+        return torch.cat([y.mean(dim=(2, 3)), y.amax(dim=(2, 3))], 1)
+
+    def forward(self, fr, fc, all_iters=False):
+        b, c = fr.shape[0], fr.shape[1]
+        n = self.gh * self.gw
+        r = F.normalize(fr.reshape(b, c, n), dim=1)
+        q = F.normalize(fc.reshape(b, c, n), dim=1)
+        corr = torch.matmul(q.transpose(1, 2), r) * self.logit_scale.exp()  # [N, cur, ref]
+        g = torch.cat([self.side(corr, self.cur_net, n), self.side(corr.transpose(1, 2), self.ref_net, n)], 1)
+        g = self.ctx(g)
+        z = torch.tanh(self.init(g))
+        logit = self.readout(z)
+        outs = [logit]
+        for _ in range(ITERS):
+            h = torch.relu(self.upd_in(torch.cat([g, z, torch.sigmoid(logit)], 1)))
+            u = torch.sigmoid(self.upd_z(h))
+            rr = torch.sigmoid(self.upd_r(h))
+            cand = torch.tanh(self.upd_h(h) + rr * z)
+            z = (1 - u) * z + u * cand
+            logit = logit + self.readout(z)
+            outs.append(logit)
+        if all_iters:
+            return [torch.sigmoid(o).reshape(b) for o in outs]
+        return torch.sigmoid(logit).reshape(b)
+
+
+class LeanGateS(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.encoder = Encoder()
+        self.head = Head(self.encoder.out_channels)
+
+    def forward(self, reference, current, all_iters=False):
+        f = self.encoder(torch.cat([reference, current], 0))
+        fr, fc = f[: reference.shape[0]], f[reference.shape[0]:]
+        return self.head(fr, fc, all_iters)
+
+
+class PairWrapper(nn.Module):
+    def __init__(self, m):
+        super().__init__()
+        self.m = m
+
+    def forward(self, reference, current):
+        return self.m.head(self.m.encoder(reference), self.m.encoder(current))
+
+
+def count_flops(model):
+    """MACs*2 of conv/linear/matmul for the encoder on one image and the head on one pair."""
+    flops = {"encoder": 0, "head": 0}
+    hooks = []
+
+    def mk(part):
+        def hook(mod, inp, out):
+            if isinstance(mod, nn.Conv2d):
+                k = mod.kernel_size[0] * mod.kernel_size[1] * mod.in_channels // mod.groups
+                flops[part] += 2 * k * out.numel()
+            elif isinstance(mod, nn.Linear):
+                flops[part] += 2 * mod.in_features * out.numel()
+        return hook
+
+    for part, sub in (("encoder", model.encoder), ("head", model.head)):
+        for m in sub.modules():
+            if isinstance(m, (nn.Conv2d, nn.Linear)):
+                hooks.append(m.register_forward_hook(mk(part)))
+    model.eval()
+    with torch.no_grad():
+        x = torch.zeros(1, 3, IN_H, IN_W)
+        f = model.encoder(x)
+        model.head(f, f)
+    for h in hooks:
+        h.remove()
+    n = model.head.gh * model.head.gw
+    flops["head"] += 2 * n * n * model.encoder.out_channels  # cost volume matmul
+    return flops
