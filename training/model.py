@@ -1,6 +1,6 @@
 """LeanGate-S: a small siamese pair model predicting tau = 1 - S (MASt3R-SLAM keyframe score).
 
-  encoder (shared, one image)   3x120x160 -> features 96 x 8 x 10 (stride 16) -- ~0.09 GFLOP
+  encoder (shared, one image)   3x120x160 -> features 96 x 8 x 10 (stride 16) -- ~0.06 GFLOP
   head (pair)                   global cost volume between the two 80-cell feature grids (cosine,
                                 learned temperature), read from both sides: for each current cell the
                                 80 similarities to every reference cell (+ its max) -> small CNN ->
@@ -25,13 +25,12 @@ def conv_bn(cin, cout, stride=1):
 
 
 class Encoder(nn.Module):
-    def __init__(self, width=(16, 32, 64, 96)):
+    def __init__(self, width=(16, 32, 48, 96)):
         super().__init__()
         c1, c2, c3, c4 = width
         self.net = nn.Sequential(
             conv_bn(3, c1, 2),  # 60x80
             conv_bn(c1, c2, 2),  # 30x40
-            conv_bn(c2, c2),
             conv_bn(c2, c3, 2),  # 15x20
             conv_bn(c3, c3),
             conv_bn(c3, c4, 2),  # 8x10
