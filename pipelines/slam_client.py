@@ -193,10 +193,10 @@ def buffer_to_rgb(buf, info) -> "np.ndarray":
     """Copy an RGB buffer into an (H, W, 3) uint8 array, honouring stride and plane offset
     (from the buffer's GstVideoMeta when it has one, else from the negotiated VideoInfo)."""
     w, h = info.width, info.height
-    stride, offset = 3 * w, 0
+    stride, offset = info.stride[0], info.offset[0]
     vmeta = GstVideo.buffer_get_video_meta(buf)
     if vmeta is not None:
-        pass
+        stride, offset = vmeta.stride[0], vmeta.offset[0]
     ok, mapinfo = buf.map(Gst.MapFlags.READ)
     if not ok:
         raise PipelineError("cannot map the appsink buffer for reading")

@@ -137,12 +137,12 @@ pub fn stride_for_budget(frames: usize, target: usize) -> usize {
 /// mpdecimate-like gate on grey thumbnails (THUMB_W x THUMB_H, 0..255): a frame is a duplicate of
 /// the last kept one when no 8x8 block differs by more than `hi` (sum of absolute differences)
 /// and at most `frac` of the blocks differ by more than `lo`. `scale` multiplies hi and lo.
-pub fn pixel_diff_gate(thumbs: &[Vec<f32>], scale: f64) -> Trace {
+pub fn pixel_diff_gate(thumbs: &[Vec<u8>], scale: f64) -> Trace {
     let (hi, lo, frac) = (64.0 * 12.0 * scale, 64.0 * 5.0 * scale, 0.33);
     let (bw, bh) = ((THUMB_W / 8) as usize, (THUMB_H / 8) as usize);
     let w = THUMB_W as usize;
     let mut keep = Vec::with_capacity(thumbs.len());
-    let mut reference: Option<&Vec<f32>> = None;
+    let mut reference: Option<&Vec<u8>> = None;
     for t in thumbs {
         let k = match reference {
             None => true,
@@ -155,7 +155,8 @@ pub fn pixel_diff_gate(thumbs: &[Vec<f32>], scale: f64) -> Trace {
                         for y in 0..8 {
                             let row = (by * 8 + y) * w + bx * 8;
                             for x in 0..8 {
-                                sad += (t[row + x] - r[row + x]).abs() as f64;
+                                sad +=
+                                    (t[row + x] as i32 - r[row + x] as i32).unsigned_abs() as f64;
                             }
                         }
                         over_hi |= sad > hi;
@@ -177,7 +178,7 @@ pub fn pixel_diff_gate(thumbs: &[Vec<f32>], scale: f64) -> Trace {
 }
 
 /// `pixel_diff` with its thresholds scaled so the kept count is as close as possible to `target`.
-pub fn pixel_diff_for_budget(thumbs: &[Vec<f32>], target: usize) -> Trace {
+pub fn pixel_diff_for_budget(thumbs: &[Vec<u8>], target: usize) -> Trace {
     // Kept count falls as the scale grows: bisect on log(scale).
     let (mut lo, mut hi) = (-12.0f64, 6.0f64);
     let mut best = pixel_diff_gate(thumbs, 1.0);
@@ -356,11 +357,15 @@ impl Source {
     }
 }
 
-/// The `model` policy's run: per-frame metas, grey thumbnails, and throughput.
+/// The `model` policy's run: per-frame metas, grey thumbnails, colour thumbnails of the kept
+/// frames, and throughput.
 #[derive(Debug, Clone)]
 pub struct ModelRun {
     pub metas: Vec<GateMeta>,
-    pub thumbs: Vec<Vec<f32>>,
+    /// Grey THUMB_W x THUMB_H thumbnail of every frame (for `pixel_diff`).
+    pub thumbs: Vec<Vec<u8>>,
+    /// (frame index, RGB thumbnail) of every kept frame.
+    pub kept_thumbs: Vec<(usize, image::RgbImage)>,
     pub fps: f64,
     pub threshold: f64,
     pub provider: String,
@@ -393,11 +398,11 @@ pub fn init_gstreamer() -> Result<(), EvalError> {
     res
 }
 
-/// Grey thumbnail of a raw buffer, through the same preprocessing the element uses.
+/// RGB thumbnail of a raw buffer, through the same preprocessing the element uses.
 fn thumbnail(
     cache: &mut Option<(gst::Caps, gst_video::VideoInfo, Preprocessor)>,
     sample: &gst::Sample,
-) -> Result<Vec<f32>, EvalError> {
+) -> Result<image::RgbImage, EvalError> {
     let caps = sample
         .caps()
         .ok_or_else(|| EvalError("sample without caps".into()))?;
@@ -444,9 +449,50 @@ fn thumbnail(
     let mut t = vec![0.0; pre.spec().len()];
     pre.run(&raw, &mut t).map_err(err("thumbnail"))?;
     let plane = (THUMB_W * THUMB_H) as usize;
-    Ok((0..plane)
-        .map(|i| (t[i] + t[plane + i] + t[2 * plane + i]) / 3.0)
-        .collect())
+    let rgb = (0..plane)
+        .flat_map(|i| [t[i], t[plane + i], t[2 * plane + i]])
+        .map(|v| v.round().clamp(0.0, 255.0) as u8)
+        .collect();
+    Ok(image::RgbImage::from_raw(THUMB_W, THUMB_H, rgb).expect("thumbnail size"))
+}
+
+fn grey(rgb: &image::RgbImage) -> Vec<u8> {
+    rgb.pixels()
+        .map(|p| ((p[0] as u16 + p[1] as u16 + p[2] as u16) / 3) as u8)
+        .collect()
+}
+
+/// A grid of the kept frames' thumbnails (at most `max_tiles`, evenly sampled), 8 per row.
+pub fn contact_sheet(
+    kept: &[(usize, image::RgbImage)],
+    max_tiles: usize,
+    out: &Path,
+) -> Result<(), EvalError> {
+    if kept.is_empty() {
+        return Err(EvalError("no kept frame to put on a contact sheet".into()));
+    }
+    let n = kept.len().min(max_tiles.max(1));
+    let cols = n.min(8) as u32;
+    let rows = n.div_ceil(cols as usize) as u32;
+    let pad = 4;
+    let mut sheet = image::RgbImage::from_pixel(
+        cols * (THUMB_W + pad) + pad,
+        rows * (THUMB_H + pad) + pad,
+        image::Rgb([255, 255, 255]),
+    );
+    for k in 0..n {
+        let (_, t) = &kept[k * kept.len() / n];
+        let (c, r) = (k as u32 % cols, k as u32 / cols);
+        image::imageops::replace(
+            &mut sheet,
+            t,
+            (pad + c * (THUMB_W + pad)) as i64,
+            (pad + r * (THUMB_H + pad)) as i64,
+        );
+    }
+    sheet
+        .save(out)
+        .map_err(|e| EvalError(format!("`{}`: {e}", out.display())))
 }
 
 /// Run the real element in annotate mode over the source. `progress(done)` is called per frame.
@@ -551,20 +597,23 @@ pub fn run_model(
     })?;
     let mut metas = Vec::new();
     let mut thumbs = Vec::new();
+    let mut kept_thumbs = Vec::new();
     let mut cache = None;
     let mut failure = None;
     while let Ok(sample) = sink.pull_sample() {
         let Some(buf) = sample.buffer() else { continue };
-        match GateMeta::read(buf) {
-            Some(m) => metas.push(m),
-            None => {
-                failure = Some(EvalError(
-                    "a buffer left leangate without LeanGateMeta".into(),
-                ));
-                break;
-            }
+        let Some(m) = GateMeta::read(buf) else {
+            failure = Some(EvalError(
+                "a buffer left leangate without LeanGateMeta".into(),
+            ));
+            break;
+        };
+        let rgb = thumbnail(&mut cache, &sample)?;
+        thumbs.push(grey(&rgb));
+        if m.keep {
+            kept_thumbs.push((metas.len(), rgb));
         }
-        thumbs.push(thumbnail(&mut cache, &sample)?);
+        metas.push(m);
         progress(metas.len());
     }
     let elapsed = start.elapsed().as_secs_f64();
@@ -598,6 +647,7 @@ pub fn run_model(
         threshold: stats_threshold.or(threshold).unwrap_or(0.5),
         metas,
         thumbs,
+        kept_thumbs,
         provider,
         model_name: name,
     })
@@ -634,6 +684,8 @@ pub struct PlotData {
     pub threshold: f64,
     /// Kept flags per policy, in display order.
     pub kept: Vec<(String, Vec<bool>)>,
+    /// Thumbnails of the frames the model kept.
+    pub kept_thumbs: Vec<(usize, image::RgbImage)>,
 }
 
 /// Run every policy and judge it. `progress(stage, done, total)`.
@@ -729,6 +781,7 @@ pub fn evaluate(
             predicted_tau: model_trace.utility.clone(),
             threshold: t,
             kept: kept_rows,
+            kept_thumbs: run.kept_thumbs,
         },
     ))
 }
@@ -890,8 +943,8 @@ mod tests {
 
     #[test]
     fn pixel_diff_static_and_changing() {
-        let a = vec![10.0f32; (THUMB_W * THUMB_H) as usize];
-        let b = vec![200.0f32; (THUMB_W * THUMB_H) as usize];
+        let a = vec![10u8; (THUMB_W * THUMB_H) as usize];
+        let b = vec![200u8; (THUMB_W * THUMB_H) as usize];
         let still = vec![a.clone(); 5];
         assert_eq!(pixel_diff_gate(&still, 1.0).kept(), 1);
         let alternating = vec![a.clone(), b.clone(), a.clone(), b.clone()];
@@ -899,7 +952,7 @@ mod tests {
         // Budget tuning reaches a target between the extremes.
         let mut ramp = Vec::new();
         for i in 0..20 {
-            ramp.push(vec![i as f32 * 4.0; (THUMB_W * THUMB_H) as usize]);
+            ramp.push(vec![i as u8 * 4; (THUMB_W * THUMB_H) as usize]);
         }
         let t = pixel_diff_for_budget(&ramp, 5);
         assert!((t.kept() as i64 - 5).abs() <= 1, "kept {}", t.kept());

@@ -20,20 +20,24 @@ fn model() -> String {
     repo().join("tests/fixtures/mad.onnx").display().to_string()
 }
 
-/// target/<profile>: the test binary lives in target/<profile>/deps, the cdylib one level up.
-fn plugin_dir() -> PathBuf {
+/// A directory for GST_PLUGIN_PATH holding only `libgstleangate.so`, linked to the cdylib built
+/// with this test binary. The test binary lives in target/<profile>/deps, next to that cdylib;
+/// `cargo test` rebuilds it there but only `cargo build` copies it up to target/<profile>, so
+/// the copy there may be stale. (Pointing GST_PLUGIN_PATH at deps/ itself would make GStreamer
+/// scan every shared object in it.)
+fn plugin_dir() -> tempfile::TempDir {
     let exe = std::env::current_exe().expect("current_exe");
-    let dir = exe
-        .parent()
-        .and_then(Path::parent)
-        .expect("test binary in target/<profile>/deps")
-        .to_path_buf();
-    let lib = dir.join("libgstleangate.so");
-    assert!(
-        lib.exists(),
-        "{} missing: the cdylib is built with the tests (cargo test)",
-        lib.display()
-    );
+    let deps = exe.parent().expect("test binary in target/<profile>/deps");
+    let candidates = [
+        deps.join("libgstleangate.so"),
+        deps.parent().unwrap().join("libgstleangate.so"),
+    ];
+    let lib = candidates
+        .iter()
+        .find(|p| p.exists())
+        .unwrap_or_else(|| panic!("no libgstleangate.so in {candidates:?} (cargo build)"));
+    let dir = tempfile::tempdir().unwrap();
+    std::os::unix::fs::symlink(lib, dir.path().join("libgstleangate.so")).unwrap();
     dir
 }
 
@@ -78,13 +82,14 @@ fn shared_clip(name: &str) -> Option<PathBuf> {
 fn command(program: &str) -> Command {
     let mut c = Command::new(program);
     c.current_dir(repo())
-        .env("GST_PLUGIN_PATH", plugin_dir())
         .env("LEANGATE_MODEL", model())
         .env_remove("GST_PLUGIN_PATH_1_0");
     c
 }
 
 fn run(mut c: Command) -> Output {
+    let plugins = plugin_dir();
+    c.env("GST_PLUGIN_PATH", plugins.path());
     let out = c.output().expect("spawn");
     eprintln!("--- {c:?}\nstatus {}", out.status);
     eprintln!("stderr:\n{}", String::from_utf8_lossy(&out.stderr));
@@ -216,7 +221,7 @@ fn module_yields_rgb_arrays_with_their_meta() {
     let script = r#"
 import json, sys
 sys.path.insert(0, "pipelines")
-from slam_client import LeanGateSource
+from slam_client import Gst, LeanGateSource
 src = LeanGateSource("test://smpte?num-buffers=12&width=322&height=242", model=sys.argv[1],
                      threshold=0.5, mode="annotate")
 with src:
@@ -230,7 +235,8 @@ with src:
             "utility_nan": u != u, "utility": 0.0 if u != u else u, **m}))
 print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.received,
                   "stats_frames_in": (src.stats or {}).get("frames-in"),
-                  "stats_model": (src.stats or {}).get("model")}))
+                  "stats_model": (src.stats or {}).get("model"),
+                  "plugin": Gst.ElementFactory.find("leangate").get_plugin().get_filename()}))
 "#;
     let mut c = command(PYTHON);
     c.args(["-c", script, &model()]);
@@ -250,6 +256,13 @@ print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.recei
         "leangate-stats read from the bus at EOS"
     );
     assert_eq!(end["stats_model"], "fixture-mad");
+    // Loaded through GST_PLUGIN_PATH (the freshly built cdylib), not the client's fallback to
+    // the repository's target/ directories.
+    let plugin = end["plugin"].as_str().unwrap();
+    assert!(
+        plugin.ends_with("/libgstleangate.so") && !plugin.starts_with(env!("CARGO_MANIFEST_DIR")),
+        "{plugin}"
+    );
     let mut last_pts = None;
     for (i, v) in frames.iter().enumerate() {
         assert_eq!(v["shape"], serde_json::json!([242, 322, 3]), "{v}");

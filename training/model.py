@@ -65,19 +65,17 @@ class Head(nn.Module):
 
     def side(self, corr, net, n):
         # corr: [N, cells_this_side, cells_other_side]; softmax-sharpened row max as extra channels
-        b = corr.shape[0]
         mx = corr.max(dim=2, keepdim=True).values
         sm = torch.softmax(corr * 2.0, dim=2).max(dim=2, keepdim=True).values
         x = torch.cat([corr, mx, sm], 2)  # [N, n, n+2]
-        x = x.transpose(1, 2).reshape(b, n + 2, self.gh, self.gw)
+        x = x.transpose(1, 2).reshape(-1, n + 2, self.gh, self.gw)
         y = net(x)
         return torch.cat([y.mean(dim=(2, 3)), y.amax(dim=(2, 3))], 1)
 
     def forward(self, fr, fc, all_iters=False):
-        b, c = fr.shape[0], fr.shape[1]
         n = self.gh * self.gw
-        r = F.normalize(fr.reshape(b, c, n), dim=1)
-        q = F.normalize(fc.reshape(b, c, n), dim=1)
+        r = F.normalize(fr.flatten(2), dim=1)
+        q = F.normalize(fc.flatten(2), dim=1)
         corr = torch.matmul(q.transpose(1, 2), r) * self.logit_scale.exp()  # [N, cur, ref]
         g = torch.cat([self.side(corr, self.cur_net, n), self.side(corr.transpose(1, 2), self.ref_net, n)], 1)
         g = self.ctx(g)
@@ -93,8 +91,8 @@ class Head(nn.Module):
             logit = logit + self.readout(z)
             outs.append(logit)
         if all_iters:
-            return [torch.sigmoid(o).reshape(b) for o in outs]
-        return torch.sigmoid(logit).reshape(b)
+            return [torch.sigmoid(o).reshape(-1) for o in outs]
+        return torch.sigmoid(logit).reshape(-1)
 
 
 class LeanGateS(nn.Module):

@@ -117,6 +117,9 @@ enum Command {
         /// Write the plot (PNG) here.
         #[arg(long)]
         plot: Option<PathBuf>,
+        /// Write a contact sheet (PNG) of the frames the model kept here.
+        #[arg(long)]
+        contact_sheet: Option<PathBuf>,
         #[arg(long, default_value_t = 160)]
         working_width: u32,
         #[arg(long, default_value_t = 0.1)]
@@ -250,6 +253,7 @@ fn run(cli: Cli) -> Res {
             threshold,
             json,
             plot,
+            contact_sheet,
             working_width,
             max_dist,
         } => {
@@ -262,6 +266,7 @@ fn run(cli: Cli) -> Res {
                 threshold,
                 json,
                 plot,
+                contact_sheet,
                 working_width,
                 max_dist,
             )
@@ -269,12 +274,14 @@ fn run(cli: Cli) -> Res {
     }
 }
 
+#[allow(clippy::too_many_arguments)]
 fn eval_cmd(
     sequence: &Path,
     model: &Path,
     threshold: Option<f64>,
     json: Option<PathBuf>,
     plot: Option<PathBuf>,
+    contact_sheet: Option<PathBuf>,
     working_width: u32,
     max_dist: f64,
 ) -> Res {
@@ -312,6 +319,13 @@ fn eval_cmd(
         );
         eval::plot(&data, &title, p)?;
         eprintln!("plot written to {}", p.display());
+    }
+    if let Some(p) = &contact_sheet {
+        eval::contact_sheet(&data.kept_thumbs, 64, p)?;
+        eprintln!(
+            "contact sheet of the kept frames written to {}",
+            p.display()
+        );
     }
     Ok(())
 }
