@@ -211,9 +211,26 @@ fn annotate_mode_passes_every_buffer_with_meta() {
     assert!(m[2].utility > 0.3, "texture vs black: {}", m[2].utility);
     assert_eq!(m[3].reference_pts, Some(gst::ClockTime::from_mseconds(66)));
     assert!(m[1].inference_us > 0);
-    // Zero-copy: the pixels that leave are the pixels that came in.
+    // The pixels that leave are the pixels that came in.
     let map = out[3].map_readable().unwrap();
     assert_eq!(map.as_slice(), &pics[3][..]);
+}
+
+#[test]
+fn kept_buffers_are_not_copied() {
+    let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));
+    // Hold a second reference so the element gets a read-only buffer: the meta forces a new
+    // GstBuffer, but its memory must be the same block.
+    let input = buffer(texture(W, H, 9), 0);
+    let in_ptr = input.map_readable().unwrap().as_slice().as_ptr();
+    h.push(input.clone()).unwrap();
+    let out = h.pull().unwrap();
+    assert_eq!(out.map_readable().unwrap().as_slice().as_ptr(), in_ptr);
+    assert!(
+        gstleangate::meta::GateMeta::read(&input).is_none(),
+        "the caller's buffer is untouched"
+    );
+    assert!(gstleangate::meta::GateMeta::read(&out).is_some());
 }
 
 #[test]
