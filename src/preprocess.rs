@@ -143,15 +143,19 @@ impl YuvMatrix {
         }
     }
 
+    /// Convert (averaged) Y, U, V code values to RGB in 0..255. The map is affine, so averaging
+    /// YUV first and converting once per output pixel equals converting every source pixel and
+    /// averaging (up to the final clamp).
     #[inline(always)]
-    fn to_rgb(&self, y: u8, u: u8, v: u8) -> [f32; 3] {
+    fn to_rgb(&self, yuv: [f32; 3]) -> [f32; 3] {
+        let [y, u, v] = yuv;
         let (y, cb, cr) = if self.full_range {
-            (y as f32, u as f32 - 128.0, v as f32 - 128.0)
+            (y, u - 128.0, v - 128.0)
         } else {
             (
-                (y as f32 - 16.0) * (255.0 / 219.0),
-                (u as f32 - 128.0) * (255.0 / 224.0),
-                (v as f32 - 128.0) * (255.0 / 224.0),
+                (y - 16.0) * (255.0 / 219.0),
+                (u - 128.0) * (255.0 / 224.0),
+                (v - 128.0) * (255.0 / 224.0),
             )
         };
         let kg = 1.0 - self.kr - self.kb;
@@ -379,78 +383,115 @@ impl Preprocessor {
         let [p0, p1, p2] = frame.planes;
         let [s0, s1, s2] = frame.strides;
         let yuv = self.yuv;
+        let rgb = |v: [f32; 3]| v;
+        let to_rgb = |v: [f32; 3]| yuv.to_rgb(v);
         match self.format {
-            PixelFormat::Rgb => self.resample(out, |x, y| px3(p0, y * s0 + 3 * x, [0, 1, 2])),
-            PixelFormat::Bgr => self.resample(out, |x, y| px3(p0, y * s0 + 3 * x, [2, 1, 0])),
+            PixelFormat::Rgb => self.resample(out, |x, y| px3(p0, y * s0 + 3 * x, [0, 1, 2]), rgb),
+            PixelFormat::Bgr => self.resample(out, |x, y| px3(p0, y * s0 + 3 * x, [2, 1, 0]), rgb),
             PixelFormat::Rgbx | PixelFormat::Rgba => {
-                self.resample(out, |x, y| px3(p0, y * s0 + 4 * x, [0, 1, 2]))
+                self.resample(out, |x, y| px3(p0, y * s0 + 4 * x, [0, 1, 2]), rgb)
             }
             PixelFormat::Bgrx | PixelFormat::Bgra => {
-                self.resample(out, |x, y| px3(p0, y * s0 + 4 * x, [2, 1, 0]))
+                self.resample(out, |x, y| px3(p0, y * s0 + 4 * x, [2, 1, 0]), rgb)
             }
-            PixelFormat::Gray8 => self.resample(out, |x, y| {
-                let v = p0[y * s0 + x] as f32;
-                [v, v, v]
-            }),
-            PixelFormat::Nv12 => self.resample(out, |x, y| {
-                let c = (y / 2) * s1 + (x / 2) * 2;
-                yuv.to_rgb(p0[y * s0 + x], p1[c], p1[c + 1])
-            }),
-            PixelFormat::I420 => self.resample(out, |x, y| {
-                let c1 = (y / 2) * s1 + x / 2;
-                let c2 = (y / 2) * s2 + x / 2;
-                yuv.to_rgb(p0[y * s0 + x], p1[c1], p2[c2])
-            }),
+            PixelFormat::Gray8 => self.resample(
+                out,
+                |x, y| {
+                    let v = p0[y * s0 + x] as f32;
+                    [v, v, v]
+                },
+                rgb,
+            ),
+            PixelFormat::Nv12 => self.resample(
+                out,
+                |x, y| {
+                    let c = (y / 2) * s1 + (x / 2) * 2;
+                    [p0[y * s0 + x] as f32, p1[c] as f32, p1[c + 1] as f32]
+                },
+                to_rgb,
+            ),
+            PixelFormat::I420 => self.resample(
+                out,
+                |x, y| {
+                    let c1 = (y / 2) * s1 + x / 2;
+                    let c2 = (y / 2) * s2 + x / 2;
+                    [p0[y * s0 + x] as f32, p1[c1] as f32, p2[c2] as f32]
+                },
+                to_rgb,
+            ),
         }
         Ok(())
     }
 
-    /// Separable resampling: horizontal pass per needed source row (cached), vertical per output row.
+    /// Separable resampling in the source's colour space: a horizontal pass per needed source row
+    /// (each row computed once, buffers reused), a vertical pass per output row, then `post`
+    /// (colour conversion to RGB) and normalisation per output pixel.
     #[inline(always)]
-    fn resample<F: Fn(usize, usize) -> [f32; 3]>(&self, out: &mut [f32], fetch: F) {
+    fn resample<F, P>(&self, out: &mut [f32], fetch: F, post: P)
+    where
+        F: Fn(usize, usize) -> [f32; 3],
+        P: Fn([f32; 3]) -> [f32; 3],
+    {
         let ow = self.spec.width as usize;
         let oh = self.spec.height as usize;
         let plane = ow * oh;
         let (x0, x1) = self.x_range;
-        let mut row_rgb = vec![[0f32; 3]; x1 - x0];
-        // Horizontally resampled rows, cached by source row index (rows are visited in order).
-        let mut cache: Vec<(usize, Vec<[f32; 3]>)> = Vec::new();
+        let mut src_row = vec![[0f32; 3]; x1 - x0];
+        // Horizontally resampled source rows, by source row index; the taps only move forward.
+        let mut rows: Vec<(usize, Vec<[f32; 3]>)> = Vec::new();
+        let mut spare: Vec<Vec<[f32; 3]>> = Vec::new();
         let mut acc = vec![[0f32; 3]; ow];
-        let scale = 1.0 / 255.0;
         let (m, s) = (self.spec.mean, self.spec.std);
+        let scale = [
+            1.0 / (255.0 * s[0]),
+            1.0 / (255.0 * s[1]),
+            1.0 / (255.0 * s[2]),
+        ];
+        let offset = [m[0] / s[0], m[1] / s[1], m[2] / s[2]];
         for (oy, ty) in self.y_taps.iter().enumerate() {
-            acc.iter_mut().for_each(|a| *a = [0.0; 3]);
-            for (k, &wy) in ty.weights.iter().enumerate() {
-                let sy = ty.start + k;
-                if !cache.iter().any(|(r, _)| *r == sy) {
-                    for (i, p) in row_rgb.iter_mut().enumerate() {
-                        *p = fetch(x0 + i, sy);
-                    }
-                    let mut h = vec![[0f32; 3]; ow];
-                    for (ox, tx) in self.x_taps.iter().enumerate() {
-                        let mut a = [0f32; 3];
-                        for (j, &wx) in tx.weights.iter().enumerate() {
-                            let p = row_rgb[tx.start - x0 + j];
-                            a[0] += wx * p[0];
-                            a[1] += wx * p[1];
-                            a[2] += wx * p[2];
-                        }
-                        h[ox] = a;
-                    }
-                    // Keep only rows still needed: the taps move forward monotonically.
-                    cache.retain(|(r, _)| *r + 8 > sy);
-                    cache.push((sy, h));
+            // Recycle rows no longer needed.
+            let mut k = 0;
+            while k < rows.len() {
+                if rows[k].0 < ty.start {
+                    spare.push(rows.swap_remove(k).1);
+                } else {
+                    k += 1;
                 }
-                let h = &cache.iter().find(|(r, _)| *r == sy).unwrap().1;
-                for (a, p) in acc.iter_mut().zip(h) {
+            }
+            acc.iter_mut().for_each(|a| *a = [0.0; 3]);
+            for (j, &wy) in ty.weights.iter().enumerate() {
+                let sy = ty.start + j;
+                let pos = match rows.iter().position(|(r, _)| *r == sy) {
+                    Some(p) => p,
+                    None => {
+                        for (i, p) in src_row.iter_mut().enumerate() {
+                            *p = fetch(x0 + i, sy);
+                        }
+                        let mut h = spare.pop().unwrap_or_else(|| vec![[0f32; 3]; ow]);
+                        for (hx, tx) in h.iter_mut().zip(&self.x_taps) {
+                            let mut a = [0f32; 3];
+                            let px = &src_row[tx.start - x0..tx.start - x0 + tx.weights.len()];
+                            for (p, &wx) in px.iter().zip(&tx.weights) {
+                                a[0] += wx * p[0];
+                                a[1] += wx * p[1];
+                                a[2] += wx * p[2];
+                            }
+                            *hx = a;
+                        }
+                        rows.push((sy, h));
+                        rows.len() - 1
+                    }
+                };
+                for (a, p) in acc.iter_mut().zip(&rows[pos].1) {
                     a[0] += wy * p[0];
                     a[1] += wy * p[1];
                     a[2] += wy * p[2];
                 }
             }
             for (ox, a) in acc.iter().enumerate() {
+                let v = post(*a);
                 for c in 0..3 {
-                    out[c * plane + oy * ow + ox] = (a[c] * scale - m[c]) / s[c];
+                    out[c * plane + oy * ow + ox] = v[c] * scale[c] - offset[c];
                 }
             }
         }
