@@ -22,15 +22,24 @@ fn main() {
     let scene = Scene::new(cfg.seed);
     let (poses, _) = synth::camera_path(&cfg, &scene);
     let intr = cfg.intrinsics();
-    println!("synth render, 640x480, {} frames per run, 3 runs", poses.len());
+    println!(
+        "synth render, 640x480, {} frames per run, 3 runs",
+        poses.len()
+    );
     let mut fps = Vec::new();
     let mut last = Vec::new();
     for _ in 0..3 {
         let t = Instant::now();
-        last = poses.iter().map(|p| scene.render(p, &intr, 640, 480)).collect::<Vec<_>>();
+        last = poses
+            .iter()
+            .map(|p| scene.render(p, &intr, 640, 480))
+            .collect::<Vec<_>>();
         fps.push(poses.len() as f64 / t.elapsed().as_secs_f64());
     }
-    println!("  render only:            {:8.1} frames/s (median)", median(fps));
+    println!(
+        "  render only:            {:8.1} frames/s (median)",
+        median(fps)
+    );
 
     let dir = std::env::temp_dir().join(format!("leangate-bench-{}", std::process::id()));
     let t = Instant::now();
