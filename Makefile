@@ -28,7 +28,7 @@ fixtures: setup
 # alone does not rebuild.
 test: setup fixtures
 	$(CARGO) build --all-targets
-	$(CARGO) test --all-targets --no-fail-fast
+	$(CARGO) test --lib --bins --tests --no-fail-fast
 
 bench: release
 	$(CARGO) bench
