@@ -3,7 +3,7 @@
 #
 # Usage:  pipelines/annotate_csv.sh VIDEO OUT.csv [THRESHOLD]
 #         (VIDEO may also be a URI or test://ball?num-buffers=100 for videotestsrc)
-# Env:    LEANGATE_MODEL  model (.onnx); default: the element's (fixture until the trained one ships)
+# Env:    LEANGATE_MODEL  model (.onnx); default: the student embedded in the plugin (leangate-s)
 #
 # In annotate mode leangate lets every frame through, tagged with LeanGateMeta; the Python
 # client (pipelines/slam_client.py, Debian's /usr/bin/python3 + python3-gi) reads the meta at an
@@ -18,7 +18,7 @@
 #
 #   GST_PLUGIN_PATH=target/debug gst-launch-1.0 \
 #       filesrc location=VIDEO ! decodebin ! \
-#       leangate model=tests/fixtures/mad.onnx threshold=0.05 mode=annotate ! \
+#       leangate mode=annotate ! \
 #       videoconvert ! video/x-raw,format=RGB ! appsink
 #
 # with the appsink read from Python; gst-launch alone cannot dump buffer metas to a file.

@@ -6,7 +6,7 @@
 # which builds it with Gst.parse_launch without starting it; the Rust test suite runs it).
 #
 # Usage:  pipelines/camera.sh [--check] [DEVICE] [THRESHOLD]      (DEVICE default /dev/video0)
-# Env:    LEANGATE_MODEL  model (.onnx); default: the element's (fixture until the trained one ships)
+# Env:    LEANGATE_MODEL  model (.onnx); default: the student embedded in the plugin (leangate-s)
 #         SINK            default "videoconvert ! autovideosink sync=false"; e.g. "fakesink" headless
 #         CAPS            camera caps to request, default "video/x-raw,width=640,height=480"
 #         MAX_GAP         keep at least one frame every N (default 30: a live SLAM front end
@@ -17,7 +17,7 @@
 #
 #   GST_PLUGIN_PATH=target/debug gst-launch-1.0 -m \
 #       v4l2src device=/dev/video0 ! video/x-raw,width=640,height=480 ! videoconvert ! \
-#       leangate model=tests/fixtures/mad.onnx max-gap=30 stats-interval=1000000000 ! \
+#       leangate max-gap=30 stats-interval=1000000000 ! \
 #       videoconvert ! autovideosink sync=false
 #
 # (v4l2src often produces YUY2, which leangate does not take: hence the videoconvert before it.)

@@ -4,9 +4,8 @@
 # - Makes `leangate` findable: when gst-inspect-1.0 cannot find it, prepends the repository's
 #   target/release and target/debug to GST_PLUGIN_PATH; fails with a clear message if the
 #   plugin is still missing (build it with `cargo build`).
-# - MODEL / MODEL_PROP: the model file, from $LEANGATE_MODEL. Empty means "the element's
-#   default" (a trained model will be embedded in the plugin); until that ships, the fixture
-#   tests/fixtures/mad.onnx is used as the default (see pipelines/README.md).
+# - MODEL / MODEL_PROP: the model file, from $LEANGATE_MODEL. Empty means the element's default:
+#   the student embedded in the plugin (leangate-s).
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
@@ -29,10 +28,6 @@ leangate_require_plugin() {
         fi
     fi
 }
-
-# Until the trained model is embedded in the plugin, default to the fixture model.
-# (Delete this line once `model` is optional: an empty MODEL then means the built-in model.)
-: "${LEANGATE_MODEL:=$REPO/tests/fixtures/mad.onnx}"
 
 MODEL="${LEANGATE_MODEL:-}"
 if [ -n "$MODEL" ]; then

@@ -2,8 +2,7 @@
 # file.sh — gate a video file with leangate and print how many frames were kept.
 #
 # Usage:  pipelines/file.sh VIDEO [THRESHOLD]
-# Env:    LEANGATE_MODEL  model (.onnx); default: the element's (fixture tests/fixtures/mad.onnx
-#                         until the trained model is embedded)
+# Env:    LEANGATE_MODEL  model (.onnx); default: the student embedded in the plugin (leangate-s)
 #         SINK            where kept frames go; default "fakesink sync=false" (as fast as possible);
 #                         SINK="videoconvert ! autovideosink" to watch the kept frames
 #         MODE            drop (default) or annotate
@@ -13,7 +12,7 @@
 #
 #   GST_PLUGIN_PATH=target/debug gst-launch-1.0 -m \
 #       filesrc location=VIDEO ! decodebin ! \
-#       leangate model=tests/fixtures/mad.onnx threshold=0.05 ! fakesink sync=false
+#       leangate ! fakesink sync=false
 #
 # decodebin's usual outputs (I420, NV12, RGB...) link to leangate directly: no videoconvert.
 set -euo pipefail

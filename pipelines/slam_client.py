@@ -3,14 +3,14 @@
 
 This is what a Python SLAM process (e.g. a MASt3R-SLAM front end) needs from LeanGate: it builds
 
-    <source> ! leangate model=... ! videoconvert ! video/x-raw,format=RGB ! appsink
+    <source> ! leangate [model=...] ! videoconvert ! video/x-raw,format=RGB ! appsink
 
 and yields ``(frame, meta)`` pairs where ``frame`` is an ``(H, W, 3)`` ``uint8`` RGB array (row
 padding of the GStreamer buffer removed) and ``meta`` is a dict with the buffer's ``LeanGateMeta``
 fields plus the frame's position in the stream:
 
     from slam_client import LeanGateSource
-    with LeanGateSource("clip.mp4", model="tests/fixtures/mad.onnx", threshold=0.05) as src:
+    with LeanGateSource("clip.mp4") as src:        # model=None: the embedded leangate-s
         for frame, meta in src:
             slam.track(frame, timestamp=meta["pts"] / 1e9)
             if slam.lost_tracking():
@@ -30,7 +30,8 @@ Command line (runs with Debian's /usr/bin/python3 + python3-gi, gir1.2-gstreamer
 gir1.2-gst-plugins-base-1.0, python3-numpy; the plugin is found through GST_PLUGIN_PATH, and
 this script adds the repository's target/{debug,release} when the plugin is not found):
 
-    pipelines/slam_client.py clip.mp4 --model tests/fixtures/mad.onnx --threshold 0.05
+    pipelines/slam_client.py clip.mp4                       # the embedded student
+    pipelines/slam_client.py clip.mp4 --model other.onnx --threshold 0.6
     pipelines/slam_client.py clip.mp4 --mode annotate --csv scores.csv
     pipelines/slam_client.py --source videotestsrc --max-frames 100 --force-every 10
 

@@ -2,7 +2,8 @@
 # The main job: gate a video with leangate in a real GStreamer pipeline and show what it kept.
 #   scripts/demo.sh [OUT_DIR]            a synthetic flythrough with pauses and bursts
 #   VIDEO=walk.mp4 scripts/demo.sh       your own video (or an image-sequence directory)
-#   MODEL=student.onnx scripts/demo.sh   another pair or split model
+#   MODEL=student.onnx scripts/demo.sh   another pair or split model (default: the embedded one)
+#   THRESHOLD=0.6 scripts/demo.sh        another tau_keep (default: the model's)
 # Writes OUT_DIR/eval.json, OUT_DIR/eval.png (teacher vs predicted utility, kept frames per
 # policy) and OUT_DIR/kept.png (contact sheet of the kept frames).
 set -euo pipefail
@@ -20,19 +21,12 @@ else
 fi
 
 ARGS=()
-if [ -n "${MODEL:-}" ]; then
-  ARGS+=(--model "$MODEL")
-elif [ -f models/leangate-s.onnx ]; then
-  : # the embedded default student is used when no --model is given
-else
-  echo "== NOTE: no trained student in this checkout yet: using the fixture model"
-  echo "   tests/fixtures/mad.onnx (mean absolute pixel difference) at threshold 0.05"
-  ARGS+=(--model tests/fixtures/mad.onnx --threshold 0.05)
-fi
+# No --model: the student embedded in the plugin (leangate-s) gates the video.
+[ -n "${MODEL:-}" ] && ARGS+=(--model "$MODEL")
 [ -n "${THRESHOLD:-}" ] && ARGS+=(--threshold "$THRESHOLD")
 
 echo "== gating $SEQ with leangate (annotate mode, real pipeline) and judging it"
-"$BIN" eval --sequence "$SEQ" "${ARGS[@]}" --json "$OUT/eval.json" --plot "$OUT/eval.png" \
+"$BIN" eval --sequence "$SEQ" ${ARGS[@]+"${ARGS[@]}"} --json "$OUT/eval.json" --plot "$OUT/eval.png" \
   --contact-sheet "$OUT/kept.png"
 echo "== frames in / kept: $(python3 -c "import json;d=json.load(open('$OUT/eval.json'));m=d['policies']['model'];print(d['frames'],'/',m['kept'])" 2>/dev/null || echo see above)"
 echo "== wrote $OUT/eval.json, $OUT/eval.png, $OUT/kept.png"

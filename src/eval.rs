@@ -12,7 +12,7 @@
 //! (a, b) the teacher's S(b, a): `breaks` (S < 0.05, where MASt3R-SLAM tracking fails),
 //! `late_keeps` (S < 0.333: a keyframe was due in between), `min_pair_S`, `median_pair_S`;
 //! `overdue_drops`: dropped frames whose teacher tau against the gate's reference was already
-//! >= threshold; for scored policies `utility_mae` / `utility_rmse` of the gate's utility
+//! at or above the threshold; for scored policies `utility_mae` / `utility_rmse` of the gate's utility
 //! against the teacher's tau on the same (reference, frame) pairs.
 
 use std::collections::HashMap;
@@ -26,7 +26,7 @@ use serde::Serialize;
 use crate::dataset::Sequence;
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Reason, Score};
-use crate::preprocess::{PixelFormat, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix};
+use crate::preprocess::{PixelFormat, Preprocessor, ResizeMode, TensorSpec, YuvMatrix};
 use crate::teacher::{PairScore, Teacher};
 
 /// S below which MASt3R-SLAM's tracking breaks.
@@ -334,7 +334,8 @@ pub fn judge(
 /// What the eval runs on.
 #[derive(Debug, Clone)]
 pub enum Source {
-    /// A directory sequence (TUM layout or rgb.txt / images only).
+    /// A directory sequence (TUM layout or rgb.txt / images only). Without full ground truth
+    /// every colour frame is used, matched to a pose or not.
     Sequence(Sequence),
     /// A video file, decoded by GStreamer.
     Video(PathBuf),
@@ -343,7 +344,16 @@ pub enum Source {
 impl Source {
     pub fn open(path: &Path) -> Result<Source, EvalError> {
         if path.is_dir() {
-            Sequence::open(path)
+            let seq = Sequence::open(path).map_err(|e| EvalError(e.to_string()))?;
+            if seq.has_ground_truth() {
+                return Ok(Source::Sequence(seq));
+            }
+            // No teacher possible: gate every colour frame, poses or not.
+            let all = crate::dataset::OpenOptions {
+                drop_unmatched: false,
+                ..Default::default()
+            };
+            Sequence::open_with(path, &all)
                 .map(Source::Sequence)
                 .map_err(|e| EvalError(e.to_string()))
         } else if path.is_file() {
@@ -430,24 +440,9 @@ fn thumbnail(
     let buf = sample
         .buffer()
         .ok_or_else(|| EvalError("sample without buffer".into()))?;
-    let frame =
-        gst_video::VideoFrameRef::from_buffer_ref_readable(buf, info).map_err(err("map"))?;
-    let format = PixelFormat::from_video_format(info.format()).unwrap();
-    let mut planes: [&[u8]; 3] = [&[], &[], &[]];
-    let mut strides = [0usize; 3];
-    for p in 0..format.n_planes() {
-        planes[p] = frame.plane_data(p as u32).map_err(err("plane"))?;
-        strides[p] = gst_video::prelude::VideoFrameExt::plane_stride(&frame)[p] as usize;
-    }
-    let raw = RawFrame {
-        format,
-        width: info.width(),
-        height: info.height(),
-        planes,
-        strides,
-    };
     let mut t = vec![0.0; pre.spec().len()];
-    pre.run(&raw, &mut t).map_err(err("thumbnail"))?;
+    pre.run_buffer(buf, info, &mut t)
+        .map_err(err("thumbnail"))?;
     let plane = (THUMB_W * THUMB_H) as usize;
     let rgb = (0..plane)
         .flat_map(|i| [t[i], t[plane + i], t[2 * plane + i]])
@@ -495,18 +490,21 @@ pub fn contact_sheet(
         .map_err(|e| EvalError(format!("`{}`: {e}", out.display())))
 }
 
-/// Run the real element in annotate mode over the source. `progress(done)` is called per frame.
+/// Run the real element in annotate mode over the source, with `model` (None: the embedded
+/// default). `progress(done)` is called per frame.
 pub fn run_model(
     source: &Source,
-    model: &Path,
+    model: Option<&Path>,
     threshold: Option<f64>,
     mut progress: impl FnMut(usize),
 ) -> Result<ModelRun, EvalError> {
     init_gstreamer()?;
     let gate = gst::ElementFactory::make("leangate")
-        .property("model", model.display().to_string())
         .build()
         .map_err(err("creating leangate"))?;
+    if let Some(m) = model {
+        gate.set_property("model", m.display().to_string());
+    }
     gate.set_property_from_str("mode", "annotate");
     if let Some(t) = threshold {
         gate.set_property("threshold", t);
@@ -691,7 +689,7 @@ pub struct PlotData {
 /// Run every policy and judge it. `progress(stage, done, total)`.
 pub fn evaluate(
     path: &Path,
-    model: &Path,
+    model: Option<&Path>,
     threshold: Option<f64>,
     teacher_cfg: &crate::teacher::TeacherConfig,
     mut progress: impl FnMut(&str, usize, usize),

@@ -11,6 +11,7 @@
 use gst::glib;
 
 pub mod dataset;
+pub mod default_model;
 pub mod eval;
 pub mod leangate;
 pub mod meta;

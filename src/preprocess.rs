@@ -147,7 +147,7 @@ impl YuvMatrix {
     /// YUV first and converting once per output pixel equals converting every source pixel and
     /// averaging (up to the final clamp).
     #[inline(always)]
-    fn to_rgb(&self, yuv: [f32; 3]) -> [f32; 3] {
+    fn to_rgb(self, yuv: [f32; 3]) -> [f32; 3] {
         let [y, u, v] = yuv;
         let (y, cb, cr) = if self.full_range {
             (y, u - 128.0, v - 128.0)
@@ -421,6 +421,38 @@ impl Preprocessor {
             ),
         }
         Ok(())
+    }
+
+    /// Map a GStreamer video buffer described by `info` (strides and plane offsets from its
+    /// GstVideoMeta when present) and fill `out`.
+    pub fn run_buffer(
+        &self,
+        buf: &gst::BufferRef,
+        info: &gst_video::VideoInfo,
+        out: &mut [f32],
+    ) -> Result<(), PreprocessError> {
+        use gst_video::prelude::VideoFrameExt;
+        let frame = gst_video::VideoFrameRef::from_buffer_ref_readable(buf, info).map_err(|e| {
+            PreprocessError(format!("cannot map the buffer as {:?}: {e}", info.format()))
+        })?;
+        let format = PixelFormat::from_video_format(info.format())
+            .ok_or_else(|| PreprocessError(format!("unsupported format {:?}", info.format())))?;
+        let mut planes: [&[u8]; 3] = [&[], &[], &[]];
+        let mut strides = [0usize; 3];
+        for p in 0..format.n_planes() {
+            planes[p] = frame
+                .plane_data(p as u32)
+                .map_err(|e| PreprocessError(format!("plane {p}: {e}")))?;
+            strides[p] = frame.plane_stride()[p] as usize;
+        }
+        let raw = RawFrame {
+            format,
+            width: info.width(),
+            height: info.height(),
+            planes,
+            strides,
+        };
+        self.run(&raw, out)
     }
 
     /// Separable resampling in the source's colour space: a horizontal pass per needed source row

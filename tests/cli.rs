@@ -338,3 +338,35 @@ fn clear_errors_for_bad_sequences() {
         "{err}"
     );
 }
+
+#[test]
+fn embedded_student_drops_a_static_camera() {
+    let Some(seq) = common::shared_data("euroc_v101_static") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("eval.json");
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&seq)
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(
+        v["frames"], 95,
+        "every colour frame is gated, with or without a pose"
+    );
+    let ratio = v["policies"]["model"]["keep_ratio"].as_f64().unwrap();
+    assert!(
+        ratio <= 0.05,
+        "a static camera must lose at least 95% of its frames: kept {ratio}"
+    );
+}

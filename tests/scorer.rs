@@ -3,7 +3,7 @@
 mod common;
 
 use common::fixture;
-use gstleangate::preprocess::ResizeMode;
+use gstleangate::preprocess::{PixelFormat, Preprocessor, RawFrame, ResizeMode, YuvMatrix};
 use gstleangate::scorer::{ExecutionProvider, ModelSource, Scorer, ScorerError, ScorerOptions};
 
 fn load(name: &str) -> Result<Scorer, ScorerError> {
@@ -134,4 +134,60 @@ fn auto_provider_falls_back_to_cpu_with_reasons() {
     }
     assert_eq!(s.warnings.len(), 2, "{:?}", s.warnings);
     assert!(s.warnings[0].contains("tensorrt") && s.warnings[1].contains("cuda"));
+}
+
+#[test]
+fn embedded_default_is_a_split_model_with_its_metadata() {
+    let mut s = Scorer::load(
+        &gstleangate::default_model::source(),
+        &ScorerOptions {
+            execution_provider: ExecutionProvider::Cpu,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert!(s.is_split());
+    assert_eq!(s.info().name, gstleangate::default_model::NAME);
+    let t = s
+        .info()
+        .threshold
+        .expect("the default student carries its threshold");
+    assert!((0.0..=1.0).contains(&t));
+    // On real pictures: a frame against itself is not novel; two unrelated places are.
+    let (Some(kitchen), Some(classroom)) = (
+        common::shared_data("7scenes_redkitchen_dev/rgb/000000.jpg"),
+        common::shared_data("webcam_classroom/rgb"),
+    ) else {
+        return;
+    };
+    let first_classroom = std::fs::read_dir(&classroom)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .min()
+        .unwrap();
+    let spec = s.info().spec.clone();
+    let tensor = |path: &std::path::Path| {
+        let img = image::open(path).unwrap().to_rgb8();
+        let (w, h) = img.dimensions();
+        let pre =
+            Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT601, spec.clone()).unwrap();
+        let raw = RawFrame {
+            format: PixelFormat::Rgb,
+            width: w,
+            height: h,
+            planes: [img.as_raw(), &[], &[]],
+            strides: [3 * w as usize, 0, 0],
+        };
+        let mut t = vec![0.0; spec.len()];
+        pre.run(&raw, &mut t).unwrap();
+        t
+    };
+    let a = tensor(&kitchen);
+    let b = tensor(&first_classroom);
+    let same = s.score(&a, &a).unwrap() as f64;
+    let other = s.score(&a, &b).unwrap() as f64;
+    assert!(
+        same < t && other >= t,
+        "same place {same}, another place {other}, threshold {t}"
+    );
 }

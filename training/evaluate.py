@@ -34,6 +34,13 @@ def main():
     ap.add_argument("--threshold", type=float, default=None)
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
+    if a.threshold is None:
+        # pass the model's leangate.threshold explicitly: the element applies it by default, but
+        # `leangate eval` (as built now) reports and scores `overdue_drops` at 0.5 unless told
+        import onnx
+        meta = {p.key: p.value for p in onnx.load(a.model).metadata_props}
+        if "leangate.threshold" in meta:
+            a.threshold = float(meta["leangate.threshold"])
     seqs = sorted(glob.glob(os.path.join(a.eval_root, "synth_*")))
     seqs += [os.path.join(SHARED, "7scenes_redkitchen_dev"), os.path.join(SHARED, "euroc_v101_static")]
     seqs += sorted(glob.glob(os.path.join(SHARED, "cotracker_clips", "*.mp4")))

@@ -74,8 +74,12 @@ class Head(nn.Module):
 
     def forward(self, fr, fc, all_iters=False):
         n = self.gh * self.gw
-        r = F.normalize(fr.flatten(2), dim=1)
-        q = F.normalize(fc.flatten(2), dim=1)
+        # centre each image's features over its cells: ReLU-biased features otherwise make every
+        # cosine similarity high (uninformative); also removes global brightness
+        r = fr.flatten(2)
+        q = fc.flatten(2)
+        r = F.normalize(r - r.mean(dim=2, keepdim=True), dim=1)
+        q = F.normalize(q - q.mean(dim=2, keepdim=True), dim=1)
         corr = torch.matmul(q.transpose(1, 2), r) * self.logit_scale.exp()  # [N, cur, ref]
         g = torch.cat([self.side(corr, self.cur_net, n), self.side(corr.transpose(1, 2), self.ref_net, n)], 1)
         g = self.ctx(g)

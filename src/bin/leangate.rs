@@ -105,7 +105,7 @@ enum Command {
         /// Sequence directory (TUM layout, or rgb.txt/images only) or a video file.
         #[arg(long)]
         sequence: PathBuf,
-        /// Pair model (.onnx).
+        /// LeanGate model (.onnx, pair model or split encoder); default: the embedded leangate-s.
         #[arg(long)]
         model: Option<PathBuf>,
         /// tau_keep (default: the model's leangate.threshold, else 0.5).
@@ -256,28 +256,23 @@ fn run(cli: Cli) -> Res {
             contact_sheet,
             working_width,
             max_dist,
-        } => {
-            let model = model.ok_or(
-                "no --model given: pass a LeanGate pair model (.onnx); see models/README.md",
-            )?;
-            eval_cmd(
-                &sequence,
-                &model,
-                threshold,
-                json,
-                plot,
-                contact_sheet,
-                working_width,
-                max_dist,
-            )
-        }
+        } => eval_cmd(
+            &sequence,
+            model.as_deref(),
+            threshold,
+            json,
+            plot,
+            contact_sheet,
+            working_width,
+            max_dist,
+        ),
     }
 }
 
 #[allow(clippy::too_many_arguments)]
 fn eval_cmd(
     sequence: &Path,
-    model: &Path,
+    model: Option<&Path>,
     threshold: Option<f64>,
     json: Option<PathBuf>,
     plot: Option<PathBuf>,

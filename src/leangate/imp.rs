@@ -6,12 +6,11 @@ use gst::glib;
 use gst::prelude::*;
 use gst::subclass::prelude::*;
 use gst_base::subclass::prelude::*;
-use gst_video::prelude::*;
 
 use super::{ExecutionProviderChoice, GateMode, FORCE_KEYFRAME_EVENT, RESET_EVENT, STATS_MESSAGE};
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
-use crate::preprocess::{PixelFormat, Preprocessor, RawFrame, YuvMatrix};
+use crate::preprocess::{PixelFormat, Preprocessor, YuvMatrix};
 use crate::scorer::{ModelSource, Scorer, ScorerError, ScorerOptions};
 use crate::stats::InferenceStats;
 
@@ -177,27 +176,8 @@ impl LeanGate {
         let (info, pre) = pre
             .as_ref()
             .ok_or_else(|| "no caps negotiated before the first buffer".to_string())?;
-        let frame = gst_video::VideoFrameRef::from_buffer_ref_readable(buf, info)
-            .map_err(|e| format!("cannot map the buffer as {:?}: {e}", info.format()))?;
-        let format = PixelFormat::from_video_format(info.format())
-            .ok_or_else(|| format!("unsupported format {:?}", info.format()))?;
-        let n = format.n_planes();
-        let mut planes: [&[u8]; 3] = [&[], &[], &[]];
-        let mut strides = [0usize; 3];
-        for p in 0..n {
-            planes[p] = frame
-                .plane_data(p as u32)
-                .map_err(|e| format!("plane {p}: {e}"))?;
-            strides[p] = frame.plane_stride()[p] as usize;
-        }
-        let raw = RawFrame {
-            format,
-            width: info.width(),
-            height: info.height(),
-            planes,
-            strides,
-        };
-        pre.run(&raw, current).map_err(|e| e.to_string())
+        pre.run_buffer(buf, info, current)
+            .map_err(|e| e.to_string())
     }
 }
 
@@ -215,8 +195,10 @@ impl ObjectImpl for LeanGate {
                 glib::ParamSpecString::builder("model")
                     .nick("Model")
                     .blurb(
-                        "Path to a LeanGate pair model (.onnx: inputs `reference`, `current` \
-                         [N,3,H,W] float32, output `utility`); see models/README.md",
+                        "Path to a LeanGate model: a pair model (.onnx: inputs `reference`, \
+                         `current` [N,3,H,W] float32, output `utility`) or the encoder of a split \
+                         model; unset = the embedded default student leangate-s. See \
+                         models/README.md",
                     )
                     .mutable_ready()
                     .build(),
@@ -395,27 +377,23 @@ impl BaseTransformImpl for LeanGate {
 
     fn start(&self) -> Result<(), gst::ErrorMessage> {
         let settings = lock(&self.settings).clone();
-        let Some(model) = settings.model.clone().filter(|m| !m.is_empty()) else {
-            return Err(gst::error_msg!(
-                gst::ResourceError::NotFound,
-                ("No model: set the `model` property to a LeanGate pair model (.onnx); see \
-                     models/README.md")
-            ));
+        let source = match settings.model.clone().filter(|m| !m.is_empty()) {
+            Some(path) => ModelSource::File(path.into()),
+            None => crate::default_model::source(),
         };
         let opts = ScorerOptions {
             execution_provider: settings.execution_provider.into(),
             device_id: settings.device_id,
             threads: settings.threads as usize,
         };
-        let scorer =
-            Scorer::load(&ModelSource::File(model.clone().into()), &opts).map_err(|e| {
-                let kind = match &e {
-                    ScorerError::Runtime(_) => gst::LibraryError::Init,
-                    ScorerError::Provider { .. } => gst::LibraryError::Settings,
-                    _ => gst::LibraryError::Failed,
-                };
-                gst::error_msg!(kind, ("{}", e))
-            })?;
+        let scorer = Scorer::load(&source, &opts).map_err(|e| {
+            let kind = match &e {
+                ScorerError::Runtime(_) => gst::LibraryError::Init,
+                ScorerError::Provider { .. } => gst::LibraryError::Settings,
+                _ => gst::LibraryError::Failed,
+            };
+            gst::error_msg!(kind, ("{}", e))
+        })?;
         for w in &scorer.warnings {
             gst::warning!(CAT, imp = self, "{w}");
         }
