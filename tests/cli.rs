@@ -32,19 +32,7 @@ fn gst_inspect_documents_every_property() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    for p in [
-        "model",
-        "threshold",
-        "warmup",
-        "max-gap",
-        "mode",
-        "execution-provider",
-        "device-id",
-        "threads",
-        "stats-interval",
-        "frames-in",
-        "frames-kept",
-    ] {
+    for p in common::PROPERTIES {
         assert!(
             text.contains(&format!("  {p}  ")) || text.contains(&format!("  {p} ")),
             "{p} not in gst-inspect output"

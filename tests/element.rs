@@ -503,19 +503,7 @@ fn every_property_is_documented() {
     init();
     let e = gst::ElementFactory::make("leangate").build().unwrap();
     let props = e.list_properties();
-    for name in [
-        "model",
-        "threshold",
-        "warmup",
-        "max-gap",
-        "mode",
-        "execution-provider",
-        "device-id",
-        "threads",
-        "stats-interval",
-        "frames-in",
-        "frames-kept",
-    ] {
+    for name in common::PROPERTIES {
         let p = props
             .iter()
             .find(|p| p.name() == name)

@@ -7,6 +7,21 @@ use std::sync::Once;
 
 use gst::prelude::*;
 
+/// Every property the issue asks the element to have.
+pub const PROPERTIES: [&str; 11] = [
+    "model",
+    "threshold",
+    "warmup",
+    "max-gap",
+    "mode",
+    "execution-provider",
+    "device-id",
+    "threads",
+    "stats-interval",
+    "frames-in",
+    "frames-kept",
+];
+
 pub fn init() {
     static INIT: Once = Once::new();
     INIT.call_once(|| {
