@@ -615,18 +615,31 @@ pub fn run_model(
         progress(metas.len());
     }
     let elapsed = start.elapsed().as_secs_f64();
-    let bus_err = bus_error(&bus);
+    // One pass over the bus: `pop_filtered` would discard the messages it does not match.
+    let mut bus_err = None;
     let mut stats_threshold = None;
     let mut provider = String::new();
     let mut name = String::new();
-    while let Some(msg) = bus.pop_filtered(&[gst::MessageType::Element]) {
-        if let Some(s) = msg
-            .structure()
-            .filter(|s| s.name() == crate::leangate::STATS_MESSAGE)
-        {
-            stats_threshold = s.get::<f64>("threshold").ok();
-            provider = s.get::<String>("execution-provider").unwrap_or_default();
-            name = s.get::<String>("model").unwrap_or_default();
+    while let Some(msg) = bus.pop() {
+        match msg.view() {
+            gst::MessageView::Error(e) if bus_err.is_none() => {
+                bus_err = Some(EvalError(format!(
+                    "{}{}",
+                    e.error(),
+                    e.debug().map(|d| format!(" ({d})")).unwrap_or_default()
+                )));
+            }
+            gst::MessageView::Element(_) => {
+                if let Some(s) = msg
+                    .structure()
+                    .filter(|s| s.name() == crate::leangate::STATS_MESSAGE)
+                {
+                    stats_threshold = s.get::<f64>("threshold").ok();
+                    provider = s.get::<String>("execution-provider").unwrap_or_default();
+                    name = s.get::<String>("model").unwrap_or_default();
+                }
+            }
+            _ => {}
         }
     }
     let _ = pipeline.set_state(gst::State::Null);

@@ -2,11 +2,15 @@
 """Pick the default gate threshold so the model gate keeps as many frames as the oracle gate.
 
 For each held-out validation sequence (gen_data.py's val seeds, never trained on): the oracle gate
-(`leangate label --sequence S --threshold 0.5`, the teacher-driven gate at tau_keep 0.5) gives the
-reference keep count; the model gate is simulated exactly as the element runs it (first frame kept,
-each frame scored against the last kept frame, keep when utility >= T) with the exported encoder +
-head in ONNX Runtime, for T on a grid. The chosen T minimises the summed |log(kept_model/kept_oracle)|
-(ties: closest to 0.5). It is written as leangate.threshold into the three ONNX files.
+(`leangate label --sequence S --threshold T`, the teacher-driven gate) gives the reference keep count;
+the model gate is simulated exactly as the element runs it (first frame kept, each frame scored
+against the last kept frame, keep when utility >= T) with the exported encoder + head in ONNX
+Runtime, for T on a grid. By default the oracle runs at the same T as the model (`--tau-keep same`):
+that is how `leangate eval` compares them (one threshold for every policy), so the chosen T is the one
+where the student's gate and the ideal gate at that threshold keep the same number of frames.
+`--tau-keep 0.5` instead matches the oracle at a fixed tau_keep (the paper's). The chosen T minimises
+the summed |log(kept_model/kept_oracle)| (ties: closest to 0.5). It is written as leangate.threshold
+into the three ONNX files.
 
 Usage: python training/choose_threshold.py [--seqs '/work/train-data/seqs/val/seq_*'] [--models models]
 """
@@ -57,7 +61,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seqs", default="/work/train-data/seqs/val/seq_*")
     ap.add_argument("--models", default=os.path.join(REPO, "models"))
-    ap.add_argument("--tau-keep", type=float, default=0.5, help="the oracle's threshold (paper: 0.5)")
+    ap.add_argument("--tau-keep", default="same",
+                    help="the oracle's threshold: `same` (= the model's T, default) or a number (paper: 0.5)")
     ap.add_argument("--json", default="", help="write the sweep here")
     a = ap.parse_args()
     so = ort.SessionOptions()
@@ -67,20 +72,26 @@ def main():
     thresholds = np.round(np.arange(0.20, 0.851, 0.01), 3)
     seqs = sorted(s for s in glob.glob(a.seqs) if os.path.isdir(s))
     oracle, model = [], []
+    i5 = int(np.argmin(np.abs(thresholds - 0.5)))
     for s in seqs:
-        k, n = oracle_kept(s, a.tau_keep)
+        if a.tau_keep == "same":
+            ks = [oracle_kept(s, float(t)) for t in thresholds]
+            k, n = np.array([x[0] for x in ks]), ks[0][1]
+        else:
+            k1, n = oracle_kept(s, float(a.tau_keep))
+            k = np.full(len(thresholds), k1)
         c = model_gate_counts(enc, head, s, thresholds)
         oracle.append(k)
         model.append(c)
-        i5 = int(np.argmin(np.abs(thresholds - 0.5)))
-        print(f"{os.path.basename(s)}: {n} frames, oracle kept {k}; model kept {c[i5]} at T=0.5", flush=True)
+        print(f"{os.path.basename(s)}: {n} frames; at T=0.5 oracle kept {k[i5]}, model kept {c[i5]}", flush=True)
     oracle = np.array(oracle, np.float64)
     model = np.array(model, np.float64)
-    cost = np.abs(np.log(model / oracle[:, None])).sum(0) + 1e-3 * np.abs(thresholds - 0.5)
+    cost = np.abs(np.log(model / oracle)).sum(0) + 1e-3 * np.abs(thresholds - 0.5)
     best = int(np.argmin(cost))
     T = float(thresholds[best])
-    print(f"oracle total {int(oracle.sum())}; model total at chosen T={T:.2f}: {int(model[:, best].sum())} "
-          f"(per sequence {model[:, best].astype(int).tolist()} vs oracle {oracle.astype(int).tolist()})")
+    print(f"at the chosen T={T:.2f}: oracle total {int(oracle[:, best].sum())}, model total "
+          f"{int(model[:, best].sum())} (per sequence {model[:, best].astype(int).tolist()} vs oracle "
+          f"{oracle[:, best].astype(int).tolist()})")
     if a.json:
         json.dump({"thresholds": thresholds.tolist(), "oracle": oracle.tolist(), "model": model.tolist(),
                    "chosen": T, "sequences": seqs}, open(a.json, "w"), indent=1)

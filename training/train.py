@@ -144,6 +144,7 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--init", default="", help="checkpoint to start from")
+    ap.add_argument("--p-homog", type=float, default=0.35, help="fraction of real-photo homography pairs")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     torch.manual_seed(a.seed)
@@ -187,7 +188,7 @@ def main():
         lr = a.lr * min(1.0, (step + 1) / a.warmup) * 0.5 * (1 + math.cos(math.pi * frac))
         for gr in opt.param_groups:
             gr["lr"] = lr
-        ref, cur, y = make_batch(rng, g, synth, homog, a.batch)
+        ref, cur, y = make_batch(rng, g, synth, homog, a.batch, p_homog=a.p_homog)
         outs = model(ref, cur, all_iters=True)
         K = len(outs) - 1
         loss = sum(0.8 ** (K - k) * huber(o, y) for k, o in enumerate(outs))
