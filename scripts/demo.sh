@@ -16,8 +16,8 @@ if [ -n "${VIDEO:-}" ]; then
   SEQ=$VIDEO
 else
   SEQ=$OUT/flythrough
-  echo "== rendering a synthetic indoor flythrough with pauses and bursts (300 frames, 640x480)"
-  "$BIN" synth --out "$SEQ" --seed 42 --frames 300 --motion bursts --blur --jpeg
+  echo "== rendering a synthetic indoor flythrough: pans, walks, shaky handheld, pauses and bursts (300 frames, 640x480)"
+  "$BIN" synth --out "$SEQ" --seed 42 --frames 300 --motion mixed --blur --jpeg
 fi
 
 ARGS=()
