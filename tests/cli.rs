@@ -109,6 +109,26 @@ fn gst_launch_runs_a_real_pipeline() {
     );
 }
 
+/// Run `leangate eval --sequence SEQ EXTRA... --json OUT` and return the parsed report.
+fn eval_json(seq: &Path, extra: &[&str]) -> serde_json::Value {
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("eval.json");
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(seq)
+        .args(extra)
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap()
+}
+
 fn synth(dir: &Path, frames: usize, motion: &str, seed: u64) {
     let out = leangate()
         .args(["synth", "--out"])
@@ -220,28 +240,15 @@ fn eval_on_real_rgbd_has_every_key() {
     let Some(seq) = common::shared_data("7scenes_redkitchen_dev") else {
         return;
     };
-    let dir = tempfile::tempdir().unwrap();
-    let json = dir.path().join("eval.json");
-    let out = leangate()
-        .args(["eval", "--sequence"])
-        .arg(&seq)
-        .args([
+    let v = eval_json(
+        &seq,
+        &[
             "--model",
             &common::fixture("mad.onnx"),
             "--threshold",
             "0.02",
-            "--json",
-        ])
-        .arg(&json)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+        ],
     );
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(v["frames"], 60);
     let model = &v["policies"]["model"];
     for k in [
@@ -266,28 +273,15 @@ fn eval_without_depth_keeps_counts_and_nulls_teacher_keys() {
     let Some(clip) = common::shared_data("cotracker_clips/apple.mp4") else {
         return;
     };
-    let dir = tempfile::tempdir().unwrap();
-    let json = dir.path().join("eval.json");
-    let out = leangate()
-        .args(["eval", "--sequence"])
-        .arg(&clip)
-        .args([
+    let v = eval_json(
+        &clip,
+        &[
             "--model",
             &common::fixture("mad.onnx"),
             "--threshold",
             "0.05",
-            "--json",
-        ])
-        .arg(&json)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+        ],
     );
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let model = &v["policies"]["model"];
     assert!(model["kept"].as_u64().unwrap() >= 1);
     assert!(model["breaks"].is_null() && model["utility_rmse"].is_null());
@@ -332,22 +326,7 @@ fn embedded_student_drops_a_static_camera() {
     let Some(seq) = common::shared_data("euroc_v101_static") else {
         return;
     };
-    let dir = tempfile::tempdir().unwrap();
-    let json = dir.path().join("eval.json");
-    let out = leangate()
-        .args(["eval", "--sequence"])
-        .arg(&seq)
-        .arg("--json")
-        .arg(&json)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let v = eval_json(&seq, &[]);
     assert_eq!(
         v["frames"], 95,
         "every colour frame is gated, with or without a pose"
