@@ -5,7 +5,7 @@ CARGO ?= cargo
 PLUGIN_DIR := $(CURDIR)/target/release
 DEMO_DIR ?= out/demo
 
-.PHONY: all setup build release fixtures test bench demo inspect clean
+.PHONY: all setup build release fixtures test lint bench demo inspect clean
 
 all: build
 
@@ -13,10 +13,10 @@ setup:
 	bash scripts/setup.sh
 
 build: setup
-	$(CARGO) build
+	$(CARGO) build --workspace
 
 release: setup
-	$(CARGO) build --release
+	$(CARGO) build --workspace --release
 
 # Regenerate the ONNX fixture models the tests use (deterministic).
 fixtures: setup
@@ -26,12 +26,17 @@ fixtures: setup
 # ../shared is absent), the Python appsink client, the CLI end to end. `cargo build` first: the
 # gst-launch and Python tests load the cdylib target/debug/libgstleangate.so, which `cargo test`
 # alone does not rebuild.
-test: setup fixtures
-	$(CARGO) build --all-targets
-	$(CARGO) test --lib --bins --tests --no-fail-fast
+test: setup fixtures lint
+	$(CARGO) build --workspace --all-targets
+	$(CARGO) test --workspace --lib --bins --tests --no-fail-fast
+
+# Formatting and lints, as CI checks them (part of `make test`).
+lint: setup
+	$(CARGO) fmt --all --check
+	$(CARGO) clippy --workspace --all-targets -- -D warnings
 
 bench: release
-	$(CARGO) bench
+	$(CARGO) bench --workspace
 
 # The main job: gate a synthetic flythrough (pauses and bursts) with the element in a real
 # pipeline, print frames in/kept, write the eval plot and a contact sheet of the kept frames.

@@ -13,7 +13,7 @@
 use std::time::Instant;
 
 use gst::prelude::*;
-use gstleangate::scorer::{ExecutionProvider, ModelSource, Scorer, ScorerOptions};
+use gstleangate::{ExecutionProvider, ModelSource, Scorer, ScorerOptions};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
@@ -80,7 +80,7 @@ fn main() {
     gstleangate::plugin_register_static().unwrap();
     let pair_path = concat!(env!("CARGO_MANIFEST_DIR"), "/models/leangate-s.onnx");
     let mut pair = scorer(ModelSource::File(pair_path.into()));
-    let mut split = scorer(gstleangate::default_model::source());
+    let mut split = scorer(gstleangate::default_model());
     let reps = 5;
     println!("leangate-s, pair vs split (embedded), CPU, median of {reps}");
     println!("| case | pair fps | split fps | split/pair |");

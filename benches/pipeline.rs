@@ -15,7 +15,7 @@
 //!   `videoscale ! video/x-raw,width=640,height=480` in both pipelines.
 //! - raw: `videotestsrc ! video/x-raw,format=F,width=640,height=480 ! leangate ! fakesink` vs
 //!   `identity`, for F = I420, NV12, RGB (no decoding: the gate's cost is most visible).
-//! - preprocess: `gstleangate::preprocess::Preprocessor` alone, 640x480 RGB/NV12/I420 → 64x64
+//! - preprocess: `gstleangate::Preprocessor` alone, 640x480 RGB/NV12/I420 → 64x64
 //!   and 256x256 tensors, microseconds per frame.
 //!
 //! Frames per second are counted at the gate's (or identity's) sink pad, from the first buffer to
@@ -27,9 +27,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use gst::prelude::*;
-use gstleangate::preprocess::{
-    PixelFormat, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix,
-};
+use gstleangate::{PixelFormat, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix};
 
 const W: u32 = 640;
 const H: u32 = 480;

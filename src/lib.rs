@@ -2,26 +2,42 @@
 //!
 //! The element `leangate` scores each frame against the last kept frame (the reference) with a small
 //! ONNX "student" that predicts MASt3R-SLAM's keyframe utility `tau = 1 - min(f_m, f_u)`, and drops
-//! frames whose utility is below the threshold. Everything but the glue is plain Rust:
-//! [`policy`] (the gate), [`scorer`] (ONNX Runtime), [`preprocess`] (frame → tensor), [`meta`]
-//! (`LeanGateMeta`), [`runtime`] (finding libonnxruntime), [`stats`]; and for the tools:
-//! [`dataset`] (TUM-layout sequences), [`teacher`] (the exact geometric score), [`synth`]
-//! (procedural RGB-D scenes).
+//! frames whose utility is below the threshold. Everything but the GStreamer glue is plain Rust,
+//! and this crate's public API is what the element is made of, so that the tools (`leangate eval`
+//! in the `leangate-tools` crate), the benchmarks and the tests use the very same code:
+//!
+//! - the gate: [`Gate`], [`GateConfig`], [`Decision`], [`Reason`], [`Score`];
+//! - the scorer (ONNX Runtime): [`Scorer`], [`ScorerOptions`], [`ModelSource`], [`ModelInfo`],
+//!   [`ExecutionProvider`], [`ScorerError`], and the embedded default model [`default_model`];
+//! - preprocessing (frame → tensor): [`Preprocessor`], [`RawFrame`], [`PixelFormat`],
+//!   [`ResizeMode`], [`TensorSpec`], [`YuvMatrix`], [`PreprocessError`];
+//! - what leaves the element: [`GateMeta`] (`LeanGateMeta` on every buffer), [`StatsMessage`]
+//!   (the `leangate-stats` bus message), the custom event names;
+//! - the element type [`LeanGate`] and its property enums.
 
 use gst::glib;
 
-pub mod dataset;
-pub mod default_model;
-pub mod eval;
-pub mod leangate;
-pub mod meta;
-pub mod policy;
-pub mod preprocess;
-pub mod runtime;
-pub mod scorer;
-pub mod stats;
-pub mod synth;
-pub mod teacher;
+mod default_model;
+mod leangate;
+mod meta;
+mod policy;
+mod preprocess;
+mod runtime;
+mod scorer;
+mod stats;
+
+pub use default_model::{source as default_model, NAME as DEFAULT_MODEL_NAME};
+pub use leangate::{
+    ExecutionProviderChoice, GateMode, LeanGate, FORCE_KEYFRAME_EVENT, RESET_EVENT,
+};
+pub use meta::{GateMeta, META_NAME};
+pub use policy::{Decision, Gate, GateConfig, Reason, Score};
+pub use preprocess::{
+    PixelFormat, PreprocessError, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix,
+};
+pub use runtime::RuntimeError;
+pub use scorer::{ExecutionProvider, ModelInfo, ModelSource, Scorer, ScorerError, ScorerOptions};
+pub use stats::{StatsMessage, StatsParseError, STATS_MESSAGE};
 
 fn plugin_init(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     meta::register();

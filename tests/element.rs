@@ -4,10 +4,11 @@
 
 mod common;
 
+use common::pack::pack_rgb;
 use common::*;
 use gst::prelude::*;
-use gstleangate::policy::Reason;
-use gstleangate::preprocess::{pack_rgb, PixelFormat};
+use gstleangate::PixelFormat;
+use gstleangate::Reason;
 use std::str::FromStr;
 
 const W: u32 = 64;
@@ -141,7 +142,7 @@ fn max_gap_forces_a_keep() {
 fn force_keyframe_event_from_both_directions() {
     let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));
     let pic = texture(W, H, 4);
-    let force = || gst::Structure::new_empty(gstleangate::leangate::FORCE_KEYFRAME_EVENT);
+    let force = || gst::Structure::new_empty(gstleangate::FORCE_KEYFRAME_EVENT);
     h.push(buffer(pic.clone(), 0)).unwrap();
     h.push(buffer(pic.clone(), 33)).unwrap();
     // From downstream (a SLAM sink that lost tracking): upstream event.
@@ -174,7 +175,7 @@ fn reset_event_drops_the_reference() {
     h.push(buffer(pic.clone(), 0)).unwrap();
     h.push(buffer(pic.clone(), 33)).unwrap();
     h.push_event(gst::event::CustomDownstream::new(
-        gst::Structure::new_empty(gstleangate::leangate::RESET_EVENT),
+        gst::Structure::new_empty(gstleangate::RESET_EVENT),
     ));
     h.push(buffer(pic.clone(), 66)).unwrap();
     let out = drain(&mut h);
@@ -227,10 +228,10 @@ fn kept_buffers_are_not_copied() {
     let out = h.pull().unwrap();
     assert_eq!(out.map_readable().unwrap().as_slice().as_ptr(), in_ptr);
     assert!(
-        gstleangate::meta::GateMeta::read(&input).is_none(),
+        gstleangate::GateMeta::read(&input).is_none(),
         "the caller's buffer is untouched"
     );
-    assert!(gstleangate::meta::GateMeta::read(&out).is_some());
+    assert!(gstleangate::GateMeta::read(&out).is_some());
 }
 
 #[test]
@@ -451,7 +452,7 @@ fn no_model_property_runs_the_embedded_default() {
     let s = stats.last().unwrap();
     assert_eq!(
         s.get::<&str>("model").unwrap(),
-        gstleangate::default_model::NAME
+        gstleangate::DEFAULT_MODEL_NAME
     );
     assert_eq!(s.get::<u64>("frames-in").unwrap(), 10);
     assert!(s.get::<u64>("frames-kept").unwrap() >= 1);

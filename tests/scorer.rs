@@ -3,8 +3,8 @@
 mod common;
 
 use common::fixture;
-use gstleangate::preprocess::{PixelFormat, Preprocessor, RawFrame, ResizeMode, YuvMatrix};
-use gstleangate::scorer::{ExecutionProvider, ModelSource, Scorer, ScorerError, ScorerOptions};
+use gstleangate::{ExecutionProvider, ModelSource, Scorer, ScorerError, ScorerOptions};
+use gstleangate::{PixelFormat, Preprocessor, RawFrame, ResizeMode, YuvMatrix};
 
 fn load(name: &str) -> Result<Scorer, ScorerError> {
     Scorer::load(
@@ -139,7 +139,7 @@ fn auto_provider_falls_back_to_cpu_with_reasons() {
 #[test]
 fn embedded_default_is_a_split_model_with_its_metadata() {
     let mut s = Scorer::load(
-        &gstleangate::default_model::source(),
+        &gstleangate::default_model(),
         &ScorerOptions {
             execution_provider: ExecutionProvider::Cpu,
             ..Default::default()
@@ -147,7 +147,7 @@ fn embedded_default_is_a_split_model_with_its_metadata() {
     )
     .unwrap();
     assert!(s.is_split());
-    assert_eq!(s.info().name, gstleangate::default_model::NAME);
+    assert_eq!(s.info().name, gstleangate::DEFAULT_MODEL_NAME);
     let t = s
         .info()
         .threshold

@@ -7,12 +7,12 @@ use gst::prelude::*;
 use gst::subclass::prelude::*;
 use gst_base::subclass::prelude::*;
 
-use super::{ExecutionProviderChoice, GateMode, FORCE_KEYFRAME_EVENT, RESET_EVENT, STATS_MESSAGE};
+use super::{ExecutionProviderChoice, GateMode, FORCE_KEYFRAME_EVENT, RESET_EVENT};
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
 use crate::preprocess::{PixelFormat, Preprocessor, YuvMatrix};
 use crate::scorer::{ModelSource, Scorer, ScorerError, ScorerOptions};
-use crate::stats::InferenceStats;
+use crate::stats::{InferenceStats, StatsMessage};
 
 static CAT: LazyLock<gst::DebugCategory> = LazyLock::new(|| {
     gst::DebugCategory::new(
@@ -130,23 +130,21 @@ impl LeanGate {
         let frames_in = self.frames_in.load(Ordering::Relaxed);
         let frames_kept = self.frames_kept.load(Ordering::Relaxed);
         let threshold = state.gate.config().threshold;
-        let s = gst::Structure::builder(STATS_MESSAGE)
-            .field("frames-in", frames_in)
-            .field("frames-kept", frames_kept)
-            .field(
-                "keep-ratio",
-                if frames_in > 0 {
-                    frames_kept as f64 / frames_in as f64
-                } else {
-                    0.0
-                },
-            )
-            .field("inference-mean-us", state.stats.mean_us())
-            .field("inference-p99-us", state.stats.percentile_us(99.0))
-            .field("execution-provider", state.scorer.provider())
-            .field("model", state.scorer.info().name.as_str())
-            .field("threshold", threshold)
-            .build();
+        let s = StatsMessage {
+            frames_in,
+            frames_kept,
+            keep_ratio: if frames_in > 0 {
+                frames_kept as f64 / frames_in as f64
+            } else {
+                0.0
+            },
+            inference_mean_us: state.stats.mean_us(),
+            inference_p99_us: state.stats.percentile_us(99.0),
+            execution_provider: state.scorer.provider().to_string(),
+            model: state.scorer.info().name.clone(),
+            threshold,
+        }
+        .to_structure();
         let _ = self
             .obj()
             .post_message(gst::message::Element::builder(s).src(&*self.obj()).build());

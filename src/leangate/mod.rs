@@ -63,8 +63,6 @@ glib::wrapper! {
 pub const FORCE_KEYFRAME_EVENT: &str = "leangate-force-keyframe";
 /// Name of the custom event (upstream or downstream) that drops the reference.
 pub const RESET_EVENT: &str = "leangate-reset";
-/// Name of the element message with running statistics.
-pub const STATS_MESSAGE: &str = "leangate-stats";
 
 pub fn register(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     GateMode::static_type().mark_as_plugin_api(gst::PluginAPIFlags::empty());

@@ -118,8 +118,8 @@ pub fn drain(h: &mut gst_check::Harness) -> Vec<gst::Buffer> {
     v
 }
 
-pub fn meta(b: &gst::Buffer) -> gstleangate::meta::GateMeta {
-    gstleangate::meta::GateMeta::read(b).expect("every outgoing buffer carries LeanGateMeta")
+pub fn meta(b: &gst::Buffer) -> gstleangate::GateMeta {
+    gstleangate::GateMeta::read(b).expect("every outgoing buffer carries LeanGateMeta")
 }
 
 /// Run a pipeline to EOS or error; returns the bus messages seen (errors included).
@@ -173,3 +173,8 @@ pub fn element_message<'a>(msgs: &'a [gst::Message], name: &str) -> Vec<&'a gst:
         })
         .collect()
 }
+
+/// `pack_rgb`: an RGB picture in any supported format (shared with the crate's unit tests).
+pub mod pack;
+#[allow(unused_imports)]
+use gstleangate::{PixelFormat, YuvMatrix};

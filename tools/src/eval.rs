@@ -3,7 +3,7 @@
 //! Policies:
 //! - `model`: the real `leangate` element, in annotate mode, in a real pipeline (appsrc for image
 //!   sequences, filesrc ! decodebin for videos), with the given model;
-//! - `oracle`: the same gate ([`crate::policy::Gate`]) driven by the teacher's tau (the upper bound);
+//! - `oracle`: the same gate ([`gstleangate::Gate`]) driven by the teacher's tau (the upper bound);
 //! - `stride`: every s-th frame, s chosen so the kept count matches `model`'s;
 //! - `pixel_diff`: an mpdecimate-like gate (8x8 block SADs against the last kept frame, on a
 //!   160x120 grey thumbnail), its thresholds scaled so the kept count matches `model`'s.
@@ -24,10 +24,10 @@ use gst::prelude::*;
 use serde::Serialize;
 
 use crate::dataset::Sequence;
-use crate::meta::GateMeta;
-use crate::policy::{Gate, GateConfig, Reason, Score};
-use crate::preprocess::{PixelFormat, Preprocessor, ResizeMode, TensorSpec, YuvMatrix};
 use crate::teacher::{PairScore, Teacher};
+use gstleangate::GateMeta;
+use gstleangate::{Gate, GateConfig, Reason, Score};
+use gstleangate::{PixelFormat, Preprocessor, ResizeMode, TensorSpec, YuvMatrix};
 
 /// S below which MASt3R-SLAM's tracking breaks.
 pub const BREAK_S: f64 = 0.05;
@@ -402,7 +402,7 @@ pub fn init_gstreamer() -> Result<(), EvalError> {
     let mut res = Ok(());
     ONCE.call_once(|| {
         if gst::ElementFactory::find("leangate").is_none() {
-            res = crate::plugin_register_static().map_err(err("registering leangate"));
+            res = gstleangate::plugin_register_static().map_err(err("registering leangate"));
         }
     });
     res
@@ -632,7 +632,7 @@ pub fn run_model(
             gst::MessageView::Element(_) => {
                 if let Some(s) = msg
                     .structure()
-                    .filter(|s| s.name() == crate::leangate::STATS_MESSAGE)
+                    .filter(|s| s.name() == gstleangate::STATS_MESSAGE)
                 {
                     stats_threshold = s.get::<f64>("threshold").ok();
                     provider = s.get::<String>("execution-provider").unwrap_or_default();

@@ -4,8 +4,8 @@
 
 use std::time::Instant;
 
-use gstleangate::synth::{self, MotionProfile, Scene, SynthConfig};
-use gstleangate::teacher::{self, DepthView, Teacher, TeacherConfig};
+use leangate_tools::synth::{self, MotionProfile, Scene, SynthConfig};
+use leangate_tools::teacher::{self, DepthView, Teacher, TeacherConfig};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));

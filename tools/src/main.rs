@@ -10,11 +10,11 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use gstleangate::dataset::{RgbFormat, Sequence};
-use gstleangate::eval;
-use gstleangate::policy::GateConfig;
-use gstleangate::synth::{self, MotionProfile, SynthConfig};
-use gstleangate::teacher::{self, Teacher, TeacherConfig};
+use gstleangate::GateConfig;
+use leangate_tools::dataset::{RgbFormat, Sequence};
+use leangate_tools::eval;
+use leangate_tools::synth::{self, MotionProfile, SynthConfig};
+use leangate_tools::teacher::{self, Teacher, TeacherConfig};
 
 #[derive(Parser)]
 #[command(

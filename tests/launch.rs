@@ -1,0 +1,105 @@
+//! The plugin as a user runs it from the shell: `gst-inspect-1.0` / `gst-launch-1.0` on the built
+//! `libgstleangate.so`.
+
+mod common;
+
+use std::path::PathBuf;
+use std::process::Command;
+
+/// target/debug (holds libgstleangate.so).
+fn target_dir() -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    exe.parent().unwrap().parent().unwrap().to_path_buf()
+}
+
+fn gst_cmd(tool: &str) -> Command {
+    let mut c = Command::new(tool);
+    c.env("GST_PLUGIN_PATH", target_dir())
+        .env("GST_REGISTRY", target_dir().join("test-registry.bin"));
+    c
+}
+#[test]
+fn gst_inspect_documents_every_property() {
+    let out = gst_cmd("gst-inspect-1.0").arg("leangate").output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for p in common::PROPERTIES {
+        assert!(
+            text.contains(&format!("  {p}  ")) || text.contains(&format!("  {p} ")),
+            "{p} not in gst-inspect output"
+        );
+    }
+    assert!(text.contains("tau_keep") && text.contains("annotate"));
+}
+
+#[test]
+fn gst_launch_missing_model_fails_cleanly_with_the_path() {
+    let out = gst_cmd("gst-launch-1.0")
+        .args([
+            "videotestsrc",
+            "num-buffers=3",
+            "!",
+            "leangate",
+            "model=/no/such/student.onnx",
+            "!",
+            "fakesink",
+        ])
+        .output()
+        .unwrap();
+    let err =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("/no/such/student.onnx"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+#[test]
+fn gst_launch_without_onnx_runtime_names_ort_dylib_path() {
+    let out = gst_cmd("gst-launch-1.0")
+        .env("ORT_DYLIB_PATH", "/nonexistent/libonnxruntime.so")
+        .args(["videotestsrc", "num-buffers=3", "!", "leangate"])
+        .arg(format!("model={}", common::fixture("mad.onnx")))
+        .args(["!", "fakesink"])
+        .output()
+        .unwrap();
+    let err =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("ORT_DYLIB_PATH=/nonexistent/libonnxruntime.so") && err.contains("make setup"),
+        "{err}"
+    );
+}
+
+#[test]
+fn gst_launch_runs_a_real_pipeline() {
+    let out = gst_cmd("gst-launch-1.0")
+        .args([
+            "-m",
+            "videotestsrc",
+            "num-buffers=20",
+            "pattern=ball",
+            "!",
+            "video/x-raw,width=160,height=120",
+            "!",
+            "leangate",
+        ])
+        .arg(format!("model={}", common::fixture("mad.onnx")))
+        .args(["threshold=0.01", "!", "fakesink"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        text.contains("leangate-stats") && text.contains("frames-in=(guint64)20"),
+        "{text}"
+    );
+}
