@@ -6,8 +6,9 @@
 # Env:    LEANGATE_MODEL  model (.onnx); default: the student embedded in the plugin (leangate-s)
 #
 # In annotate mode leangate lets every frame through, tagged with LeanGateMeta; the Python
-# client (pipelines/slam_client.py, Debian's /usr/bin/python3 + python3-gi) reads the meta at an
-# appsink and writes one row per input frame:
+# client (the package pipelines/leangate_client, run through pipelines/slam_client.py with
+# Debian's /usr/bin/python3 + python3-gi) reads the meta at an appsink and writes one row per
+# input frame:
 #
 #   frame,pts_ns,utility,keep,reason,keyframe_index,frames_since_keyframe,inference_us
 #   0,66666666,nan,1,first,1,0,3329
@@ -26,7 +27,7 @@ set -euo pipefail
 . "$(dirname "$0")/common.sh"
 
 if [ $# -lt 2 ]; then
-    sed -n '2,25p' "$0" >&2
+    sed -n '2,26p' "$0" >&2
     exit 2
 fi
 VIDEO="$1"

@@ -1,0 +1,133 @@
+"""The GStreamer bindings (imported lazily-failing) and finding the `leangate` plugin."""
+
+from __future__ import annotations
+
+import logging
+import os
+from typing import Iterable, Optional, Union
+
+from .errors import SetupError
+
+log = logging.getLogger(__name__)
+
+PLUGIN_FILE = "libgstleangate.so"
+ELEMENT = "leangate"
+
+try:
+    import numpy as np
+    import gi
+
+    gi.require_version("Gst", "1.0")
+    gi.require_version("GstVideo", "1.0")
+    from gi.repository import GLib, GObject, Gst, GstVideo  # noqa: E402
+except (ImportError, ValueError) as _e:  # pragma: no cover - exercised only without bindings
+    IMPORT_ERROR: Optional[BaseException] = _e
+    np = None
+    gi = None
+    GLib = GObject = Gst = GstVideo = None
+else:
+    IMPORT_ERROR = None
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+
+def require_bindings() -> None:
+    """Raise SetupError naming the Debian packages when PyGObject/GStreamer/numpy are missing."""
+    if IMPORT_ERROR is not None:
+        raise SetupError(
+            f"cannot import the GStreamer Python bindings or numpy ({IMPORT_ERROR}); on Debian/"
+            "Ubuntu: apt install python3-gi gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 "
+            "python3-numpy (and run with /usr/bin/python3, or a venv created with "
+            "--system-site-packages)"
+        )
+
+
+def _init() -> None:
+    require_bindings()
+    if not Gst.is_initialized():
+        Gst.init(None)
+
+
+def plugin_file() -> Optional[str]:
+    """The file the registered `leangate` element comes from (None when it is not found)."""
+    _init()
+    factory = Gst.ElementFactory.find(ELEMENT)
+    if factory is None:
+        return None
+    plugin = factory.get_plugin()
+    return plugin.get_filename() if plugin is not None else None
+
+
+def _candidate(path: PathLike) -> str:
+    """A plugin path argument (the .so itself or the directory holding it) → the .so path."""
+    p = os.fspath(path)
+    if os.path.isdir(p):
+        p = os.path.join(p, PLUGIN_FILE)
+    return p
+
+
+def _load(lib: str) -> bool:
+    """Load a plugin file into the default registry; whether `leangate` is then found."""
+    try:
+        plugin = Gst.Plugin.load_file(lib)
+    except GLib.Error as e:
+        raise SetupError(f"cannot load the GStreamer plugin {lib}: {e.message}") from None
+    Gst.Registry.get().add_plugin(plugin)
+    found = plugin_file()
+    log.debug("loaded %s; leangate now from %s", lib, found)
+    return found is not None
+
+
+def ensure_plugin(
+    plugin_path: Optional[PathLike] = None, fallbacks: Iterable[PathLike] = ()
+) -> str:
+    """Initialise GStreamer and make sure the `leangate` element exists; return its plugin file.
+
+    Where the plugin comes from, in order:
+
+    1. ``plugin_path`` when given: ``libgstleangate.so`` itself or the directory holding it.
+       It is loaded explicitly, unless the registry already has `leangate` from that very file.
+    2. GStreamer's own search: ``GST_PLUGIN_PATH`` (the documented way), then the system
+       plugin directories.
+    3. ``fallbacks`` (files or directories), tried in order, only when 1 and 2 found nothing
+       (the repository's ``pipelines/slam_client.py`` passes its ``target/{release,debug}``).
+
+    Raises SetupError when it is still missing.
+    """
+    _init()
+    if plugin_path is not None:
+        lib = _candidate(plugin_path)
+        if not os.path.isfile(lib):
+            raise SetupError(f"leangate plugin not found: {lib} (plugin_path={os.fspath(plugin_path)!r})")
+        current = plugin_file()
+        if current is not None and os.path.realpath(current) == os.path.realpath(lib):
+            return current
+        if current is not None:
+            log.info(
+                "leangate is already registered from %s; loading %s as asked by plugin_path",
+                current,
+                lib,
+            )
+        _load(lib)
+        found = plugin_file()
+        if found is None:
+            raise SetupError(f"{lib} loaded, but it does not provide the `leangate` element")
+        return found
+
+    found = plugin_file()
+    if found is not None:
+        return found
+    tried = []
+    for fb in fallbacks:
+        lib = _candidate(fb)
+        if os.path.isfile(lib):
+            tried.append(lib)
+            if _load(lib):
+                log.info("leangate not in GST_PLUGIN_PATH; using %s", lib)
+                return plugin_file()
+    raise SetupError(
+        "GStreamer element `leangate` not found. Build the plugin (`cargo build`) and set "
+        "GST_PLUGIN_PATH to the directory holding libgstleangate.so (e.g. "
+        "export GST_PLUGIN_PATH=$PWD/target/debug), or pass plugin_path= / --plugin-path"
+        + (f" (also tried {', '.join(tried)})" if tried else "")
+    )

@@ -1,0 +1,234 @@
+"""``leangate-client`` (also ``python3 -m leangate_client``): run a video through leangate and
+receive the kept frames as numpy arrays with their LeanGateMeta.
+
+stdout is the product: one line per received frame (unless --quiet) and a ``summary:`` line::
+
+    summary: frames-in=82 received=31 kept=31 forced=0 force-events=0 mode=drop shape=480x854x3:uint8 ...
+
+Diagnostics go through ``logging`` to stderr (warnings by default; -v info, -vv debug).
+Exit status: 0 on success, 1 on a pipeline error, 2 on a usage/setup error (missing file,
+missing plugin, missing Python bindings), 130 when interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import math
+import os
+import sys
+from typing import Iterable, List, Optional, Sequence
+
+from .errors import PipelineError, SetupError
+from .source import EXECUTION_PROVIDERS, LeanGateSource
+
+log = logging.getLogger("leangate_client")
+
+CSV_COLUMNS = (
+    "frame",
+    "pts_ns",
+    "utility",
+    "keep",
+    "reason",
+    "keyframe_index",
+    "frames_since_keyframe",
+    "inference_us",
+)
+
+
+class _Formatter(logging.Formatter):
+    """``PROG: LEVEL: message`` (level in lower case), the usual shape of a CLI diagnostic."""
+
+    def __init__(self, prog: str):
+        super().__init__()
+        self.prog = prog
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = f"{self.prog}: {record.levelname.lower()}: {record.getMessage()}"
+        if record.exc_info:
+            text += "\n" + self.formatException(record.exc_info)
+        return text
+
+
+def configure_logging(prog: str, verbosity: int = 0, stream=None) -> logging.Handler:
+    """Send the package's log records to stderr (or ``stream``) as ``PROG: level: message``.
+    verbosity 0: warnings and errors, 1: info, 2 or more: debug."""
+    handler = logging.StreamHandler(stream if stream is not None else sys.stderr)
+    handler.setFormatter(_Formatter(prog))
+    logger = logging.getLogger("leangate_client")
+    for h in list(logger.handlers):
+        if getattr(h, "_leangate_cli", False):
+            logger.removeHandler(h)
+    handler._leangate_cli = True  # type: ignore[attr-defined]
+    logger.addHandler(handler)
+    logger.setLevel(
+        logging.WARNING if verbosity <= 0 else logging.INFO if verbosity == 1 else logging.DEBUG
+    )
+    logger.propagate = False
+    return handler
+
+
+def _fmt_util(u: float) -> str:
+    return "nan" if math.isnan(u) else f"{u:.6f}"
+
+
+def _fmt(v, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog=prog,
+        description="Run a video through leangate and receive the kept frames as numpy arrays "
+        "with their LeanGateMeta (the hand-off to a Python SLAM process).",
+        epilog="The plugin is found through GST_PLUGIN_PATH (the directory holding "
+        "libgstleangate.so) or --plugin-path.",
+    )
+    ap.add_argument(
+        "input",
+        nargs="?",
+        help="video file, URI, or test://PATTERN?num-buffers=N&width=W&height=H (videotestsrc)",
+    )
+    ap.add_argument(
+        "--source",
+        choices=("auto", "videotestsrc"),
+        default="auto",
+        help="videotestsrc: ignore INPUT and use test://ball (or INPUT if it is a test:// URI)",
+    )
+    ap.add_argument(
+        "--model",
+        default=os.environ.get("LEANGATE_MODEL") or None,
+        help="LeanGate model (.onnx); default $LEANGATE_MODEL, else the element's default "
+        "(the embedded student leangate-s)",
+    )
+    ap.add_argument("--threshold", type=float, default=None,
+                    help="keep threshold in [0,1]; default: the model's")
+    ap.add_argument("--mode", choices=("drop", "annotate"), default="drop")
+    ap.add_argument("--warmup", type=int, default=None)
+    ap.add_argument("--max-gap", type=int, default=None)
+    ap.add_argument("--execution-provider", choices=EXECUTION_PROVIDERS)
+    ap.add_argument("--stats-interval", type=float, default=None, metavar="SECONDS",
+                    help="have the element post leangate-stats this often (logged at -v)")
+    ap.add_argument("--csv", metavar="OUT", help="write one row per received frame to OUT")
+    ap.add_argument("--max-frames", type=int, default=None,
+                    help="stop after receiving this many frames")
+    ap.add_argument("--force-every", type=int, default=0, metavar="N",
+                    help="send a leangate-force-keyframe event upstream after every N received "
+                    "frames (what a SLAM process does when it loses tracking)")
+    ap.add_argument("--quiet", action="store_true", help="no per-frame lines, only the summary")
+    ap.add_argument("--plugin-path", metavar="PATH",
+                    help="libgstleangate.so or its directory, when it is not on GST_PLUGIN_PATH")
+    ap.add_argument("-v", "--verbose", action="count", default=0,
+                    help="log more to stderr (-v: info, -vv: debug)")
+    return ap
+
+
+def main(
+    argv: Optional[Sequence[str]] = None,
+    prog: Optional[str] = None,
+    plugin_fallbacks: Iterable[str] = (),
+) -> int:
+    """The command line. ``prog`` names the tool in usage and log lines (default: the name it
+    was started as); ``plugin_fallbacks``: plugin files/directories to try when `leangate` is
+    on neither ``--plugin-path`` nor ``GST_PLUGIN_PATH``."""
+    ap = build_parser(prog)
+    args = ap.parse_args(argv)
+    configure_logging(ap.prog, args.verbose)
+
+    if args.source == "videotestsrc":
+        src = args.input if args.input and args.input.startswith("test://") else "test://ball"
+    elif args.input:
+        src = args.input
+    else:
+        ap.error("INPUT is required (or --source videotestsrc)")
+    if args.force_every < 0:
+        ap.error("--force-every must be >= 0")
+
+    out = None
+    writer = None
+    kept = forced = 0
+    shapes: List[str] = []
+    source = None
+    try:
+        source = LeanGateSource(
+            src,
+            model=args.model,
+            threshold=args.threshold,
+            mode=args.mode,
+            warmup=args.warmup,
+            max_gap=args.max_gap,
+            execution_provider=args.execution_provider,
+            max_frames=args.max_frames,
+            arrays=True,
+            stats_interval=args.stats_interval,
+            plugin_path=args.plugin_path,
+            plugin_fallbacks=plugin_fallbacks,
+        )
+        if args.csv:
+            out = open(args.csv, "w", newline="")
+            writer = csv.writer(out)
+            writer.writerow(CSV_COLUMNS)
+        with source:
+            for frame, m in source:
+                shape = f"{frame.shape[0]}x{frame.shape[1]}x{frame.shape[2]}:{frame.dtype}"
+                if shape not in shapes:
+                    shapes.append(shape)
+                kept += m["keep"]
+                forced += m["reason"] == "forced"
+                if writer:
+                    writer.writerow([
+                        "" if m["frame"] is None else m["frame"],
+                        "" if m["pts"] is None else m["pts"],
+                        _fmt_util(m["utility"]),
+                        int(m["keep"]),
+                        m["reason"],
+                        m["keyframe_index"],
+                        m["frames_since_keyframe"],
+                        m["inference_us"],
+                    ])
+                if not args.quiet:
+                    print(
+                        f"frame {m['frame']} pts {m['pts']} shape {frame.shape} mean "
+                        f"{frame.mean():.1f} utility {_fmt_util(m['utility'])} keep "
+                        f"{int(m['keep'])} reason {m['reason']} keyframe {m['keyframe_index']} "
+                        f"since {m['frames_since_keyframe']} inference-us {m['inference_us']}",
+                        flush=True,
+                    )
+                if args.force_every and source.received % args.force_every == 0:
+                    source.force_keyframe()
+            stats = source.stats
+    except SetupError as e:
+        log.error("%s", e)
+        return 2
+    except PipelineError as e:
+        log.error("pipeline error: %s", e)
+        return 1
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130
+    except OSError as e:  # the CSV file
+        log.error("%s", e)
+        return 2
+    finally:
+        if out:
+            out.close()
+
+    stats_txt = ""
+    if stats:
+        stats_txt = (
+            f" provider={_fmt(stats.execution_provider, '')} model={_fmt(stats.model, '')}"
+            f" threshold={_fmt(stats.threshold, '.4g')}"
+            f" inference-mean-us={_fmt(stats.inference_mean_us, '.0f')}"
+            f" inference-p99-us={_fmt(stats.inference_p99_us, '.0f')}"
+        )
+    else:
+        log.info("no leangate-stats message (the stream was stopped before EOS)")
+    print(
+        f"summary: frames-in={source.frames_in} received={source.received} kept={kept} "
+        f"forced={forced} force-events={source.forced_events} mode={args.mode} "
+        f"shape={','.join(sorted(shapes)) or '-'}{stats_txt}"
+        + (f" csv={args.csv}" if args.csv else ""),
+        flush=True,
+    )
+    return 0

@@ -1,0 +1,503 @@
+"""`LeanGateSource`: a pipeline ending in an appsink, iterated as ``(frame, meta)`` pairs.
+
+The pipeline is built element by element::
+
+    <source> ! leangate name=gate [...] ! videoconvert ! appsink name=sink caps=video/x-raw,format=RGB
+
+where ``<source>`` is ``filesrc ! decodebin`` for a path, ``uridecodebin`` for a URI, and
+``videotestsrc ! capsfilter`` for a ``test://`` pseudo-URI; the decoders' video pad is linked
+to the gate when it appears (``pad-added``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import urllib.parse
+from typing import Any, Dict, Iterator, List, Mapping, Optional, Tuple
+
+from . import _gst
+from ._gst import PathLike, ensure_plugin
+from .errors import PipelineError, SetupError
+from .meta import FORCE_KEYFRAME_EVENT, META_NAME, RESET_EVENT, meta_dict
+from .stats import LeanGateStats
+
+log = logging.getLogger(__name__)
+
+MODES = ("drop", "annotate")
+EXECUTION_PROVIDERS = ("auto", "cpu", "cuda", "tensorrt")
+TEST_PARAMETERS = ("num-buffers", "width", "height", "fps", "format")
+
+
+def _make(factory: str, name: Optional[str] = None):
+    el = _gst.Gst.ElementFactory.make(factory, name)
+    if el is None:
+        raise SetupError(
+            f"GStreamer element `{factory}` not found (Debian: apt install "
+            "gstreamer1.0-plugins-base gstreamer1.0-plugins-good)"
+        )
+    return el
+
+
+def _enum_nicks(el, prop: str) -> List[str]:
+    pspec = el.find_property(prop)
+    try:
+        return sorted(v.value_nick for v in pspec.enum_class.__enum_values__.values())
+    except AttributeError:
+        return []
+
+
+def _set(el, prop: str, value: Any) -> None:
+    """``el.set_property`` with a SetupError (naming the accepted values) for a bad value."""
+    try:
+        el.set_property(prop, value)
+    except (TypeError, ValueError, OverflowError) as e:
+        nicks = _enum_nicks(el, prop)
+        known = f"; one of: {', '.join(nicks)}" if nicks else ""
+        factory = el.get_factory().get_name() if el.get_factory() else el.get_name()
+        raise SetupError(f"bad value {value!r} for {factory} property {prop}{known} ({e})") from None
+
+
+def parse_test_uri(spec: str) -> Dict[str, Any]:
+    """``test://PATTERN?num-buffers=N&width=W&height=H&fps=F&format=FMT`` → its parameters
+    (pattern and integers checked here; the pattern is checked against videotestsrc later)."""
+    u = urllib.parse.urlsplit(spec)
+    pattern = (u.netloc or u.path.strip("/") or "ball").strip()
+    q = {k: v[-1] for k, v in urllib.parse.parse_qs(u.query).items()}
+    unknown = set(q) - set(TEST_PARAMETERS)
+    if unknown:
+        raise SetupError(
+            f"unknown test:// parameter(s) {sorted(unknown)}; known: {sorted(TEST_PARAMETERS)}"
+        )
+    try:
+        params = {
+            "pattern": pattern,
+            "num-buffers": int(q.get("num-buffers", "300")),
+            "width": int(q.get("width", "640")),
+            "height": int(q.get("height", "480")),
+            "fps": int(q.get("fps", "30")),
+            "format": q.get("format"),
+        }
+    except ValueError as e:
+        raise SetupError(f"bad test:// parameter in {spec!r}: {e}") from None
+    for k in ("width", "height", "fps"):
+        if params[k] <= 0:
+            raise SetupError(f"test:// {k} must be positive, not {params[k]}")
+    return params
+
+
+def buffer_to_rgb(buf, info) -> "Any":
+    """Copy an RGB buffer into an (H, W, 3) uint8 array, honouring stride and plane offset
+    (from the buffer's GstVideoMeta when it has one, else from the negotiated VideoInfo)."""
+    Gst, GstVideo, np = _gst.Gst, _gst.GstVideo, _gst.np
+    w, h = info.width, info.height
+    stride, offset = info.stride[0], info.offset[0]
+    vmeta = GstVideo.buffer_get_video_meta(buf)
+    if vmeta is not None:
+        stride, offset = vmeta.stride[0], vmeta.offset[0]
+    ok, mapinfo = buf.map(Gst.MapFlags.READ)
+    if not ok:
+        raise PipelineError("cannot map the appsink buffer for reading")
+    try:
+        need = offset + stride * (h - 1) + 3 * w
+        if len(mapinfo.data) < need:
+            raise PipelineError(
+                f"buffer holds {len(mapinfo.data)} bytes, a {w}x{h} RGB frame with stride "
+                f"{stride} needs {need}"
+            )
+        view = np.ndarray(
+            (h, w, 3), dtype=np.uint8, buffer=mapinfo.data, offset=offset, strides=(stride, 3, 1)
+        )
+        return np.ascontiguousarray(view)  # a copy: the buffer goes back to GStreamer
+    finally:
+        buf.unmap(mapinfo)
+
+
+class LeanGateSource:
+    """Iterate over the frames that leave `leangate` as ``(rgb_array, meta_dict)``.
+
+    ``source``: a video file path, a URI (file://, rtsp://, http://, ...: ``uridecodebin``) or
+    ``test://PATTERN?num-buffers=N&width=W&height=H&fps=F`` (``videotestsrc``; ``"videotestsrc"``
+    alone means ``test://ball``).
+
+    ``model``, ``threshold``, ``mode``, ``warmup``, ``max_gap``, ``execution_provider``: the
+    element's properties (None = the element's default; ``model=None`` is the embedded student
+    leangate-s). ``stats_interval``: seconds between periodic `leangate-stats` messages (None:
+    only at EOS). ``properties``: any other element properties by their GStreamer names, e.g.
+    ``{"threads": 2, "device-id": 1}``.
+
+    ``max_frames`` stops after that many frames have been handed to the caller (the pipeline is
+    then shut down without EOS, so no end-of-stream statistics are posted). With
+    ``arrays=False`` the frame is None (cheaper, for score dumps). ``timeout_s``: give up when
+    neither a frame nor EOS arrives for that long. ``plugin_path``: libgstleangate.so or its
+    directory, when it is not on ``GST_PLUGIN_PATH`` (see ``ensure_plugin``).
+
+    Each ``meta`` is a dict: ``frame`` (index of the frame in the input stream, counted at
+    leangate's sink pad; None when the buffer has no PTS), ``pts`` (ns or None), ``utility``
+    (float, NaN for a `first` frame), ``keep``, ``reason``, ``keyframe_index``,
+    ``reference_pts`` (ns or None), ``frames_since_keyframe``, ``inference_us``.
+
+    After iteration: ``stats`` (the last `leangate-stats` message, a ``LeanGateStats``, or
+    None), ``frames_in`` (frames that entered the gate), ``received`` (frames handed out),
+    ``forced_events`` (``force_keyframe`` calls).
+    """
+
+    def __init__(
+        self,
+        source: str,
+        model: Optional[PathLike] = None,
+        threshold: Optional[float] = None,
+        mode: str = "drop",
+        warmup: Optional[int] = None,
+        max_gap: Optional[int] = None,
+        execution_provider: Optional[str] = None,
+        max_frames: Optional[int] = None,
+        arrays: bool = True,
+        timeout_s: float = 60.0,
+        *,
+        stats_interval: Optional[float] = None,
+        properties: Optional[Mapping[str, Any]] = None,
+        plugin_path: Optional[PathLike] = None,
+        plugin_fallbacks=(),
+    ):
+        self.plugin = ensure_plugin(plugin_path, plugin_fallbacks)
+        if mode not in MODES:
+            raise SetupError(f"mode must be drop or annotate, not {mode!r}")
+        if execution_provider is not None and execution_provider not in EXECUTION_PROVIDERS:
+            raise SetupError(
+                f"execution_provider must be one of {', '.join(EXECUTION_PROVIDERS)}, "
+                f"not {execution_provider!r}"
+            )
+        if model is not None and os.fspath(model) and not os.path.exists(model):
+            raise SetupError(f"model not found: {os.fspath(model)}")
+        if threshold is not None and not (threshold == -1 or 0.0 <= threshold <= 1.0):
+            raise SetupError(f"threshold must be -1 or in [0, 1], not {threshold}")
+        if stats_interval is not None and stats_interval < 0:
+            raise SetupError(f"stats_interval must be >= 0 s, not {stats_interval}")
+        if max_frames is not None and max_frames < 0:
+            raise SetupError(f"max_frames must be >= 0, not {max_frames}")
+
+        self.source = "test://ball" if source == "videotestsrc" else source
+        self._check_source(self.source)
+        self.gate_properties: Dict[str, Any] = {"mode": mode}
+        if model is not None and os.fspath(model):
+            self.gate_properties["model"] = os.path.abspath(model)
+        if threshold is not None:
+            self.gate_properties["threshold"] = float(threshold)
+        if warmup is not None:
+            self.gate_properties["warmup"] = int(warmup)
+        if max_gap is not None:
+            self.gate_properties["max-gap"] = int(max_gap)
+        if execution_provider:
+            self.gate_properties["execution-provider"] = execution_provider
+        if stats_interval is not None:
+            self.gate_properties["stats-interval"] = int(round(stats_interval * 1e9))
+        self.gate_properties.update(properties or {})
+
+        self.mode = mode
+        self.max_frames = max_frames
+        self.arrays = arrays
+        self.timeout_s = timeout_s
+        self.stats: Optional[LeanGateStats] = None  # the last `leangate-stats` message
+        self.frames_in = 0  # frames that entered the gate (sink-pad probe)
+        self.received = 0  # frames handed to the caller
+        self.forced_events = 0
+        self._pts_to_index: Dict[int, int] = {}
+        self._lock = threading.Lock()  # _pts_to_index and frames_in: written by the probe
+        self._stream_error: Optional[str] = None  # set from decodebin's streaming thread
+        self._pipeline = None
+        self._sink = None
+        self._bus = None
+        self._started = False
+
+    # -- description and building --------------------------------------------------------
+    @staticmethod
+    def _check_source(source: str) -> None:
+        if source.startswith("test://"):
+            parse_test_uri(source)
+        elif "://" in source:
+            if source.startswith("file://"):
+                path = _gst.Gst.uri_get_location(source) or ""
+                if not os.path.exists(path):
+                    raise SetupError(f"input file not found: {path}")
+        else:
+            if not os.path.exists(source):
+                raise SetupError(f"input file not found: {source}")
+            if os.path.isdir(source):
+                raise SetupError(f"input is a directory, not a video file: {source}")
+
+    @property
+    def description(self) -> str:
+        """The pipeline in gst-launch notation, for logs (informational: it is never parsed)."""
+        s = self.source
+        if s.startswith("test://"):
+            p = parse_test_uri(s)
+            head = (
+                f"videotestsrc pattern={p['pattern']} num-buffers={p['num-buffers']} ! "
+                f"{self._test_caps_string(p)}"
+            )
+        elif "://" in s:
+            head = f"uridecodebin uri={s}"
+        else:
+            head = f"filesrc location={os.path.abspath(s)} ! decodebin"
+        props = " ".join(f"{k}={v}" for k, v in self.gate_properties.items())
+        return (
+            f"{head} ! leangate name=gate {props} ! videoconvert ! "
+            "appsink name=sink caps=video/x-raw,format=RGB sync=false max-buffers=8 drop=false"
+        )
+
+    @staticmethod
+    def _test_caps_string(p: Mapping[str, Any]) -> str:
+        caps = f"video/x-raw,width={p['width']},height={p['height']},framerate={p['fps']}/1"
+        if p["format"]:
+            caps += f",format={p['format']}"
+        return caps
+
+    def _build(self):
+        Gst, GstVideo = _gst.Gst, _gst.GstVideo
+        pipeline = Gst.Pipeline.new("leangate-client")
+        gate = _make("leangate", "gate")
+        for k, v in self.gate_properties.items():
+            _set(gate, k, v)
+        convert = _make("videoconvert", "convert")
+        sink = _make("appsink", "sink")
+        _set(sink, "caps", Gst.Caps.from_string("video/x-raw,format=RGB"))
+        _set(sink, "sync", False)
+        _set(sink, "max-buffers", 8)
+        _set(sink, "drop", False)
+        for el in (gate, convert, sink):
+            pipeline.add(el)
+        if not gate.link(convert) or not convert.link(sink):
+            raise SetupError("cannot link leangate ! videoconvert ! appsink")
+
+        s = self.source
+        if s.startswith("test://"):
+            p = parse_test_uri(s)
+            src = _make("videotestsrc", "src")
+            _set(src, "pattern", p["pattern"])
+            _set(src, "num-buffers", p["num-buffers"])
+            if p["format"] and GstVideo.VideoFormat.from_string(p["format"]) == (
+                GstVideo.VideoFormat.UNKNOWN
+            ):
+                raise SetupError(f"unknown video format in test:// URI: {p['format']!r}")
+            caps = _make("capsfilter", "testcaps")
+            _set(caps, "caps", Gst.Caps.from_string(self._test_caps_string(p)))
+            pipeline.add(src)
+            pipeline.add(caps)
+            if not src.link(caps) or not caps.link(gate):
+                raise SetupError(f"videotestsrc cannot produce {self._test_caps_string(p)}")
+        elif "://" in s:
+            dec = _make("uridecodebin", "src")
+            _set(dec, "uri", s)
+            pipeline.add(dec)
+            self._watch_decoder(dec, gate)
+        else:
+            src = _make("filesrc", "src")
+            _set(src, "location", os.path.abspath(s))
+            dec = _make("decodebin", "decode")
+            pipeline.add(src)
+            pipeline.add(dec)
+            if not src.link(dec):
+                raise SetupError("cannot link filesrc ! decodebin")
+            self._watch_decoder(dec, gate)
+        return pipeline, gate, sink
+
+    def _watch_decoder(self, dec, gate) -> None:
+        dec.connect("pad-added", self._on_pad_added, gate)
+        dec.connect("no-more-pads", self._on_no_more_pads, gate)
+
+    def _on_pad_added(self, dec, pad, gate) -> None:
+        # Runs in a streaming thread: no exceptions out of here, errors go to _stream_error.
+        caps = pad.get_current_caps() or pad.query_caps(None)
+        name = caps.get_structure(0).get_name() if caps is not None and caps.get_size() else "?"
+        if not name.startswith("video/"):
+            log.debug("%s: ignoring pad %s (%s)", dec.get_name(), pad.get_name(), name)
+            return
+        target = gate.get_static_pad("sink")
+        if target.is_linked():
+            log.warning("%s: more than one video stream; only the first is gated", self.source)
+            return
+        ret = pad.link(target)
+        if ret != _gst.Gst.PadLinkReturn.OK:
+            self._stream_error = (
+                f"cannot link the decoded video ({caps.to_string()}) to leangate: "
+                f"{ret.value_nick}"
+            )
+            log.debug(self._stream_error)
+        else:
+            log.debug("%s: linked %s (%s) to leangate", dec.get_name(), pad.get_name(), name)
+
+    def _on_no_more_pads(self, dec, gate) -> None:
+        if not gate.get_static_pad("sink").is_linked() and self._stream_error is None:
+            self._stream_error = f"no video stream in {self.source}"
+
+    # -- control -------------------------------------------------------------------------
+    def force_keyframe(self) -> bool:
+        """Ask the gate to keep the next frame (what a SLAM back end does when it loses
+        tracking): a `leangate-force-keyframe` custom event pushed upstream from the appsink.
+        Frames already past the gate (queued for the appsink) are not affected; the forced
+        keep lands on the next frame the gate processes. Returns whether an upstream element
+        reported handling the event (often False: leangate acts on it, then forwards it
+        upstream, where sources usually do not handle custom events)."""
+        return self._push_upstream(FORCE_KEYFRAME_EVENT)
+
+    def reset(self) -> bool:
+        """Ask the gate to drop its reference (the next frame is kept as a new `first`)."""
+        return self._push_upstream(RESET_EVENT)
+
+    def _push_upstream(self, name: str) -> bool:
+        if self._pipeline is None:
+            return False
+        Gst = _gst.Gst
+        ev = Gst.Event.new_custom(Gst.EventType.CUSTOM_UPSTREAM, Gst.Structure.new_empty(name))
+        # push_event on a *sink* pad sends the event to its upstream peer.
+        ok = self._sink.get_static_pad("sink").push_event(ev)
+        if name == FORCE_KEYFRAME_EVENT:
+            self.forced_events += 1
+        log.debug("sent %s upstream (handled: %s)", name, ok)
+        return ok
+
+    @property
+    def gate(self):
+        """The `leangate` element while the pipeline exists (e.g. to change ``threshold``)."""
+        return self._pipeline.get_by_name("gate") if self._pipeline else None
+
+    # -- life cycle ----------------------------------------------------------------------
+    def start(self) -> None:
+        if self._started:
+            return
+        Gst = _gst.Gst
+        self._pipeline, gate, self._sink = self._build()
+        self._bus = self._pipeline.get_bus()
+        gate.get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, self._count_input)
+        self._started = True
+        log.info("plugin: %s", self.plugin)
+        log.info("pipeline: %s", self.description)
+        if self._pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
+            self._raise_bus_error(default="the pipeline failed to start")
+
+    def _count_input(self, pad, info):
+        buf = info.get_buffer()
+        if buf is not None:
+            with self._lock:
+                if buf.pts != _gst.Gst.CLOCK_TIME_NONE:
+                    self._pts_to_index[buf.pts] = self.frames_in
+                self.frames_in += 1
+        return _gst.Gst.PadProbeReturn.OK
+
+    def close(self) -> None:
+        if self._pipeline is not None:
+            self._pipeline.set_state(_gst.Gst.State.NULL)
+            self._pipeline = None
+
+    def __enter__(self) -> "LeanGateSource":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        self.close()
+        return False
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    # -- bus -----------------------------------------------------------------------------
+    def _handle_bus(self, msg) -> None:
+        Gst = _gst.Gst
+        t = msg.type
+        src = msg.src.get_name() if msg.src else "?"
+        if t == Gst.MessageType.ERROR:
+            err, dbg = msg.parse_error()
+            raise PipelineError(f"{src}: {err.message}" + (f" ({dbg})" if dbg else ""))
+        if t == Gst.MessageType.WARNING:
+            w, dbg = msg.parse_warning()
+            log.warning("warning from %s: %s", src, w.message)
+            if dbg:
+                log.debug("warning from %s (debug): %s", src, dbg)
+        elif t == Gst.MessageType.ELEMENT:
+            stats = LeanGateStats.from_message(msg)
+            if stats is not None:
+                self.stats = stats
+                log.debug("stats from %s: %s", src, stats)
+
+    def _check_stream(self) -> None:
+        if self._stream_error is not None:
+            raise PipelineError(self._stream_error)
+
+    def _drain_bus(self) -> None:
+        while True:
+            msg = self._bus.pop()
+            if msg is None:
+                return
+            self._handle_bus(msg)
+
+    def _raise_bus_error(self, default: str):
+        while True:
+            msg = self._bus.timed_pop(_gst.Gst.SECOND)
+            if msg is None:
+                self._check_stream()
+                raise PipelineError(default)
+            self._handle_bus(msg)
+
+    # -- iteration -----------------------------------------------------------------------
+    def __iter__(self) -> Iterator[Tuple[Any, Dict[str, Any]]]:
+        Gst, GstVideo = _gst.Gst, _gst.GstVideo
+        self.start()
+        info = None
+        caps = None
+        idle = 0.0
+        try:
+            while True:
+                if self.max_frames is not None and self.received >= self.max_frames:
+                    return
+                sample = self._sink.emit("try-pull-sample", 100 * Gst.MSECOND)
+                self._check_stream()
+                self._drain_bus()
+                if sample is None:
+                    if self._sink.get_property("eos"):
+                        # EOS reached the sink; the stats message was posted before it.
+                        self._drain_bus()
+                        return
+                    idle += 0.1
+                    if idle > self.timeout_s:
+                        raise PipelineError(f"no frame and no EOS for {self.timeout_s:.0f} s")
+                    continue
+                idle = 0.0
+                buf = sample.get_buffer()
+                sample_caps = sample.get_caps()
+                if caps is None or not sample_caps.is_equal(caps):
+                    caps = sample_caps
+                    info = GstVideo.VideoInfo.new_from_caps(caps)
+                    log.debug("appsink caps: %s", caps.to_string())
+                meta = meta_dict(buf)
+                if meta is None:
+                    raise PipelineError(
+                        f"a buffer arrived without {META_NAME}: something between leangate and "
+                        "the appsink dropped the meta"
+                    )
+                pts = None if buf.pts == Gst.CLOCK_TIME_NONE else int(buf.pts)
+                index = None
+                if pts is not None:
+                    with self._lock:
+                        index = self._pts_to_index.pop(pts, None)
+                        # Forget the frames the gate dropped (they are older than this one).
+                        for k in [k for k in self._pts_to_index if k < pts]:
+                            del self._pts_to_index[k]
+                meta = {"frame": index, "pts": pts, **meta}
+                frame = buffer_to_rgb(buf, info) if self.arrays else None
+                self.received += 1
+                yield frame, meta
+        finally:
+            self._drain_bus_quietly()
+
+    def _drain_bus_quietly(self) -> None:
+        if self._bus is None:
+            return
+        try:
+            self._drain_bus()
+        except PipelineError:
+            pass

@@ -1,0 +1,114 @@
+"""The element's `leangate-stats` bus message as a typed, read-only value."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any, Dict, Iterator, Optional
+
+from .meta import STATS_MESSAGE
+
+# wire name -> (attribute, conversion, GType name used by the element)
+_FIELDS = {
+    "frames-in": ("frames_in", int, "guint64"),
+    "frames-kept": ("frames_kept", int, "guint64"),
+    "keep-ratio": ("keep_ratio", float, "gdouble"),
+    "inference-mean-us": ("inference_mean_us", float, "gdouble"),
+    "inference-p99-us": ("inference_p99_us", int, "guint64"),
+    "execution-provider": ("execution_provider", str, "gchararray"),
+    "model": ("model", str, "gchararray"),
+    "threshold": ("threshold", float, "gdouble"),
+}
+_ATTR_TO_WIRE = {attr: wire for wire, (attr, _, _) in _FIELDS.items()}
+
+
+@dataclasses.dataclass(frozen=True)
+class LeanGateStats(Mapping):
+    """One `leangate-stats` message (posted at EOS and every ``stats-interval``).
+
+    The known fields are typed attributes (None when the message lacks one); fields this
+    version does not know (say ``inference-p50-us``, added later) are kept, unconverted, in
+    ``extra`` under their wire names. The value is also a read-only mapping keyed by the wire
+    names, known and extra alike, so code written against the earlier plain-dict ``stats``
+    (``stats["frames-in"]``, ``stats.get("model")``) keeps working.
+    """
+
+    frames_in: Optional[int] = None
+    frames_kept: Optional[int] = None
+    keep_ratio: Optional[float] = None
+    inference_mean_us: Optional[float] = None
+    inference_p99_us: Optional[int] = None
+    execution_provider: Optional[str] = None
+    model: Optional[str] = None
+    threshold: Optional[float] = None
+    extra: Dict[str, Any] = dataclasses.field(default_factory=dict, hash=False)
+
+    # -- construction ------------------------------------------------------------------------
+    @classmethod
+    def from_mapping(cls, fields: "Mapping[str, Any]") -> "LeanGateStats":
+        """From wire names to values (e.g. a dict read from a structure, or JSON)."""
+        known: Dict[str, Any] = {}
+        extra: Dict[str, Any] = {}
+        for name, value in fields.items():
+            spec = _FIELDS.get(name)
+            if spec is None:
+                extra[name] = value
+            else:
+                attr, conv, _ = spec
+                known[attr] = None if value is None else conv(value)
+        return cls(**known, extra=extra)
+
+    @classmethod
+    def from_structure(cls, s) -> "LeanGateStats":
+        """From the message's ``Gst.Structure`` (its name must be ``leangate-stats``)."""
+        if s.get_name() != STATS_MESSAGE:
+            raise ValueError(f"not a {STATS_MESSAGE} structure: {s.get_name()}")
+        return cls.from_mapping(
+            {s.nth_field_name(i): s.get_value(s.nth_field_name(i)) for i in range(s.n_fields())}
+        )
+
+    @classmethod
+    def from_message(cls, msg) -> Optional["LeanGateStats"]:
+        """From a bus ``Gst.Message``; None when it is not a `leangate-stats` message."""
+        s = msg.get_structure()
+        if s is None or s.get_name() != STATS_MESSAGE:
+            return None
+        return cls.from_structure(s)
+
+    # -- conversion --------------------------------------------------------------------------
+    def to_dict(self) -> Dict[str, Any]:
+        """Wire names to values (known fields that are set, then the extra ones)."""
+        return dict(self.items())
+
+    def to_structure(self):
+        """A ``Gst.Structure`` named ``leangate-stats`` with the element's field types."""
+        from ._gst import GObject, Gst, require_bindings
+
+        require_bindings()
+        s = Gst.Structure.new_empty(STATS_MESSAGE)
+        for wire, (attr, _, gtype) in _FIELDS.items():
+            value = getattr(self, attr)
+            if value is not None:
+                s.set_value(wire, GObject.Value(GObject.type_from_name(gtype), value))
+        for wire, value in self.extra.items():
+            s.set_value(wire, value)
+        return s
+
+    # -- Mapping over the wire names -------------------------------------------------------
+    def __getitem__(self, key: str) -> Any:
+        attr = _FIELDS.get(key)
+        if attr is not None:
+            value = getattr(self, attr[0])
+            if value is not None:
+                return value
+            raise KeyError(key)
+        return self.extra[key]
+
+    def __iter__(self) -> Iterator[str]:
+        for wire, (attr, _, _) in _FIELDS.items():
+            if getattr(self, attr) is not None:
+                yield wire
+        yield from self.extra
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
