@@ -27,7 +27,7 @@ set -euo pipefail
 . "$(dirname "$0")/common.sh"
 
 if [ $# -lt 2 ]; then
-    sed -n '2,26p' "$0" >&2
+    sed -n '2,25p' "$0" >&2
     exit 2
 fi
 VIDEO="$1"

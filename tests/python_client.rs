@@ -1,9 +1,12 @@
-//! The Python hand-off (`pipelines/slam_client.py`) and the example scripts in `pipelines/`,
-//! run for real: Debian's /usr/bin/python3 with python3-gi, the `leangate` plugin built beside
-//! this test (target/<profile>/libgstleangate.so), ONNX Runtime, and the fixture model
-//! `mad.onnx` (utility = mean absolute difference of the two 64x64 pictures), so that the
+//! The Python hand-off (the package `pipelines/leangate_client`, its wrapper
+//! `pipelines/slam_client.py` and `python3 -m leangate_client`) and the example scripts in
+//! `pipelines/`, run for real: Debian's /usr/bin/python3 with python3-gi, the `leangate` plugin
+//! built beside this test (target/<profile>/libgstleangate.so), ONNX Runtime, and the fixture
+//! model `mad.onnx` (utility = mean absolute difference of the two 64x64 pictures), so that the
 //! drop-mode and annotate-mode runs of the same deterministic input can be checked against each
-//! other.
+//! other. The package itself is checked as a package too: it imports from a clean interpreter
+//! with only PYTHONPATH pointing at `pipelines/`, installs with `pip install --no-deps
+//! --target`, and logs its diagnostics to stderr, leaving stdout to the frames and the summary.
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -96,10 +99,45 @@ fn run(mut c: Command) -> Output {
     out
 }
 
+/// The directory holding the package `leangate_client` (and its `pyproject.toml`).
+fn pkg_dir() -> PathBuf {
+    repo().join("pipelines")
+}
+
+/// The command line through the repository's wrapper script `pipelines/slam_client.py`.
 fn client(args: &[&str]) -> Output {
     let mut c = command(PYTHON);
     c.arg("pipelines/slam_client.py").args(args);
     run(c)
+}
+
+/// The command line as `python3 -m leangate_client`, the package found through PYTHONPATH.
+fn client_module(args: &[&str]) -> Output {
+    let mut c = command(PYTHON);
+    c.env("PYTHONPATH", pkg_dir())
+        .args(["-m", "leangate_client"])
+        .args(args);
+    run(c)
+}
+
+/// Whether every GStreamer element named exists (SKIPPED message otherwise).
+fn have_elements(names: &[&str]) -> bool {
+    for n in names {
+        let ok = Command::new("gst-inspect-1.0")
+            .args(["--exists", n])
+            .status()
+            .map(|s| s.success())
+            .unwrap_or(false);
+        if !ok {
+            eprintln!("SKIPPED: GStreamer element {n} is not installed");
+            return false;
+        }
+    }
+    true
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
 fn stdout(o: &Output) -> String {
@@ -218,10 +256,11 @@ fn module_yields_rgb_arrays_with_their_meta() {
     }
     // 322 px wide RGB rows are 966 bytes, padded to a 968-byte stride: the arrays must not be
     // skewed. The top 60% of SMPTE bars is the same in every row; the 6th of 7 bars is red.
+    // The package comes from PYTHONPATH alone: no sys.path edits.
     let script = r#"
 import json, sys
-sys.path.insert(0, "pipelines")
-from slam_client import Gst, LeanGateSource
+from leangate_client import LeanGateSource, LeanGateStats
+from leangate_client._gst import Gst
 src = LeanGateSource("test://smpte?num-buffers=12&width=322&height=242", model=sys.argv[1],
                      threshold=0.5, mode="annotate")
 with src:
@@ -233,13 +272,22 @@ with src:
             "rows_equal": bool((f[: h * 6 // 10] == f[0]).all()),
             "px_white": f[0, w // 14].tolist(), "px_red": f[0, int(w * 5.5 / 7)].tolist(),
             "utility_nan": u != u, "utility": 0.0 if u != u else u, **m}))
+st = src.stats
 print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.received,
                   "stats_frames_in": (src.stats or {}).get("frames-in"),
                   "stats_model": (src.stats or {}).get("model"),
+                  "stats_typed": isinstance(st, LeanGateStats),
+                  "stats": [st.frames_in, st.frames_kept, st.keep_ratio, st.execution_provider,
+                            st.model, st.threshold, st.extra],
+                  "stats_timings": [type(st.inference_mean_us).__name__,
+                                    type(st.inference_p99_us).__name__],
+                  "stats_dict": st.to_dict(),
+                  "module": sys.modules["leangate_client"].__file__,
                   "plugin": Gst.ElementFactory.find("leangate").get_plugin().get_filename()}))
 "#;
     let mut c = command(PYTHON);
-    c.args(["-c", script, &model()]);
+    c.env("PYTHONPATH", pkg_dir())
+        .args(["-c", script, &model()]);
     let out = run(c);
     assert!(out.status.success());
     let vals: Vec<serde_json::Value> = stdout(&out)
@@ -256,6 +304,36 @@ print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.recei
         "leangate-stats read from the bus at EOS"
     );
     assert_eq!(end["stats_model"], "fixture-mad");
+    // The typed view of the same message.
+    assert_eq!(end["stats_typed"], true);
+    assert_eq!(
+        end["stats"],
+        serde_json::json!([12, 1, 1.0 / 12.0, "cpu", "fixture-mad", 0.5, {}])
+    );
+    assert_eq!(end["stats_timings"], serde_json::json!(["float", "int"]));
+    let keys: Vec<&str> = end["stats_dict"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(|k| k.as_str())
+        .collect();
+    for k in [
+        "frames-in",
+        "frames-kept",
+        "keep-ratio",
+        "inference-mean-us",
+        "inference-p99-us",
+        "execution-provider",
+        "model",
+        "threshold",
+    ] {
+        assert!(keys.contains(&k), "{k} missing from {keys:?}");
+    }
+    let module = end["module"].as_str().unwrap();
+    assert!(
+        Path::new(module).starts_with(pkg_dir().join("leangate_client")),
+        "{module}"
+    );
     // Loaded through GST_PLUGIN_PATH (the freshly built cdylib), not the client's fallback to
     // the repository's target/ directories.
     let plugin = end["plugin"].as_str().unwrap();
@@ -381,7 +459,8 @@ fn force_every_produces_forced_keyframes() {
     let csv = dir.path().join("forced.csv");
     // threshold 1: no score can keep a frame (the MAD of two frames of the ball is far below
     // 1), so every keep after the first must come from the upstream force-keyframe events.
-    let out = client(&[
+    // (Run as `python3 -m leangate_client`; the other tests run the wrapper script.)
+    let out = client_module(&[
         "--source",
         "videotestsrc",
         "test://ball?num-buffers=60&width=320&height=240",
@@ -532,9 +611,35 @@ fn errors_are_reported_clearly() {
     assert!(err.contains("pipeline error: gate:"), "{err}");
 
     let out = client(&["test://nosuchpattern?num-buffers=5"]);
-    assert_ne!(out.status.code(), Some(0));
+    assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("slam_client:"), "{err}");
+    // The message names the accepted patterns.
+    assert!(err.contains("pattern") && err.contains("smpte"), "{err}");
+
+    // The same diagnostics from the package's own entry point, under its own name.
+    let out = client_module(&["/nonexistent/clip.mp4"]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = stderr(&out);
+    assert!(
+        err.contains("leangate-client: error: input file not found: /nonexistent/clip.mp4"),
+        "{err}"
+    );
+    assert!(stdout(&out).is_empty(), "diagnostics stay off stdout");
+
+    // An explicit plugin path that holds no plugin.
+    let dir = tempfile::tempdir().unwrap();
+    let out = client_module(&[
+        "test://ball?num-buffers=5",
+        "--plugin-path",
+        dir.path().to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        stderr(&out).contains("leangate plugin not found"),
+        "{}",
+        stderr(&out)
+    );
 }
 
 #[test]
@@ -556,4 +661,418 @@ fn camera_pipeline_parses() {
     for e in ["v4l2src", "videoconvert", "leangate"] {
         assert!(elements.contains(e), "{e} missing from {elements:?}");
     }
+}
+
+#[test]
+fn package_imports_from_a_clean_interpreter() {
+    if !python_ok() {
+        return;
+    }
+    // Nothing but PATH and PYTHONPATH (pointing at the folder holding the package), started
+    // outside the repository: the import needs no sys.path edits, no plugin and no Gst.init.
+    let dir = tempfile::tempdir().unwrap();
+    let script = r#"
+import json, sys
+import leangate_client as lc
+from leangate_client._gst import Gst
+print(json.dumps({
+    "file": lc.__file__, "version": lc.__version__,
+    "missing": [n for n in lc.__all__ if not hasattr(lc, n)],
+    "api": all(hasattr(lc.LeanGateSource, n) for n in
+               ("force_keyframe", "reset", "start", "close", "gate", "description", "__iter__")),
+    "gst_initialized": Gst.is_initialized(),
+    "slam_client_loaded": "slam_client" in sys.modules,
+}))
+"#;
+    let out = Command::new(PYTHON)
+        .env_clear()
+        .env("PATH", "/usr/bin:/bin")
+        .env("PYTHONPATH", pkg_dir())
+        .current_dir(dir.path())
+        .args(["-c", script])
+        .output()
+        .expect("spawn");
+    eprintln!("stderr:\n{}", stderr(&out));
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert!(
+        Path::new(v["file"].as_str().unwrap()).starts_with(pkg_dir().join("leangate_client")),
+        "{v}"
+    );
+    assert_eq!(v["version"], "0.1.0");
+    assert_eq!(v["missing"], serde_json::json!([]));
+    assert_eq!(v["api"], true);
+    assert_eq!(
+        v["gst_initialized"], false,
+        "importing must not initialise GStreamer"
+    );
+    assert_eq!(v["slam_client_loaded"], false);
+}
+
+#[test]
+fn package_installs_with_pip_no_deps_and_its_entry_point_runs() {
+    if !python_ok() {
+        return;
+    }
+    let pip_ok = Command::new(PYTHON)
+        .args(["-c", "import pip, setuptools"])
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false);
+    if !pip_ok {
+        eprintln!("SKIPPED: {PYTHON} lacks pip or setuptools (apt install python3-pip)");
+        return;
+    }
+    // Build from a copy, so that the checkout gets no build/ or *.egg-info, and offline
+    // (--no-index --no-build-isolation: Debian's setuptools builds it).
+    let dir = tempfile::tempdir().unwrap();
+    let src = dir.path().join("src");
+    let site = dir.path().join("site");
+    std::fs::create_dir_all(src.join("leangate_client")).unwrap();
+    for f in ["pyproject.toml", "README.md"] {
+        std::fs::copy(pkg_dir().join(f), src.join(f)).unwrap();
+    }
+    for e in std::fs::read_dir(pkg_dir().join("leangate_client")).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_file() {
+            std::fs::copy(&p, src.join("leangate_client").join(p.file_name().unwrap())).unwrap();
+        }
+    }
+    let mut c = Command::new(PYTHON);
+    c.args([
+        "-m",
+        "pip",
+        "install",
+        "--no-deps",
+        "--no-build-isolation",
+        "--no-index",
+    ])
+    .args(["--no-cache-dir", "--disable-pip-version-check", "--target"])
+    .arg(&site)
+    .arg(&src)
+    .current_dir(dir.path());
+    let out = run(c);
+    assert!(out.status.success(), "{}", stdout(&out));
+    assert!(site.join("leangate_client/__init__.py").is_file());
+    let entry = site.join("bin/leangate-client");
+    assert!(entry.is_file(), "console script leangate-client installed");
+
+    // The installed copy is the one imported (not the checkout's).
+    let out = Command::new(PYTHON)
+        .env("PYTHONPATH", &site)
+        .current_dir(dir.path())
+        .args([
+            "-c",
+            "import leangate_client; print(leangate_client.__file__)",
+        ])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(
+        Path::new(stdout(&out).trim()).starts_with(&site),
+        "{}",
+        stdout(&out)
+    );
+
+    // The console script runs a pipeline.
+    let mut c = command(entry.to_str().unwrap());
+    c.env("PYTHONPATH", &site).current_dir(dir.path()).args([
+        "test://ball?num-buffers=10&width=160&height=120",
+        "--threshold",
+        "0.03",
+        "--quiet",
+    ]);
+    let out = run(c);
+    assert!(out.status.success());
+    let s = summary(&out);
+    assert_eq!(num(&s, "frames-in"), 10);
+    assert_eq!(s["model"], "fixture-mad");
+}
+
+#[test]
+fn diagnostics_are_logged_to_stderr_and_stdout_is_the_product() {
+    if !python_ok() {
+        return;
+    }
+    let src = "test://ball?num-buffers=10&width=160&height=120";
+    // Command line, -v: info records on stderr as `PROG: info: ...`; stdout holds only the
+    // per-frame lines and the summary.
+    let out = client(&[src, "--threshold", "0.03", "-v"]);
+    assert!(out.status.success());
+    let err = stderr(&out);
+    assert!(err.contains("slam_client: info: plugin: "), "{err}");
+    assert!(
+        err.contains("slam_client: info: pipeline: videotestsrc pattern=ball"),
+        "{err}"
+    );
+    let text = stdout(&out);
+    assert!(
+        text.lines()
+            .all(|l| l.starts_with("frame ") || l.starts_with("summary: ")),
+        "{text}"
+    );
+    assert_eq!(
+        text.lines().filter(|l| l.starts_with("summary: ")).count(),
+        1
+    );
+    assert!(!text.contains("info:"), "{text}");
+
+    // Without -v only warnings and errors are logged.
+    let out = client(&[src, "--threshold", "0.03", "--quiet"]);
+    assert!(out.status.success());
+    assert!(!stderr(&out).contains("info:"), "{}", stderr(&out));
+
+    // The library logs through `logging` (logger leangate_client.*) and never prints: with
+    // logging configured by the application, its records appear on stderr, stdout is the
+    // application's own.
+    let script = r#"
+import logging, sys
+logging.basicConfig(level=logging.DEBUG, format="LOG %(name)s %(levelname)s %(message)s")
+from leangate_client import LeanGateSource
+n = sum(1 for _ in LeanGateSource(sys.argv[2], model=sys.argv[1], threshold=0.03))
+print("received", n)
+"#;
+    let mut c = command(PYTHON);
+    c.env("PYTHONPATH", pkg_dir())
+        .args(["-c", script, &model(), src]);
+    let out = run(c);
+    assert!(out.status.success());
+    let text = stdout(&out);
+    assert!(
+        text.starts_with("received ") && text.lines().count() == 1,
+        "{text}"
+    );
+    let err = stderr(&out);
+    assert!(
+        err.contains("LOG leangate_client.source INFO pipeline: "),
+        "{err}"
+    );
+    assert!(
+        err.contains("LOG leangate_client.source DEBUG stats from gate"),
+        "{err}"
+    );
+}
+
+#[test]
+fn decoded_files_are_linked_on_pad_added_whatever_their_name() {
+    if !python_ok() || !have_elements(&["jpegenc", "avimux", "wavenc", "audiotestsrc", "jpegdec"]) {
+        return;
+    }
+    // A video with an audio track (decodebin exposes both; only the video is gated), renamed
+    // to a name that a gst-launch description would need quoting for.
+    let dir = tempfile::tempdir().unwrap();
+    let plain = dir.path().join("av.avi");
+    let wav = dir.path().join("audio only.wav");
+    let wav_plain = dir.path().join("a.wav");
+    let status = Command::new("gst-launch-1.0")
+        .args([
+            "-q",
+            "videotestsrc",
+            "pattern=ball",
+            "num-buffers=20",
+            "!",
+            "video/x-raw,width=160,height=120,framerate=10/1",
+            "!",
+            "jpegenc",
+            "!",
+            "avimux",
+            "name=m",
+            "!",
+            "filesink",
+            &format!("location={}", plain.display()),
+            "audiotestsrc",
+            "num-buffers=20",
+            "samplesperbuffer=4410",
+            "!",
+            "audio/x-raw,rate=44100,channels=1",
+            "!",
+            "m.",
+        ])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let status = Command::new("gst-launch-1.0")
+        .args([
+            "-q",
+            "audiotestsrc",
+            "num-buffers=20",
+            "!",
+            "wavenc",
+            "!",
+            "filesink",
+            &format!("location={}", wav_plain.display()),
+        ])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let odd_dir = dir.path().join("a dir");
+    std::fs::create_dir(&odd_dir).unwrap();
+    let odd = odd_dir.join("clip \"1\" ! name=x.avi");
+    std::fs::rename(&plain, &odd).unwrap();
+    std::fs::rename(&wav_plain, &wav).unwrap();
+
+    // The same file as a path (filesrc ! decodebin) and as a file:// URI (uridecodebin).
+    let script = r#"
+import json, pathlib, sys
+from leangate_client import LeanGateSource
+for s in (sys.argv[2], pathlib.Path(sys.argv[2]).as_uri()):
+    src = LeanGateSource(s, model=sys.argv[1], threshold=0.03)
+    kept = [(m["frame"], list(f.shape)) for f, m in src]
+    print(json.dumps({"source": s, "kept": kept, "frames_in": src.frames_in,
+                      "received": src.received, "stats_kept": src.stats.frames_kept,
+                      "stats_in": src.stats.frames_in}))
+"#;
+    let mut c = command(PYTHON);
+    c.env("PYTHONPATH", pkg_dir())
+        .args(["-c", script, &model(), odd.to_str().unwrap()]);
+    let out = run(c);
+    assert!(out.status.success());
+    let runs: Vec<serde_json::Value> = stdout(&out)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(runs.len(), 2);
+    for r in &runs {
+        assert_eq!(r["frames_in"], 20, "{r}");
+        assert_eq!(r["stats_in"], 20, "{r}");
+        assert_eq!(r["received"], r["stats_kept"], "{r}");
+        let kept = r["kept"].as_array().unwrap();
+        assert!(!kept.is_empty() && kept.len() < 20, "{r}");
+        assert_eq!(kept[0], serde_json::json!([0, [120, 160, 3]]), "{r}");
+    }
+    assert!(runs[1]["source"].as_str().unwrap().starts_with("file:///"));
+    assert_eq!(
+        runs[0]["kept"], runs[1]["kept"],
+        "path and URI decode the same"
+    );
+
+    // The command line on the same file.
+    let out = client(&[odd.to_str().unwrap(), "--threshold", "0.03", "--quiet"]);
+    assert!(out.status.success());
+    let s = summary(&out);
+    assert_eq!(num(&s, "frames-in"), 20);
+    assert_eq!(num(&s, "received"), runs[0]["received"].as_u64().unwrap());
+
+    // A file without video: a pipeline error saying so.
+    let out = client(&[wav.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        stderr(&out).contains("pipeline error: no video stream in"),
+        "{}",
+        stderr(&out)
+    );
+}
+
+#[test]
+fn stats_message_has_a_typed_view_that_keeps_unknown_fields() {
+    if !python_ok() {
+        return;
+    }
+    let script = r#"
+import json
+from leangate_client import LeanGateStats
+from leangate_client._gst import Gst
+Gst.init(None)
+s = Gst.Structure.new_from_string(
+    "leangate-stats, frames-in=(guint64)30, frames-kept=(guint64)4, keep-ratio=(double)0.125,"
+    " inference-mean-us=(double)812.5, inference-p99-us=(guint64)2000,"
+    " execution-provider=(string)cpu, model=(string)leangate-s, threshold=(double)0.63,"
+    " inference-p50-us=(guint64)700")
+st = LeanGateStats.from_structure(s)
+back = LeanGateStats.from_structure(st.to_structure())
+old = LeanGateStats.from_structure(Gst.Structure.new_from_string(
+    "leangate-stats, frames-in=(guint64)3, frames-kept=(guint64)1"))
+try:
+    LeanGateStats.from_structure(Gst.Structure.new_from_string("other, a=(int)1"))
+    wrong = "accepted"
+except ValueError:
+    wrong = "rejected"
+print(json.dumps({
+    "typed": [st.frames_in, st.frames_kept, st.keep_ratio, st.inference_mean_us,
+              st.inference_p99_us, st.execution_provider, st.model, st.threshold],
+    "extra": st.extra, "p50": st["inference-p50-us"], "get": st.get("model"),
+    "len": len(st), "round_trip": back == st,
+    "wire": st.to_structure().to_string(),
+    "partial": [old.frames_in, old.frames_kept, old.model, old.threshold, sorted(old)],
+    "wrong_name": wrong,
+}))
+"#;
+    let mut c = command(PYTHON);
+    c.env("PYTHONPATH", pkg_dir()).args(["-c", script]);
+    let out = run(c);
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert_eq!(
+        v["typed"],
+        serde_json::json!([30, 4, 0.125, 812.5, 2000, "cpu", "leangate-s", 0.63])
+    );
+    assert_eq!(v["extra"], serde_json::json!({"inference-p50-us": 700}));
+    assert_eq!(v["p50"], 700);
+    assert_eq!(v["get"], "leangate-s");
+    assert_eq!(v["len"], 9);
+    assert_eq!(v["round_trip"], true);
+    let wire = v["wire"].as_str().unwrap();
+    for f in [
+        "frames-in=(guint64)30",
+        "inference-p99-us=(guint64)2000",
+        "keep-ratio=(double)0.125",
+        "model=(string)leangate-s",
+    ] {
+        assert!(wire.contains(f), "{f} not in {wire}");
+    }
+    assert_eq!(
+        v["partial"],
+        serde_json::json!([3, 1, null, null, ["frames-in", "frames-kept"]])
+    );
+    assert_eq!(v["wrong_name"], "rejected");
+}
+
+#[test]
+fn plugin_path_argument_finds_the_plugin_without_gst_plugin_path() {
+    if !python_ok() {
+        return;
+    }
+    let plugins = plugin_dir();
+    let empty = tempfile::tempdir().unwrap();
+    // A registry of its own, so that these runs neither see nor rewrite the shared cache.
+    let registry = empty.path().join("registry.bin");
+    let out = command(PYTHON)
+        .env("PYTHONPATH", pkg_dir())
+        .env("GST_PLUGIN_PATH", empty.path())
+        .env("GST_REGISTRY", &registry)
+        .args([
+            "-m",
+            "leangate_client",
+            "test://ball?num-buffers=5&width=160&height=120",
+        ])
+        .args(["--quiet", "-v", "--plugin-path"])
+        .arg(plugins.path())
+        .output()
+        .expect("spawn");
+    eprintln!("stderr:\n{}", stderr(&out));
+    assert!(out.status.success());
+    assert_eq!(num(&summary(&out), "frames-in"), 5);
+    let lib = plugins.path().join("libgstleangate.so");
+    assert!(
+        stderr(&out).contains(&format!("info: plugin: {}", lib.display())),
+        "{}",
+        stderr(&out)
+    );
+
+    // Without it (and without the wrapper's fallback to target/), a clear setup error. (No
+    // system plugin directory either, in case a leangate is installed there.)
+    let out = command(PYTHON)
+        .env("PYTHONPATH", pkg_dir())
+        .env("GST_PLUGIN_PATH", empty.path())
+        .env("GST_PLUGIN_SYSTEM_PATH", empty.path())
+        .env("GST_REGISTRY", empty.path().join("registry-none.bin"))
+        .args(["-m", "leangate_client", "test://ball?num-buffers=5"])
+        .output()
+        .expect("spawn");
+    assert_eq!(out.status.code(), Some(2));
+    let err = stderr(&out);
+    assert!(
+        err.contains("`leangate` not found") && err.contains("GST_PLUGIN_PATH"),
+        "{err}"
+    );
 }
