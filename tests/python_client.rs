@@ -709,8 +709,83 @@ print(json.dumps({
     assert_eq!(v["slam_client_loaded"], false);
 }
 
+/// A copy of the package's source (pyproject.toml, README.md, leangate_client/) under `dir`, to
+/// build from, so that the checkout gets no build/ or *.egg-info.
+fn package_copy(dir: &Path) -> PathBuf {
+    let src = dir.join("src");
+    std::fs::create_dir_all(src.join("leangate_client")).unwrap();
+    for f in ["pyproject.toml", "README.md"] {
+        std::fs::copy(pkg_dir().join(f), src.join(f)).unwrap();
+    }
+    for e in std::fs::read_dir(pkg_dir().join("leangate_client")).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_file() {
+            std::fs::copy(&p, src.join("leangate_client").join(p.file_name().unwrap())).unwrap();
+        }
+    }
+    src
+}
+
+/// `pip install` arguments that build the package offline: no index, and no build isolation
+/// (the setuptools that comes with Debian's Python builds it).
+const PIP_INSTALL: [&str; 8] = [
+    "-m",
+    "pip",
+    "install",
+    "--no-deps",
+    "--no-build-isolation",
+    "--no-index",
+    "--no-cache-dir",
+    "--disable-pip-version-check",
+];
+
+/// The installed console script runs a pipeline and the installed copy of the package is the
+/// one imported (`python` is the interpreter the script was installed for).
+fn check_installed(python: &Path, script: &Path, pythonpath: Option<&Path>, prefix: &Path) {
+    assert!(
+        script.is_file(),
+        "console script {} installed",
+        script.display()
+    );
+    let mut c = Command::new(python);
+    if let Some(p) = pythonpath {
+        c.env("PYTHONPATH", p);
+    }
+    let out = c
+        .current_dir(prefix)
+        .args([
+            "-c",
+            "import leangate_client; print(leangate_client.__file__)",
+        ])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(
+        Path::new(stdout(&out).trim()).starts_with(prefix),
+        "{} imported, not the copy installed under {}",
+        stdout(&out),
+        prefix.display()
+    );
+
+    let mut c = command(script.to_str().unwrap());
+    if let Some(p) = pythonpath {
+        c.env("PYTHONPATH", p);
+    }
+    c.current_dir(prefix).args([
+        "test://ball?num-buffers=10&width=160&height=120",
+        "--threshold",
+        "0.03",
+        "--quiet",
+    ]);
+    let out = run(c);
+    assert!(out.status.success());
+    let s = summary(&out);
+    assert_eq!(num(&s, "frames-in"), 10);
+    assert_eq!(s["model"], "fixture-mad");
+}
+
 #[test]
-fn package_installs_with_pip_no_deps_and_its_entry_point_runs() {
+fn package_installs_with_pip_no_deps_into_a_target_directory() {
     if !python_ok() {
         return;
     }
@@ -723,70 +798,52 @@ fn package_installs_with_pip_no_deps_and_its_entry_point_runs() {
         eprintln!("SKIPPED: {PYTHON} lacks pip or setuptools (apt install python3-pip)");
         return;
     }
-    // Build from a copy, so that the checkout gets no build/ or *.egg-info, and offline
-    // (--no-index --no-build-isolation: Debian's setuptools builds it).
     let dir = tempfile::tempdir().unwrap();
-    let src = dir.path().join("src");
+    let src = package_copy(dir.path());
     let site = dir.path().join("site");
-    std::fs::create_dir_all(src.join("leangate_client")).unwrap();
-    for f in ["pyproject.toml", "README.md"] {
-        std::fs::copy(pkg_dir().join(f), src.join(f)).unwrap();
-    }
-    for e in std::fs::read_dir(pkg_dir().join("leangate_client")).unwrap() {
-        let p = e.unwrap().path();
-        if p.is_file() {
-            std::fs::copy(&p, src.join("leangate_client").join(p.file_name().unwrap())).unwrap();
-        }
-    }
     let mut c = Command::new(PYTHON);
-    c.args([
-        "-m",
-        "pip",
-        "install",
-        "--no-deps",
-        "--no-build-isolation",
-        "--no-index",
-    ])
-    .args(["--no-cache-dir", "--disable-pip-version-check", "--target"])
-    .arg(&site)
-    .arg(&src)
-    .current_dir(dir.path());
+    c.args(PIP_INSTALL)
+        .arg("--target")
+        .arg(&site)
+        .arg(&src)
+        .current_dir(dir.path());
     let out = run(c);
     assert!(out.status.success(), "{}", stdout(&out));
     assert!(site.join("leangate_client/__init__.py").is_file());
-    let entry = site.join("bin/leangate-client");
-    assert!(entry.is_file(), "console script leangate-client installed");
-
-    // The installed copy is the one imported (not the checkout's).
-    let out = Command::new(PYTHON)
-        .env("PYTHONPATH", &site)
-        .current_dir(dir.path())
-        .args([
-            "-c",
-            "import leangate_client; print(leangate_client.__file__)",
-        ])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", stderr(&out));
-    assert!(
-        Path::new(stdout(&out).trim()).starts_with(&site),
-        "{}",
-        stdout(&out)
+    check_installed(
+        Path::new(PYTHON),
+        &site.join("bin/leangate-client"),
+        Some(&site),
+        &site,
     );
+}
 
-    // The console script runs a pipeline.
-    let mut c = command(entry.to_str().unwrap());
-    c.env("PYTHONPATH", &site).current_dir(dir.path()).args([
-        "test://ball?num-buffers=10&width=160&height=120",
-        "--threshold",
-        "0.03",
-        "--quiet",
-    ]);
+#[test]
+fn package_installs_into_a_venv_that_sees_the_system_bindings() {
+    if !python_ok() {
+        return;
+    }
+    // The documented route: a venv with --system-site-packages (gi and numpy from Debian),
+    // pip install --no-deps. The venv's own pip comes from ensurepip (python3-venv).
+    let dir = tempfile::tempdir().unwrap();
+    let venv = dir.path().join("venv");
+    let made = Command::new(PYTHON)
+        .args(["-m", "venv", "--system-site-packages"])
+        .arg(&venv)
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false);
+    if !made {
+        eprintln!("SKIPPED: {PYTHON} -m venv failed (apt install python3-venv)");
+        return;
+    }
+    let src = package_copy(dir.path());
+    let python = venv.join("bin/python");
+    let mut c = Command::new(&python);
+    c.args(PIP_INSTALL).arg(&src).current_dir(dir.path());
     let out = run(c);
-    assert!(out.status.success());
-    let s = summary(&out);
-    assert_eq!(num(&s, "frames-in"), 10);
-    assert_eq!(s["model"], "fixture-mad");
+    assert!(out.status.success(), "{}", stdout(&out));
+    check_installed(&python, &venv.join("bin/leangate-client"), None, &venv);
 }
 
 #[test]
