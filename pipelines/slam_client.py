@@ -20,10 +20,42 @@ python3-numpy). `from slam_client import LeanGateSource` still works from this d
 import os
 import sys
 
-from leangate_client import *  # noqa: F401,F403  (the former module API)
-from leangate_client import LeanGateSource, PipelineError, SetupError  # noqa: F401
-from leangate_client._gst import Gst  # noqa: F401  (the former module exposed Gst)
-from leangate_client.cli import CSV_COLUMNS, main as _main  # noqa: F401
+# The names the former single-file module offered, for `from slam_client import ...`.
+from leangate_client import (
+    FORCE_KEYFRAME_EVENT,
+    META_NAME,
+    REASONS,
+    RESET_EVENT,
+    STATS_MESSAGE,
+    LeanGateSource,
+    LeanGateStats,
+    PipelineError,
+    SetupError,
+    buffer_to_rgb,
+    ensure_plugin,
+    meta_dict,
+)
+from leangate_client._gst import Gst
+from leangate_client.cli import CSV_COLUMNS
+from leangate_client.cli import main as _main
+
+__all__ = [
+    "CSV_COLUMNS",
+    "FORCE_KEYFRAME_EVENT",
+    "META_NAME",
+    "REASONS",
+    "RESET_EVENT",
+    "STATS_MESSAGE",
+    "Gst",
+    "LeanGateSource",
+    "LeanGateStats",
+    "PipelineError",
+    "SetupError",
+    "buffer_to_rgb",
+    "ensure_plugin",
+    "meta_dict",
+    "main",
+]
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PLUGIN_FALLBACKS = [os.path.join(REPO, "target", p) for p in ("release", "debug")]
