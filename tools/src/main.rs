@@ -120,6 +120,17 @@ enum Command {
         /// Write a contact sheet (PNG) of the frames the model kept here.
         #[arg(long)]
         contact_sheet: Option<PathBuf>,
+        /// Also run the equal-budget sweep: the model at each of --sweep-thresholds (one pipeline
+        /// run each), the oracle at the same threshold, stride, pixel_diff and motion at the model's
+        /// budget; written into the JSON (`sweep`) and printed. Needs depth and poses.
+        #[arg(long)]
+        sweep: bool,
+        /// Thresholds for --sweep (comma-separated).
+        #[arg(long, value_delimiter = ',', default_values_t = eval::SWEEP_THRESHOLDS)]
+        sweep_thresholds: Vec<f64>,
+        /// Write the sweep plot (PNG: late keeps and min pair S against frames kept) here.
+        #[arg(long)]
+        sweep_plot: Option<PathBuf>,
         #[arg(long, default_value_t = 160)]
         working_width: u32,
         #[arg(long, default_value_t = 0.1)]
@@ -254,55 +265,91 @@ fn run(cli: Cli) -> Res {
             json,
             plot,
             contact_sheet,
+            sweep,
+            sweep_thresholds,
+            sweep_plot,
             working_width,
             max_dist,
         } => eval_cmd(
             &sequence,
             model.as_deref(),
             threshold,
-            json,
-            plot,
-            contact_sheet,
-            working_width,
-            max_dist,
+            EvalOutputs {
+                json,
+                plot,
+                contact_sheet,
+                sweep: (sweep || sweep_plot.is_some()).then_some(sweep_thresholds),
+                sweep_plot,
+            },
+            TeacherConfig {
+                working_width,
+                max_dist_m: max_dist,
+            },
         ),
     }
 }
 
-#[allow(clippy::too_many_arguments)]
+/// What `leangate eval` writes besides the printed table.
+struct EvalOutputs {
+    json: Option<PathBuf>,
+    plot: Option<PathBuf>,
+    contact_sheet: Option<PathBuf>,
+    /// Thresholds of the equal-budget sweep, when asked for.
+    sweep: Option<Vec<f64>>,
+    sweep_plot: Option<PathBuf>,
+}
+
 fn eval_cmd(
     sequence: &Path,
     model: Option<&Path>,
     threshold: Option<f64>,
-    json: Option<PathBuf>,
-    plot: Option<PathBuf>,
-    contact_sheet: Option<PathBuf>,
-    working_width: u32,
-    max_dist: f64,
+    out: EvalOutputs,
+    cfg: TeacherConfig,
 ) -> Res {
+    let EvalOutputs {
+        json,
+        plot,
+        contact_sheet,
+        sweep,
+        sweep_plot,
+    } = out;
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
         indicatif::ProgressStyle::with_template("{msg:>8} [{bar:40}] {pos}/{len} frames")
             .unwrap()
             .progress_chars("=> "),
     );
-    let cfg = TeacherConfig {
-        working_width,
-        max_dist_m: max_dist,
-    };
-    let (report, data) = eval::evaluate(sequence, model, threshold, &cfg, |stage, done, total| {
+    let mut show = |stage: &str, done: usize, total: usize| {
         bar.set_message(stage.to_string());
         if total > 0 {
             bar.set_length(total as u64);
         }
         bar.set_position(done as u64);
-    })?;
+    };
+    let (mut report, data) = eval::evaluate(sequence, model, threshold, &cfg, &mut show)?;
+    if let Some(thresholds) = &sweep {
+        report.sweep = Some(eval::sweep(sequence, model, thresholds, &cfg, &mut show)?);
+    }
     bar.finish_and_clear();
     let text = serde_json::to_string_pretty(&report)?;
     if let Some(p) = &json {
         std::fs::write(p, &text).map_err(|e| format!("`{}`: {e}", p.display()))?;
     }
     print_summary(&report);
+    if let Some(points) = &report.sweep {
+        print_sweep(points);
+        if let Some(p) = &sweep_plot {
+            let title = format!(
+                "{}: equal-budget curves",
+                sequence
+                    .file_name()
+                    .map(|s| s.to_string_lossy().to_string())
+                    .unwrap_or_default()
+            );
+            eval::plot_sweep(points, &title, p)?;
+            eprintln!("sweep plot written to {}", p.display());
+        }
+    }
     if let Some(p) = &plot {
         let title = format!(
             "{} — threshold {:.3}",
@@ -364,6 +411,34 @@ fn print_summary(r: &eval::EvalReport) {
             f(&g("overdue_drops"), 0),
             f(&g("utility_rmse"), 3),
             f(&g("fps"), 1),
+        );
+    }
+}
+
+fn print_sweep(points: &[eval::SweepPoint]) {
+    println!("equal-budget sweep (late keeps / breaks / min pair S at each model threshold):");
+    println!(
+        "{:>6} {:>12} {:>12} {:>12} {:>12} {:>12}",
+        "T", "model", "oracle", "stride", "pixel_diff", "motion"
+    );
+    let mut thresholds: Vec<f64> = points.iter().map(|p| p.threshold).collect();
+    thresholds.dedup();
+    for t in thresholds {
+        let cell = |policy: &str| {
+            points
+                .iter()
+                .find(|p| p.threshold == t && p.policy == policy)
+                .map(|p| format!("{}k {}l {}b", p.kept, p.late_keeps, p.breaks))
+                .unwrap_or_else(|| "-".into())
+        };
+        println!(
+            "{:>6.3} {:>12} {:>12} {:>12} {:>12} {:>12}",
+            t,
+            cell("model"),
+            cell("oracle"),
+            cell("stride"),
+            cell("pixel_diff"),
+            cell("motion")
         );
     }
 }

@@ -111,6 +111,7 @@ fn synth_label_eval_end_to_end() {
     // eval: every policy judged; the oracle judged against itself is perfect.
     let json = dir.path().join("eval.json");
     let plot = dir.path().join("eval.png");
+    let sweep_plot = dir.path().join("sweep.png");
     let out = leangate()
         .args(["eval", "--sequence"])
         .arg(&seq)
@@ -124,6 +125,13 @@ fn synth_label_eval_end_to_end() {
         .arg(&json)
         .arg("--plot")
         .arg(&plot)
+        .args([
+            "--sweep",
+            "--sweep-thresholds",
+            "0.03,0.05,0.1",
+            "--sweep-plot",
+        ])
+        .arg(&sweep_plot)
         .output()
         .unwrap();
     assert!(
@@ -159,6 +167,47 @@ fn synth_label_eval_end_to_end() {
     assert!(v["policies"]["stride"].get("utility_rmse").is_none());
     let png = std::fs::read(&plot).unwrap();
     assert_eq!(&png[1..4], b"PNG");
+
+    // motion: judged at the model's budget like stride and pixel_diff.
+    let kept = v["policies"]["model"]["kept"].as_i64().unwrap();
+    let motion = v["policies"]["motion"]["kept"].as_i64().unwrap();
+    assert!(
+        (motion - kept).abs() <= 2,
+        "motion kept {motion}, model {kept}"
+    );
+
+    // --sweep: every policy at every threshold; the model point at 0.05 is the main run; the
+    // baselines sit at the model's budget; more frames kept at a lower threshold.
+    let sweep = v["sweep"].as_array().expect("sweep in the JSON");
+    assert_eq!(sweep.len(), 3 * 5);
+    let point = |policy: &str, t: f64| {
+        sweep
+            .iter()
+            .find(|p| p["policy"] == policy && p["threshold"].as_f64() == Some(t))
+            .unwrap_or_else(|| panic!("no {policy} point at {t}"))
+    };
+    assert_eq!(point("model", 0.05)["kept"].as_i64().unwrap(), kept);
+    for t in [0.03, 0.05, 0.1] {
+        let budget = point("model", t)["kept"].as_i64().unwrap();
+        assert!(point("stride", t)["breaks"].is_u64());
+        // stride reaches only ceil(40 / s) frames: the closest of those to the budget.
+        let stride = point("stride", t)["kept"].as_i64().unwrap();
+        let best = (1..=40)
+            .map(|s| (40 + s - 1) / s)
+            .min_by_key(|k| (k - budget).abs());
+        assert_eq!(Some(stride), best, "stride at budget {budget}");
+        for p in ["pixel_diff", "motion"] {
+            let k = point(p, t)["kept"].as_i64().unwrap();
+            assert!((k - budget).abs() <= 2, "{p} kept {k} at budget {budget}");
+        }
+        assert_eq!(
+            point("oracle", t)["late_keeps"],
+            0,
+            "the oracle is never late"
+        );
+    }
+    assert!(point("model", 0.03)["kept"].as_i64() >= point("model", 0.1)["kept"].as_i64());
+    assert_eq!(&std::fs::read(&sweep_plot).unwrap()[1..4], b"PNG");
 }
 
 #[test]

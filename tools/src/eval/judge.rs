@@ -1,0 +1,181 @@
+//! Judging a gate's decisions against the exact teacher.
+
+use std::collections::HashMap;
+
+use serde::Serialize;
+
+use super::{Trace, BREAK_S, KEYFRAME_S};
+use crate::teacher::{PairScore, Teacher};
+
+/// Judgement of one policy. Field names are the JSON keys.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct PolicyReport {
+    pub kept: usize,
+    pub keep_ratio: f64,
+    pub downsample: f64,
+    pub breaks: Option<usize>,
+    pub late_keeps: Option<usize>,
+    #[serde(rename = "min_pair_S")]
+    pub min_pair_s: Option<f64>,
+    #[serde(rename = "median_pair_S")]
+    pub median_pair_s: Option<f64>,
+    pub overdue_drops: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub utility_mae: Option<Option<f64>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub utility_rmse: Option<Option<f64>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fps: Option<f64>,
+}
+
+/// Teacher scores, memoised (policies share many pairs).
+pub struct TeacherCache<'a> {
+    teacher: &'a Teacher,
+    memo: HashMap<(usize, usize), PairScore>,
+}
+
+impl<'a> TeacherCache<'a> {
+    pub fn new(teacher: &'a Teacher) -> Self {
+        TeacherCache {
+            teacher,
+            memo: HashMap::new(),
+        }
+    }
+
+    /// Score many (current, keyframe) pairs in parallel, remembering them.
+    pub fn prefetch(&mut self, pairs: &[(usize, usize)]) {
+        let todo: Vec<_> = pairs
+            .iter()
+            .copied()
+            .filter(|p| !self.memo.contains_key(p))
+            .collect::<std::collections::HashSet<_>>()
+            .into_iter()
+            .collect();
+        let scores = self.teacher.score_pairs(&todo);
+        self.memo.extend(todo.into_iter().zip(scores));
+    }
+
+    pub fn get(&mut self, cur: usize, key: usize) -> PairScore {
+        if let Some(s) = self.memo.get(&(cur, key)) {
+            return *s;
+        }
+        let s = self.teacher.score(cur, key);
+        self.memo.insert((cur, key), s);
+        s
+    }
+}
+
+/// Judge a trace. `scored`: whether the policy has its own utility (MAE/RMSE keys present).
+pub fn judge(
+    trace: &Trace,
+    teacher: Option<&mut TeacherCache>,
+    threshold: f64,
+    scored: bool,
+    fps: Option<f64>,
+) -> PolicyReport {
+    let n = trace.keep.len();
+    let kept = trace.kept();
+    let mut r = PolicyReport {
+        kept,
+        keep_ratio: if n > 0 { kept as f64 / n as f64 } else { 0.0 },
+        downsample: if kept > 0 {
+            n as f64 / kept as f64
+        } else {
+            0.0
+        },
+        breaks: None,
+        late_keeps: None,
+        min_pair_s: None,
+        median_pair_s: None,
+        overdue_drops: None,
+        utility_mae: scored.then_some(None),
+        utility_rmse: scored.then_some(None),
+        fps,
+    };
+    let Some(tc) = teacher else {
+        return r;
+    };
+    let refs = trace.references();
+    let pairs = trace.kept_pairs();
+    let mut wanted: Vec<(usize, usize)> = pairs.iter().map(|&(a, b)| (b, a)).collect();
+    wanted.extend(
+        refs.iter()
+            .enumerate()
+            .filter_map(|(i, r)| r.map(|r| (i, r))),
+    );
+    tc.prefetch(&wanted);
+    let mut s: Vec<f64> = pairs.iter().map(|&(a, b)| tc.get(b, a).s).collect();
+    r.breaks = Some(s.iter().filter(|&&v| v < BREAK_S).count());
+    r.late_keeps = Some(s.iter().filter(|&&v| v < KEYFRAME_S).count());
+    s.sort_by(|a, b| a.total_cmp(b));
+    r.min_pair_s = s.first().copied();
+    r.median_pair_s = if s.is_empty() {
+        None
+    } else if s.len() % 2 == 1 {
+        Some(s[s.len() / 2])
+    } else {
+        Some(0.5 * (s[s.len() / 2 - 1] + s[s.len() / 2]))
+    };
+    let mut overdue = 0;
+    let (mut abs_sum, mut sq_sum, mut count) = (0.0, 0.0, 0usize);
+    for (i, reference) in refs.iter().enumerate() {
+        let Some(reference) = *reference else {
+            continue;
+        };
+        let t = tc.get(i, reference).tau;
+        if !trace.keep[i] && t >= threshold {
+            overdue += 1;
+        }
+        if let Some(u) = trace.utility[i] {
+            abs_sum += (u - t).abs();
+            sq_sum += (u - t) * (u - t);
+            count += 1;
+        }
+    }
+    r.overdue_drops = Some(overdue);
+    if scored && count > 0 {
+        r.utility_mae = Some(Some(abs_sum / count as f64));
+        r.utility_rmse = Some(Some((sq_sum / count as f64).sqrt()));
+    }
+    r
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn trace(keep: &[u8]) -> Trace {
+        Trace {
+            keep: keep.iter().map(|&k| k == 1).collect(),
+            utility: vec![None; keep.len()],
+        }
+    }
+
+    #[test]
+    fn judge_without_teacher_has_counts_only() {
+        let t = trace(&[1, 0, 1, 0]);
+        let r = judge(&t, None, 0.5, true, Some(12.0));
+        assert_eq!((r.kept, r.keep_ratio, r.downsample), (2, 0.5, 2.0));
+        assert_eq!(r.breaks, None);
+        let v = serde_json::to_value(&r).unwrap();
+        let keys: Vec<_> = v.as_object().unwrap().keys().cloned().collect();
+        for k in [
+            "kept",
+            "keep_ratio",
+            "downsample",
+            "breaks",
+            "late_keeps",
+            "min_pair_S",
+            "median_pair_S",
+            "overdue_drops",
+            "utility_mae",
+            "utility_rmse",
+            "fps",
+        ] {
+            assert!(keys.contains(&k.to_string()), "{k} missing in {keys:?}");
+        }
+        assert!(v["breaks"].is_null() && v["utility_mae"].is_null());
+        let unscored = serde_json::to_value(judge(&t, None, 0.5, false, None)).unwrap();
+        assert_eq!(unscored.as_object().unwrap().len(), 8);
+    }
+}

@@ -1,0 +1,380 @@
+//! `leangate eval`: run gating policies over a sequence and judge each against the teacher.
+//!
+//! Policies:
+//! - `model`: the real `leangate` element, in annotate mode, in a real pipeline (appsrc for image
+//!   sequences, filesrc ! decodebin for videos), with the given model;
+//! - `oracle`: the same gate ([`gstleangate::Gate`]) driven by the teacher's tau (the upper bound);
+//! - `stride`: every s-th frame, s chosen so the kept count matches `model`'s;
+//! - `pixel_diff`: an mpdecimate-like gate (8x8 block SADs against the last kept frame, on a
+//!   160x120 grey thumbnail), its thresholds scaled so the kept count matches `model`'s;
+//! - `motion`: mean sparse pyramidal Lucas-Kanade displacement since the last keep above a pixel
+//!   threshold (DROID-SLAM's motion filter, DSO), the threshold chosen for `model`'s budget.
+//!
+//! `--sweep` ([`sweep`]) repeats this over a range of model thresholds: every policy at every
+//! budget the model reaches, the honest equal-budget comparison.
+//!
+//! Judging (all against the teacher, so only with depth + poses): for consecutive kept frames
+//! (a, b) the teacher's S(b, a): `breaks` (S < 0.05, where MASt3R-SLAM tracking fails),
+//! `late_keeps` (S < 0.333: a keyframe was due in between), `min_pair_S`, `median_pair_S`;
+//! `overdue_drops`: dropped frames whose teacher tau against the gate's reference was already
+//! at or above the threshold; for scored policies `utility_mae` / `utility_rmse` of the gate's utility
+//! against the teacher's tau on the same (reference, frame) pairs.
+
+use std::path::{Path, PathBuf};
+
+use gstleangate::GateConfig;
+use serde::Serialize;
+
+use crate::dataset::Sequence;
+use crate::teacher::Teacher;
+
+mod baselines;
+mod judge;
+mod model_run;
+pub mod motion;
+mod report;
+
+pub use baselines::{
+    oracle_gate, pixel_diff_for_budget, pixel_diff_gate, stride_for_budget, stride_gate,
+};
+pub use judge::{judge, PolicyReport, TeacherCache};
+pub use model_run::{init_gstreamer, run_model, ModelRun};
+pub use motion::{motion_for_budget, motion_gate};
+pub use report::{contact_sheet, plot, plot_sweep};
+
+/// S below which MASt3R-SLAM's tracking breaks.
+pub const BREAK_S: f64 = 0.05;
+/// MASt3R-SLAM's keyframe threshold on S.
+pub const KEYFRAME_S: f64 = 0.333;
+/// Thumbnail size used by `pixel_diff` and `motion`.
+pub const THUMB_W: u32 = 160;
+pub const THUMB_H: u32 = 120;
+/// Thresholds `--sweep` tries by default.
+pub const SWEEP_THRESHOLDS: [f64; 12] = [
+    0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7, 0.8,
+];
+
+/// Any failure of an evaluation, with its context.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct EvalError(pub String);
+
+fn err<E: std::fmt::Display>(ctx: &str) -> impl Fn(E) -> EvalError + '_ {
+    move |e| EvalError(format!("{ctx}: {e}"))
+}
+
+/// One policy's decisions over a sequence.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trace {
+    pub keep: Vec<bool>,
+    /// The gate's own utility for frame i against its reference (None: not scored).
+    pub utility: Vec<Option<f64>>,
+}
+
+impl Trace {
+    pub fn kept(&self) -> usize {
+        self.keep.iter().filter(|k| **k).count()
+    }
+
+    /// Reference of each frame: the last kept frame before it (kept frames become references).
+    pub fn references(&self) -> Vec<Option<usize>> {
+        let mut r = None;
+        self.keep
+            .iter()
+            .enumerate()
+            .map(|(i, &k)| {
+                let this = r;
+                if k {
+                    r = Some(i);
+                }
+                this
+            })
+            .collect()
+    }
+
+    /// Consecutive kept pairs (earlier, later).
+    pub fn kept_pairs(&self) -> Vec<(usize, usize)> {
+        let kept: Vec<usize> = (0..self.keep.len()).filter(|&i| self.keep[i]).collect();
+        kept.windows(2).map(|w| (w[0], w[1])).collect()
+    }
+}
+
+/// What the eval runs on.
+#[derive(Debug, Clone)]
+pub enum Source {
+    /// A directory sequence (TUM layout or rgb.txt / images only). Without full ground truth
+    /// every colour frame is used, matched to a pose or not.
+    Sequence(Sequence),
+    /// A video file, decoded by GStreamer.
+    Video(PathBuf),
+}
+
+impl Source {
+    pub fn open(path: &Path) -> Result<Source, EvalError> {
+        if path.is_dir() {
+            let seq = Sequence::open(path).map_err(|e| EvalError(e.to_string()))?;
+            if seq.has_ground_truth() {
+                return Ok(Source::Sequence(seq));
+            }
+            // No teacher possible: gate every colour frame, poses or not.
+            let all = crate::dataset::OpenOptions {
+                drop_unmatched: false,
+                ..Default::default()
+            };
+            Sequence::open_with(path, &all)
+                .map(Source::Sequence)
+                .map_err(|e| EvalError(e.to_string()))
+        } else if path.is_file() {
+            Ok(Source::Video(path.to_path_buf()))
+        } else {
+            Err(EvalError(format!(
+                "`{}`: no such sequence directory or video file",
+                path.display()
+            )))
+        }
+    }
+}
+
+/// The full report written as JSON.
+#[derive(Debug, Clone, Serialize)]
+pub struct EvalReport {
+    pub sequence: String,
+    pub frames: usize,
+    pub threshold: f64,
+    pub policies: serde_json::Map<String, serde_json::Value>,
+    /// Equal-budget curves (`--sweep`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sweep: Option<Vec<SweepPoint>>,
+}
+
+/// Everything a plot needs.
+#[derive(Debug, Clone)]
+pub struct PlotData {
+    /// Teacher tau of each frame against the model gate's reference (None: no ground truth).
+    pub teacher_tau: Vec<Option<f64>>,
+    pub predicted_tau: Vec<Option<f64>>,
+    pub threshold: f64,
+    /// Kept flags per policy, in display order.
+    pub kept: Vec<(String, Vec<bool>)>,
+    /// Thumbnails of the frames the model kept.
+    pub kept_thumbs: Vec<(usize, image::RgbImage)>,
+}
+
+/// Run every policy and judge it. `progress(stage, done, total)`.
+pub fn evaluate(
+    path: &Path,
+    model: Option<&Path>,
+    threshold: Option<f64>,
+    teacher_cfg: &crate::teacher::TeacherConfig,
+    mut progress: impl FnMut(&str, usize, usize),
+) -> Result<(EvalReport, PlotData), EvalError> {
+    let source = Source::open(path)?;
+    let n_hint = match &source {
+        Source::Sequence(s) => s.len(),
+        Source::Video(_) => 0,
+    };
+    let run = run_model(&source, model, threshold, |d| progress("model", d, n_hint))?;
+    let n = run.metas.len();
+    let t = run.threshold;
+    let teacher = match &source {
+        Source::Sequence(seq) if seq.has_ground_truth() => {
+            if seq.len() != n {
+                return Err(EvalError(format!(
+                    "the pipeline returned {n} frames for a sequence of {}",
+                    seq.len()
+                )));
+            }
+            Some(Teacher::from_sequence(seq, teacher_cfg).map_err(|e| EvalError(e.to_string()))?)
+        }
+        _ => None,
+    };
+    let mut cache = teacher.as_ref().map(TeacherCache::new);
+
+    let model_trace = run.trace();
+    let budget = model_trace.kept();
+    let mut policies = serde_json::Map::new();
+    let mut kept_rows = Vec::new();
+    let mut add = |name: &str, report: PolicyReport, trace: &Trace| {
+        policies.insert(name.to_string(), serde_json::to_value(report).unwrap());
+        kept_rows.push((name.to_string(), trace.keep.clone()));
+    };
+    add(
+        "model",
+        judge(&model_trace, cache.as_mut(), t, true, Some(run.fps)),
+        &model_trace,
+    );
+    if let Some(teacher) = teacher.as_ref() {
+        progress("oracle", 0, n);
+        let (oracle, _) = oracle_gate(
+            teacher,
+            GateConfig {
+                threshold: t,
+                ..Default::default()
+            },
+        );
+        progress("oracle", n, n);
+        add(
+            "oracle",
+            judge(&oracle, cache.as_mut(), t, true, None),
+            &oracle,
+        );
+    }
+    let stride = stride_gate(n, stride_for_budget(n, budget));
+    add(
+        "stride",
+        judge(&stride, cache.as_mut(), t, false, None),
+        &stride,
+    );
+    let pd = pixel_diff_for_budget(&run.thumbs, budget);
+    add(
+        "pixel_diff",
+        judge(&pd, cache.as_mut(), t, false, None),
+        &pd,
+    );
+    progress("motion", 0, n);
+    let (mo, _) = motion_for_budget(&motion::pyramids(&run.thumbs), budget);
+    progress("motion", n, n);
+    add("motion", judge(&mo, cache.as_mut(), t, false, None), &mo);
+
+    let refs = model_trace.references();
+    let teacher_tau = refs
+        .iter()
+        .enumerate()
+        .map(|(i, r)| match (r, cache.as_mut()) {
+            (Some(r), Some(c)) => Some(c.get(i, *r).tau),
+            _ => None,
+        })
+        .collect();
+    Ok((
+        EvalReport {
+            sequence: path.display().to_string(),
+            frames: n,
+            threshold: t,
+            policies,
+            sweep: None,
+        },
+        PlotData {
+            teacher_tau,
+            predicted_tau: model_trace.utility.clone(),
+            threshold: t,
+            kept: kept_rows,
+            kept_thumbs: run.kept_thumbs,
+        },
+    ))
+}
+
+/// One point of an equal-budget curve: a policy at one setting, judged by the teacher.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct SweepPoint {
+    pub policy: String,
+    /// The model's (and oracle's) threshold this budget comes from.
+    pub threshold: f64,
+    pub kept: usize,
+    pub late_keeps: usize,
+    pub breaks: usize,
+    #[serde(rename = "min_pair_S")]
+    pub min_pair_s: Option<f64>,
+    #[serde(rename = "median_pair_S")]
+    pub median_pair_s: Option<f64>,
+}
+
+/// Equal-budget curves: the model at each threshold (the real element, one pipeline run per
+/// threshold), the oracle at the same threshold, and `stride`, `pixel_diff` and `motion` each at
+/// the model's budget. Needs depth and poses (the teacher judges every point).
+pub fn sweep(
+    path: &Path,
+    model: Option<&Path>,
+    thresholds: &[f64],
+    teacher_cfg: &crate::teacher::TeacherConfig,
+    mut progress: impl FnMut(&str, usize, usize),
+) -> Result<Vec<SweepPoint>, EvalError> {
+    let source = Source::open(path)?;
+    let Source::Sequence(seq) = &source else {
+        return Err(EvalError(format!(
+            "--sweep needs a sequence with depth and poses; `{}` is a video",
+            path.display()
+        )));
+    };
+    if !seq.has_ground_truth() {
+        return Err(EvalError(format!(
+            "--sweep needs depth, poses and intrinsics; `{}` lacks them",
+            path.display()
+        )));
+    }
+    let teacher = Teacher::from_sequence(seq, teacher_cfg).map_err(|e| EvalError(e.to_string()))?;
+    let mut cache = TeacherCache::new(&teacher);
+    let n = seq.len();
+    let mut points = Vec::new();
+    let mut pyramids = None;
+    let mut thumbs = None;
+    let mut point = |policy: &str, t: f64, trace: &Trace, cache: &mut TeacherCache| {
+        let r = judge(trace, Some(cache), t, false, None);
+        points.push(SweepPoint {
+            policy: policy.to_string(),
+            threshold: t,
+            kept: r.kept,
+            late_keeps: r.late_keeps.unwrap_or(0),
+            breaks: r.breaks.unwrap_or(0),
+            min_pair_s: r.min_pair_s,
+            median_pair_s: r.median_pair_s,
+        });
+    };
+    for (k, &t) in thresholds.iter().enumerate() {
+        progress("sweep", k, thresholds.len());
+        let run = run_model(&source, model, Some(t), |_| {})?;
+        if run.metas.len() != n {
+            return Err(EvalError(format!(
+                "the pipeline returned {} frames for a sequence of {n}",
+                run.metas.len()
+            )));
+        }
+        let trace = run.trace();
+        let budget = trace.kept();
+        point("model", t, &trace, &mut cache);
+        let cfg = GateConfig {
+            threshold: t,
+            ..Default::default()
+        };
+        point("oracle", t, &oracle_gate(&teacher, cfg).0, &mut cache);
+        point(
+            "stride",
+            t,
+            &stride_gate(n, stride_for_budget(n, budget)),
+            &mut cache,
+        );
+        let th = thumbs.get_or_insert_with(|| run.thumbs.clone());
+        point(
+            "pixel_diff",
+            t,
+            &pixel_diff_for_budget(th, budget),
+            &mut cache,
+        );
+        let pyr = pyramids.get_or_insert_with(|| motion::pyramids(th));
+        point("motion", t, &motion_for_budget(pyr, budget).0, &mut cache);
+    }
+    progress("sweep", thresholds.len(), thresholds.len());
+    Ok(points)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn trace(keep: &[u8]) -> Trace {
+        Trace {
+            keep: keep.iter().map(|&k| k == 1).collect(),
+            utility: vec![None; keep.len()],
+        }
+    }
+
+    #[test]
+    fn references_and_pairs() {
+        let t = trace(&[1, 0, 0, 1, 0, 1]);
+        assert_eq!(
+            t.references(),
+            vec![None, Some(0), Some(0), Some(0), Some(3), Some(3)]
+        );
+        assert_eq!(t.kept_pairs(), vec![(0, 3), (3, 5)]);
+        assert_eq!(t.kept(), 3);
+    }
+}
