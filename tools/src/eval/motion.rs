@@ -146,7 +146,9 @@ pub fn pyramids(thumbs: &[Vec<u8>]) -> Vec<Pyramid> {
 /// displacement (not a tau), so it is not judged for MAE/RMSE.
 pub fn motion_gate(pyr: &[Pyramid], threshold_px: f64) -> Trace {
     let mut keep = Vec::with_capacity(pyr.len());
-    let mut points: Vec<((f32, f32), Option<(f32, f32)>)> = Vec::new();
+    // (position in the last kept frame, tracked position now or None when lost)
+    type Track = ((f32, f32), Option<(f32, f32)>);
+    let mut points: Vec<Track> = Vec::new();
     let mut prev = 0usize;
     for i in 0..pyr.len() {
         let k = if i == 0 {
