@@ -3,7 +3,8 @@
 #   1. GStreamer 1.22 development files, tools, plugins and Python bindings (apt);
 #   2. ONNX Runtime 1.31.1: libonnxruntime.so from the PyPI wheel, extracted into .deps/
 #      (ORT_FLAVOR=gpu takes onnxruntime-gpu==1.31.1, for CUDA 13, into .deps/onnxruntime-gpu);
-#   3. a project-local Python venv (.venv) with `onnx` to regenerate the test fixture models.
+#   3. a project-local Python venv (.venv) with `onnx` (to regenerate the test fixture models),
+#      numpy and pillow (the training package's preprocessing, checked against the element's).
 # Safe to run again: each step is skipped when already done.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -14,7 +15,7 @@ ORT_FLAVOR=${ORT_FLAVOR:-cpu}
 APT_PACKAGES=(pkg-config libgstreamer1.0-dev libgstreamer-plugins-base1.0-dev gstreamer1.0-tools
   gstreamer1.0-plugins-base gstreamer1.0-plugins-good gstreamer1.0-libav python3-gi
   gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 python3-gst-1.0 python3-numpy
-  python3-venv fonts-dejavu-core unzip)
+  python3-venv python3-pip fonts-dejavu-core unzip)
 
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
@@ -55,10 +56,10 @@ if [ ! -f "$ORT_DIR/libonnxruntime.so.$ORT_VERSION" ]; then
   echo "setup: ONNX Runtime in $ORT_DIR"
 fi
 
-if [ ! -x .venv/bin/python ] || ! .venv/bin/python -c 'import onnx' 2>/dev/null; then
+if [ ! -x .venv/bin/python ] || ! .venv/bin/python -c 'import onnx, PIL' 2>/dev/null; then
   [ -n "$PY" ] || PY=/usr/bin/python3
-  echo "setup: creating .venv with onnx"
-  "$PY" -m venv .venv
-  .venv/bin/pip install -q --disable-pip-version-check onnx==1.23.2 numpy
+  echo "setup: creating .venv with onnx, numpy, pillow"
+  [ -x .venv/bin/python ] || "$PY" -m venv .venv
+  .venv/bin/pip install -q --disable-pip-version-check onnx==1.23.2 numpy pillow==13.0.0
 fi
 echo "setup: done"
