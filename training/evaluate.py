@@ -1,21 +1,17 @@
-#!/usr/bin/env python3
-"""Run `leangate eval` (the real GStreamer element) with the exported pair model on the held-out
-synthetic sequences, 7-Scenes, EuRoC static, every cotracker clip and webcam_classroom; write the JSON
-reports and a Markdown summary table.
+"""Run `leangate eval` (the real GStreamer element) with a pair model on the held-out synthetic
+sequences, the calibration and test parts of tum_fr1_rpy and the whole sequence, 7-Scenes, EuRoC
+static, every cotracker clip and webcam_classroom; write the JSON reports and a Markdown summary.
 
-Usage: python training/evaluate.py [--model models/leangate-s.onnx] [--out /work/train-data/evals]
+Usage: python -m training.evaluate [--model models/leangate-s.onnx] [--threshold T] [--out $DATA_ROOT/evals/new]
+       (--threshold defaults to the model's leangate.threshold; the tum parts come from `gen_data --steps tum`)
 """
 import argparse
 import glob
 import json
 import os
 import subprocess
-import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from gen_data import LEANGATE, SHARED  # noqa: E402
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from .config import DATA_ROOT, LEANGATE, MODELS_DIR, NAME, SHARED, TUM_SEQ, TUM_SPLIT
 
 
 def fmt(v, p=3):
@@ -26,34 +22,41 @@ def fmt(v, p=3):
     return str(v)
 
 
+def sequences(root):
+    seqs = [(os.path.basename(s), s) for s in sorted(glob.glob(os.path.join(root, "eval", "synth_*")))]
+    for part in ("cal", "test"):
+        a, b = TUM_SPLIT[part]
+        seqs.append((f"{TUM_SEQ}[{a}-{b}] ({part})", os.path.join(root, "tum", part)))
+    seqs.append((f"{TUM_SEQ} (all 718)", os.path.join(SHARED, TUM_SEQ)))
+    seqs += [(n, os.path.join(SHARED, n)) for n in ("7scenes_redkitchen_dev", "euroc_v101_static")]
+    seqs += [(os.path.basename(s), s) for s in sorted(glob.glob(os.path.join(SHARED, "cotracker_clips", "*.mp4")))]
+    seqs.append(("webcam_classroom", os.path.join(SHARED, "webcam_classroom")))
+    return seqs
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", default=os.path.join(REPO, "models", "leangate-s.onnx"))
-    ap.add_argument("--out", default="/work/train-data/evals")
-    ap.add_argument("--eval-root", default="/work/train-data/eval")
+    ap.add_argument("--model", default=os.path.join(MODELS_DIR, f"{NAME}.onnx"))
+    ap.add_argument("--out", default=os.path.join(DATA_ROOT, "evals", "new"))
+    ap.add_argument("--root", default=DATA_ROOT, help="where gen_data put eval/ and tum/")
     ap.add_argument("--threshold", type=float, default=None)
+    ap.add_argument("--only", default="", help="comma-separated substrings: evaluate only matching sequences")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
-    if a.threshold is None:
-        # pass the model's leangate.threshold explicitly: the element applies it by default, but
-        # `leangate eval` (as built now) reports and scores `overdue_drops` at 0.5 unless told
-        import onnx
-        meta = {p.key: p.value for p in onnx.load(a.model).metadata_props}
-        if "leangate.threshold" in meta:
-            a.threshold = float(meta["leangate.threshold"])
-    seqs = sorted(glob.glob(os.path.join(a.eval_root, "synth_*")))
-    seqs += [os.path.join(SHARED, "7scenes_redkitchen_dev"), os.path.join(SHARED, "euroc_v101_static")]
-    seqs += sorted(glob.glob(os.path.join(SHARED, "cotracker_clips", "*.mp4")))
-    seqs += [os.path.join(SHARED, "webcam_classroom")]
     rows = []
-    for s in seqs:
-        name = os.path.basename(s.rstrip("/"))
-        js = os.path.join(a.out, name + ".json")
+    for name, s in sequences(a.root):
+        if a.only and not any(k in name for k in a.only.split(",")):
+            continue
+        if not os.path.exists(s):
+            rows.append(f"| {name} | missing: {s} |")
+            continue
+        tag = name.replace(" ", "_").replace("(", "").replace(")", "").replace("[", "_").replace("]", "")
+        js = os.path.join(a.out, tag + ".json")
         cmd = [LEANGATE, "eval", "--sequence", s, "--model", a.model, "--json", js]
         if a.threshold is not None:
             cmd += ["--threshold", str(a.threshold)]
-        if name.startswith("synth_") or name.startswith("7scenes"):
-            cmd += ["--plot", os.path.join(a.out, name + ".png")]
+        if name.startswith(("synth_", "7scenes", TUM_SEQ)):
+            cmd += ["--plot", os.path.join(a.out, tag + ".png")]
         r = subprocess.run(cmd, capture_output=True, text=True)
         print(r.stdout.strip() or r.stderr.strip()[-2000:], flush=True)
         if r.returncode != 0:
@@ -61,20 +64,18 @@ def main():
             continue
         d = json.load(open(js))
         P = d["policies"]
-        m = P["model"]
-        o = P.get("oracle", {})
-        st = P.get("stride", {})
-        pdiff = P.get("pixel_diff", {})
+        m, o, st, pdf = P["model"], P.get("oracle", {}), P.get("stride", {}), P.get("pixel_diff", {})
         dropped = 1 - m["kept"] / d["frames"]
         rows.append(
             f"| {name} | {d['frames']} | {fmt(d['threshold'], 2)} | {m['kept']} ({100 * dropped:.0f}% dropped) | "
-            f"{fmt(o.get('kept'))} | {fmt(st.get('kept'))} | {fmt(pdiff.get('kept'))} | {fmt(m.get('breaks'))} / "
-            f"{fmt(st.get('breaks'))} | {fmt(m.get('late_keeps'))} / {fmt(st.get('late_keeps'))} | "
-            f"{fmt(m.get('overdue_drops'))} | {fmt(m.get('min_pair_S'))} | {fmt(m.get('utility_rmse'))} | "
-            f"{fmt(m.get('utility_mae'))} | {fmt(m.get('fps'), 1)} |")
-    head = ("| sequence | frames | T | model kept | oracle kept | stride kept | pixel_diff kept | breaks model/stride "
-            "| late keeps model/stride | overdue drops | min pair S | utility RMSE | utility MAE | fps |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+            f"{fmt(o.get('kept'))} | {fmt(st.get('kept'))} / {fmt(pdf.get('kept'))} | {fmt(m.get('breaks'))} / "
+            f"{fmt(st.get('breaks'))} / {fmt(pdf.get('breaks'))} | {fmt(m.get('late_keeps'))} / "
+            f"{fmt(st.get('late_keeps'))} / {fmt(pdf.get('late_keeps'))} | {fmt(m.get('overdue_drops'))} | "
+            f"{fmt(m.get('min_pair_S'))} | {fmt(m.get('utility_rmse'))} | {fmt(m.get('utility_mae'))} | "
+            f"{fmt(m.get('fps'), 1)} |")
+    head = ("| sequence | frames | T | model kept | oracle kept | stride / pixel_diff kept | breaks model / stride / "
+            "pixel_diff | late keeps model / stride / pixel_diff | overdue drops | min pair S | utility RMSE | "
+            "utility MAE | fps |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     table = head + "\n" + "\n".join(rows) + "\n"
     open(os.path.join(a.out, "summary.md"), "w").write(table)
     print(table)

@@ -1,4 +1,3 @@
-#!/usr/bin/env python3
 """Export a LeanGate-S checkpoint to ONNX (opset 17, IR version 8), with the leangate.* metadata.
 
 Writes three files into --out-dir (default: models/ of the repository):
@@ -13,18 +12,14 @@ Usage: python training/export.py --ckpt /work/train-data/runs/s/best.pt [--thres
 """
 import argparse
 import os
-import sys
 
 import numpy as np
 import onnx
 import torch
 import torch.nn as nn
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from model import IN_H, IN_W, MEAN, STD, LeanGateS, PairWrapper, count_flops  # noqa: E402
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-NAME = "leangate-s"
+from .config import DEFAULT_THRESHOLD, IN_H, IN_W, MEAN, MODELS_DIR, NAME, REPO, RESIZE, STD
+from .model import LeanGateS, PairWrapper, count_flops
 
 
 class HeadWrapper(nn.Module):
@@ -65,7 +60,7 @@ def set_meta(path, meta):
 def base_meta(threshold):
     return {
         "leangate.input_size": f"{IN_W}x{IN_H}",
-        "leangate.resize": "short-side-crop",
+        "leangate.resize": RESIZE,
         "leangate.mean": ",".join(f"{v}" for v in MEAN),
         "leangate.std": ",".join(f"{v}" for v in STD),
         "leangate.threshold": f"{threshold:.3f}",
@@ -76,8 +71,8 @@ def base_meta(threshold):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--ckpt", required=True)
-    ap.add_argument("--out-dir", default=os.path.join(REPO, "models"))
-    ap.add_argument("--threshold", type=float, default=0.5)
+    ap.add_argument("--out-dir", default=MODELS_DIR)
+    ap.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD)
     a = ap.parse_args()
     torch.set_num_threads(2)
     os.makedirs(a.out_dir, exist_ok=True)

@@ -1,7 +1,6 @@
-#!/usr/bin/env python3
-"""Generate LeanGate training data (outside the repository).
+"""Generate LeanGate training data (never inside the repository's tracked tree).
 
-Steps (all under --root, default /work/train-data):
+Steps (all under --root, default config.DATA_ROOT: $LEANGATE_TRAIN_DATA or <repo>/out/train-data):
   photos    copy/decode a subset of real photos from ../shared/data (never the validation sets)
   synth     render `leangate synth` sequences (train / val seeds) and label them with
             `leangate label --random` (pairs across the whole tau range, gaps up to 120 frames)
@@ -9,9 +8,12 @@ Steps (all under --root, default /work/train-data):
             in <root>/cache/{train,val}/seq_<seed>.npz: frames [F,H,W,3] + pairs [P,5] (i,j,tau,f_m,f_u)
   homog     pairs of real photos under random homographies with exact overlap labels
             -> <root>/cache/homog_{train,val}.npz (ref [P,H,W,3], cur [P,H,W,3], y [P,3] tau,f_m,f_u)
+  tum       tum_fr1_rpy cut into its train / cal / test parts (config.TUM_SPLIT) as sub-sequence
+            directories <root>/tum/<part>; teacher-labelled pairs of the train part (training) and
+            gate-like pairs of the cal part (calibration) -> cache/tum_{train,cal}.npz (see tum.py)
   evalseqs  held-out 300-frame mixed-motion sequences (new seeds, 640x480) for `leangate eval`
 
-Usage: python training/gen_data.py [--root DIR] [--steps photos,synth,cache,homog,evalseqs]
+Usage: python -m training.gen_data [--root DIR] [--steps photos,synth,cache,homog,tum,evalseqs]
                                    [--n-train 64] [--n-val 6] [--frames 240] [--homog-train 12000]
 """
 import argparse
@@ -26,18 +28,10 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from PIL import Image
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-REPO = os.path.dirname(HERE)
-SHARED = os.path.normpath(os.path.join(REPO, "..", "shared", "data"))
-LEANGATE = os.environ.get("LEANGATE", "/work/bin/leangate")
-if not os.path.exists(LEANGATE):
-    LEANGATE = shutil.which("leangate") or os.path.join(REPO, "target", "release", "leangate")
-
-IN_W, IN_H = 160, 120  # model input (short-side-crop)
-MOTIONS = ["static", "pan", "shaky", "walk", "rotate", "bursts", "mixed", "mixed", "mixed", "walk", "shaky"]
-# photos whose names start with these are held out of training (validation homographies, eval textures)
-HELDOUT_PREFIXES = ("paragliding", "apple")
-TRAIN_SEED0, VAL_SEED0, EVAL_SEED0 = 1000, 5000, 9001
+from . import tum
+from .config import (DATA_ROOT, EVAL_SEED0, HELDOUT_PREFIXES, IN_H, IN_W, LEANGATE, MOTIONS, REPO, SHARED,
+                     TRAIN_SEED0, VAL_SEED0)
+from .preprocess import load_resized, read_list
 
 
 def run(cmd):
@@ -45,16 +39,6 @@ def run(cmd):
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{r.stderr}")
     return r
-
-
-def load_resized(path, w=IN_W, h=IN_H):
-    """short-side-crop: scale so the image covers w x h, centre-crop; area averaging (BOX)."""
-    im = Image.open(path).convert("RGB")
-    sw, sh = im.size
-    s = max(w / sw, h / sh)
-    cw, ch = w / s, h / s  # crop window in source pixels
-    x0, y0 = (sw - cw) / 2, (sh - ch) / 2
-    return np.asarray(im.resize((w, h), Image.BOX, box=(x0, y0, x0 + cw, y0 + ch)), dtype=np.uint8)
 
 
 # ----------------------------------------------------------------------------------------- photos
@@ -139,15 +123,6 @@ def step_synth(root, n_train, n_val, frames, jobs):
 
 
 # ------------------------------------------------------------------------------------------ cache
-def read_list(seq):
-    rows = []
-    for line in open(os.path.join(seq, "rgb.txt")):
-        line = line.strip()
-        if line and not line.startswith("#"):
-            rows.append(line.split()[1])
-    return rows
-
-
 def cache_one(root, split, seq, keep_raw):
     out = os.path.join(root, "cache", split, os.path.basename(seq) + ".npz")
     if os.path.exists(out):
@@ -155,7 +130,7 @@ def cache_one(root, split, seq, keep_raw):
     # frame indices in the label CSV are indices into the *associated* frame list; synth writes
     # rgb and depth for every frame, so that equals rgb.txt order.
     files = read_list(seq)
-    frames = np.stack([load_resized(os.path.join(seq, f)) for f in files])
+    frames = np.stack([load_resized(f) for f in files])
     d = np.genfromtxt(seq + ".csv", delimiter=",", names=True)
     pairs = np.stack([d["i"], d["j"], d["tau"], d["f_m"], d["f_u"]], 1).astype(np.float32)
     np.savez(out, frames=frames, pairs=pairs)
@@ -314,8 +289,8 @@ def step_evalseqs(root, n=3):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--root", default="/work/train-data")
-    ap.add_argument("--steps", default="photos,synth,cache,homog,evalseqs")
+    ap.add_argument("--root", default=DATA_ROOT)
+    ap.add_argument("--steps", default="photos,synth,cache,homog,tum,evalseqs")
     ap.add_argument("--n-train", type=int, default=64)
     ap.add_argument("--n-val", type=int, default=6)
     ap.add_argument("--frames", type=int, default=240)
@@ -323,8 +298,9 @@ def main():
     ap.add_argument("--homog-val", type=int, default=1000)
     ap.add_argument("--jobs", type=int, default=2)
     a = ap.parse_args()
-    if os.path.abspath(a.root).startswith(REPO + os.sep):
-        sys.exit("refusing to write generated data inside the repository")
+    root = os.path.abspath(a.root)
+    if root.startswith(REPO + os.sep) and not root.startswith(os.path.join(REPO, "out") + os.sep):
+        sys.exit("refusing to write generated data inside the repository (outside the git-ignored out/)")
     steps = a.steps.split(",")
     if "photos" in steps:
         step_photos(a.root)
@@ -334,6 +310,8 @@ def main():
         step_cache(a.root)
     if "homog" in steps:
         step_homog(a.root, a.homog_train, a.homog_val)
+    if "tum" in steps:
+        tum.build(a.root)
     if "evalseqs" in steps:
         step_evalseqs(a.root)
 

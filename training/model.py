@@ -13,9 +13,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-IN_W, IN_H = 160, 120
-MEAN = (0.485, 0.456, 0.406)
-STD = (0.229, 0.224, 0.225)
+from .config import IN_H, IN_W, MEAN, STD  # noqa: F401  (re-exported)
+
 LATENT = 8
 ITERS = 4
 
@@ -118,6 +117,52 @@ class PairWrapper(nn.Module):
 
     def forward(self, reference, current):
         return self.m.head(self.m.encoder(reference), self.m.encoder(current))
+
+
+def load_onnx_weights(model, encoder_onnx, head_onnx):
+    """Load the weights of an exported split model (e.g. the shipped models/leangate-s-*.onnx) into
+    `model`, for fine-tuning when no PyTorch checkpoint is at hand. The exporter folded each
+    BatchNorm into its convolution, so the BatchNorms become identities (weight 1, bias = the folded
+    bias, running mean 0, running variance 1 - eps): keep them in eval mode (`freeze_bn`) while training."""
+    import onnx
+    from onnx import numpy_helper
+
+    sd = model.state_dict()
+    enc = onnx.load(encoder_onnx)
+    init = {i.name: numpy_helper.to_array(i) for i in enc.graph.initializer}
+    convs = [n for n in enc.graph.node if n.op_type == "Conv"]
+    layers = [m for m in model.encoder.net]
+    assert len(convs) == len(layers), (len(convs), len(layers))
+    new = {}
+    for k, (node, layer) in enumerate(zip(convs, layers)):
+        w = torch.from_numpy(init[node.input[1]].copy())
+        b = torch.from_numpy(init[node.input[2]].copy())
+        if isinstance(layer, nn.Conv2d):
+            new[f"encoder.net.{k}.weight"], new[f"encoder.net.{k}.bias"] = w, b
+        else:
+            bn = layer[1]
+            new[f"encoder.net.{k}.0.weight"] = w
+            new[f"encoder.net.{k}.1.weight"] = torch.ones_like(b)
+            new[f"encoder.net.{k}.1.bias"] = b
+            new[f"encoder.net.{k}.1.running_mean"] = torch.zeros_like(b)
+            new[f"encoder.net.{k}.1.running_var"] = torch.full_like(b, 1.0 - bn.eps)
+    head = onnx.load(head_onnx)
+    for i in head.graph.initializer:
+        key = i.name[2:] if i.name.startswith("m.") else i.name
+        if key in sd:
+            new[key] = torch.from_numpy(numpy_helper.to_array(i).copy()).reshape(sd[key].shape)
+    missing = [k for k in sd if k not in new and not k.endswith("num_batches_tracked")]
+    if missing:
+        raise ValueError(f"weights not found in the ONNX files: {missing}")
+    sd.update(new)
+    model.load_state_dict(sd)
+    return model
+
+
+def freeze_bn(model):
+    for m in model.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.eval()
 
 
 def count_flops(model):

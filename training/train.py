@@ -8,22 +8,31 @@ pairs; photometric / grey / flip augmentation. Validation on held-out synthetic 
 seeds) and held-out photos every --val-every steps; checkpoints <out>/last.pt and <out>/best.pt,
 log <out>/log.csv.
 
-Usage: python training/train.py [--data /work/train-data/cache] [--out /work/train-data/runs/s]
-                                [--minutes 45] [--batch 32] [--lr 2e-3]
+Real pairs: tum_fr1_rpy's training part (cache/tum_train.npz, teacher labels) are a fixed share of
+each batch (--p-real), and "unrelated" pairs (reference and current from two different sequences:
+a complete view change, tau = 1) another (--p-unrelated), the case where the first student
+saturated near 0.5. Model selection adds the RMSE on tum_fr1_rpy's calibration part
+(cache/tum_cal.npz, gate-like pairs); its test part is never read here.
+
+Start: from scratch, from a checkpoint (--init ckpt.pt), or from exported ONNX weights
+(--init-onnx models/leangate-s-encoder.onnx; BatchNorms folded, so they stay frozen).
+--resume continues <out>/last.pt (weights, optimiser, step, elapsed time) after an interruption.
+
+Usage: python -m training.train [--data $DATA_ROOT/cache] [--out $DATA_ROOT/runs/s]
+                                [--minutes 45] [--batch 32] [--lr 2e-3] [--resume]
 """
 import argparse
 import glob
 import math
 import os
-import sys
 import time
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from model import MEAN, STD, LeanGateS, count_flops  # noqa: E402
+from .config import DATA_ROOT, MEAN, STD
+from .model import LeanGateS, count_flops, freeze_bn, load_onnx_weights
 
 MEAN_T = torch.tensor(MEAN).view(1, 3, 1, 1)
 STD_T = torch.tensor(STD).view(1, 3, 1, 1)
@@ -53,6 +62,20 @@ class SynthPool:
         ref = np.stack([self.frames[int(s)][int(j)] for s, j in zip(P[:, 0], P[:, 2])])
         cur = np.stack([self.frames[int(s)][int(i)] for s, i in zip(P[:, 0], P[:, 1])])
         return ref, cur, P[:, 3].copy()
+
+    def unrelated(self, rng, n, other=None):
+        """Reference from one sequence, current from another (of `other` if given): tau = 1."""
+        other = other or self
+        ref, cur = [], []
+        while len(ref) < n:
+            a, b = rng.integers(len(self.frames)), rng.integers(len(other.frames))
+            if other is self and a == b:
+                continue
+            ref.append(self.frames[a][rng.integers(len(self.frames[a]))])
+            cur.append(other.frames[b][rng.integers(len(other.frames[b]))])
+        if rng.random() < 0.5:
+            ref, cur = cur, ref
+        return np.stack(ref), np.stack(cur), np.ones(n, np.float32)
 
     def identical(self, rng, n):
         s = rng.integers(len(self.frames), size=n)
@@ -90,11 +113,22 @@ def photometric(x, g):
     return x.clamp(0, 1)
 
 
-def make_batch(rng, g, synth, homog, n, p_homog=0.35, p_ident=0.04, augment=True):
+def make_batch(rng, g, synth, homog, n, p_homog=0.35, p_ident=0.04, augment=True, real=None, p_real=0.0,
+               p_unrel=0.0):
     nh = int(round(n * p_homog))
     ni = int(round(n * p_ident))
-    ns = n - nh - ni
+    nr = int(round(n * p_real)) if real is not None else 0
+    nu = int(round(n * p_unrel))
+    ns = n - nh - ni - nr - nu
     parts = [synth.sample(rng, ns), homog.sample(rng, nh), synth.identical(rng, ni)]
+    if nr:
+        parts.append(real.sample(rng, nr))
+    if nu:
+        # half across synthetic sequences, half between a real frame and a synthetic one
+        nu1 = nu // 2
+        if nu1:
+            parts.append(synth.unrelated(rng, nu1))
+        parts.append((real or synth).unrelated(rng, nu - nu1, synth))
     ref = to_tensor(np.concatenate([p[0] for p in parts]))
     cur = to_tensor(np.concatenate([p[1] for p in parts]))
     y = torch.from_numpy(np.concatenate([p[2] for p in parts])).float()
@@ -133,8 +167,8 @@ def evaluate(model, sets, bs=128):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default="/work/train-data/cache")
-    ap.add_argument("--out", default="/work/train-data/runs/s")
+    ap.add_argument("--data", default=os.path.join(DATA_ROOT, "cache"))
+    ap.add_argument("--out", default=os.path.join(DATA_ROOT, "runs", "s"))
     ap.add_argument("--minutes", type=float, default=45)
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--lr", type=float, default=2e-3)
@@ -144,7 +178,11 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--init", default="", help="checkpoint to start from")
+    ap.add_argument("--init-onnx", default="", help="encoder .onnx (its head beside it) to start from")
+    ap.add_argument("--resume", action="store_true", help="continue <out>/last.pt")
     ap.add_argument("--p-homog", type=float, default=0.35, help="fraction of real-photo homography pairs")
+    ap.add_argument("--p-real", type=float, default=0.0, help="fraction of real tum_fr1_rpy training pairs")
+    ap.add_argument("--p-unrelated", type=float, default=0.0, help="fraction of unrelated pairs (tau = 1)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     torch.manual_seed(a.seed)
@@ -159,13 +197,29 @@ def main():
     vidx = vrng.choice(len(vsynth.pairs), min(2000, len(vsynth.pairs)), replace=False)
     vhom = HomogPool(os.path.join(a.data, "homog_val.npz"))
     sets = {"val_synth": vsynth.get(vidx), "val_homog": (vhom.ref, vhom.cur, vhom.y[:, 0])}
+    real = None
+    if a.p_real > 0:
+        real = SynthPool([os.path.join(a.data, "tum_train.npz")])
+        print(f"real: {len(real.pairs)} tum_fr1_rpy training pairs", flush=True)
+    cal_f = os.path.join(a.data, "tum_cal.npz")
+    if os.path.exists(cal_f):
+        cal = SynthPool([cal_f])
+        sets["val_real"] = cal.get(np.sort(vrng.choice(len(cal.pairs), min(1500, len(cal.pairs)), replace=False)))
     print(f"train: {len(synth.pairs)} synthetic pairs in {len(synth.frames)} sequences, {len(homog.y)} "
           f"homography pairs; val: {len(vidx)} synthetic pairs ({len(vsynth.frames)} sequences), "
           f"{len(vhom.y)} homography pairs", flush=True)
 
     model = LeanGateS()
+    frozen_bn = False
     if a.init:
-        model.load_state_dict(torch.load(a.init)["model"])
+        ck0 = torch.load(a.init)
+        model.load_state_dict(ck0["model"])
+        frozen_bn = ck0.get("frozen_bn", False)
+    elif a.init_onnx:
+        head_onnx = a.init_onnx.replace("-encoder.onnx", "-head.onnx")
+        load_onnx_weights(model, a.init_onnx, head_onnx)
+        frozen_bn = True
+        print(f"initialised from {a.init_onnx} + {head_onnx} (BatchNorm folded: frozen)", flush=True)
     fl = count_flops(model)
     print(f"params {sum(p.numel() for p in model.parameters())}, GFLOPs encoder {fl['encoder'] / 1e9:.3f} "
           f"head {fl['head'] / 1e9:.3f}", flush=True)
@@ -173,13 +227,26 @@ def main():
     other = [p for n, p in model.named_parameters() if p.ndim <= 1]
     opt = torch.optim.AdamW([{"params": decay, "weight_decay": a.wd}, {"params": other, "weight_decay": 0}], lr=a.lr)
 
+    step, t_done, best = 0, 0.0, float("inf")
+    if a.resume and os.path.exists(os.path.join(a.out, "last.pt")):
+        ck = torch.load(os.path.join(a.out, "last.pt"))
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["opt"])
+        step, t_done, best, frozen_bn = ck["step"], ck["elapsed"], ck["best"], ck.get("frozen_bn", False)
+        rng = np.random.default_rng(a.seed + step)
+        g = torch.Generator().manual_seed(a.seed + step)
+        print(f"resumed at step {step}, {t_done / 60:.1f} min done", flush=True)
+    model.train()
+    if frozen_bn:
+        freeze_bn(model)
+
     log = open(os.path.join(a.out, "log.csv"), "a")
     if log.tell() == 0:
         log.write("step,minutes,lr,train_huber,val_synth_huber,val_synth_rmse,val_synth_mae,"
-                  "val_homog_huber,val_homog_rmse,val_homog_mae\n")
-    t0 = time.time()
+                  "val_homog_huber,val_homog_rmse,val_homog_mae,val_real_rmse,val_real_mae\n")
+    t0 = time.time() - t_done
     budget = a.minutes * 60
-    step, run_loss, best = 0, [], float("inf")
+    run_loss = []
     while True:
         el = time.time() - t0
         frac = el / budget
@@ -188,7 +255,8 @@ def main():
         lr = a.lr * min(1.0, (step + 1) / a.warmup) * 0.5 * (1 + math.cos(math.pi * frac))
         for gr in opt.param_groups:
             gr["lr"] = lr
-        ref, cur, y = make_batch(rng, g, synth, homog, a.batch, p_homog=a.p_homog)
+        ref, cur, y = make_batch(rng, g, synth, homog, a.batch, p_homog=a.p_homog, real=real, p_real=a.p_real,
+                                 p_unrel=a.p_unrelated)
         outs = model(ref, cur, all_iters=True)
         K = len(outs) - 1
         loss = sum(0.8 ** (K - k) * huber(o, y) for k, o in enumerate(outs))
@@ -201,21 +269,28 @@ def main():
         last = time.time() - t0 >= budget
         if step % a.val_every == 0 or last:
             r = evaluate(model, sets)
+            if frozen_bn:
+                freeze_bn(model)
             tr = float(np.mean(run_loss))
             run_loss = []
             vs, vh = r["val_synth"], r["val_homog"]
+            vr = r.get("val_real", {"rmse": float("nan"), "mae": float("nan"), "huber": 0.0})
             log.write(f"{step},{(time.time() - t0) / 60:.2f},{lr:.2e},{tr:.5f},{vs['huber']:.5f},{vs['rmse']:.4f},"
-                      f"{vs['mae']:.4f},{vh['huber']:.5f},{vh['rmse']:.4f},{vh['mae']:.4f}\n")
+                      f"{vs['mae']:.4f},{vh['huber']:.5f},{vh['rmse']:.4f},{vh['mae']:.4f},{vr['rmse']:.4f},"
+                      f"{vr['mae']:.4f}\n")
             log.flush()
             print(f"step {step} {(time.time() - t0) / 60:.1f} min lr {lr:.1e} train huber {tr:.4f} | val synth "
                   f"huber {vs['huber']:.4f} rmse {vs['rmse']:.3f} mae {vs['mae']:.3f} | val homog rmse "
-                  f"{vh['rmse']:.3f} mae {vh['mae']:.3f}", flush=True)
-            ck = {"model": model.state_dict(), "step": step, "val": r}
+                  f"{vh['rmse']:.3f} mae {vh['mae']:.3f} | val real rmse {vr['rmse']:.3f} mae {vr['mae']:.3f}",
+                  flush=True)
+            score = vs["huber"] + 0.5 * vh["huber"] + vr["huber"]
+            improved = score < best
+            best = min(best, score)
+            ck = {"model": model.state_dict(), "step": step, "val": r, "frozen_bn": frozen_bn,
+                  "opt": opt.state_dict(), "elapsed": time.time() - t0, "best": best}
             torch.save(ck, os.path.join(a.out, "last.pt.tmp"))
             os.replace(os.path.join(a.out, "last.pt.tmp"), os.path.join(a.out, "last.pt"))
-            score = vs["huber"] + 0.5 * vh["huber"]
-            if score < best:
-                best = score
+            if improved:
                 torch.save(ck, os.path.join(a.out, "best.pt"))
     print(f"done: {step} steps in {(time.time() - t0) / 60:.1f} min", flush=True)
 

@@ -1,0 +1,93 @@
+"""Real training / calibration data from tum_fr1_rpy, labelled by the exact teacher.
+
+The sequence is cut into the parts of `config.TUM_SPLIT`; each part becomes its own TUM-layout
+directory <root>/tum/<part>/ whose rgb.txt / depth.txt / groundtruth.txt keep only that part's rows
+and point at the original images by absolute path (nothing is copied), so `leangate label` and
+`leangate eval` see only that part and pair indices are local to it.
+
+  train  `leangate label --within 30` (every frame against its 30 predecessors) +
+         `--random 3000 --max-gap 399` (far pairs, complete view changes included)
+         -> cache/tum_train.npz (frames [F,H,W,3] uint8, pairs [P,5] i,j,tau,f_m,f_u)
+  cal    pairs as the gate sees them: every frame as the reference against each of its next 45
+         frames (beyond the oracle's next keyframe: median keyframe interval ~12)
+         -> cache/tum_cal.npz (same layout), for calibration and model selection
+  test   the directory only (for `leangate eval`); never labelled for fitting
+"""
+import os
+import subprocess
+
+import numpy as np
+
+from .config import LEANGATE, SHARED, TUM_SEQ, TUM_SPLIT
+from .preprocess import load_resized, read_list
+
+
+def _rows(path):
+    head, rows = [], []
+    for line in open(path):
+        s = line.strip()
+        if not s:
+            continue
+        (head if s.startswith("#") else rows).append(s)
+    return head, rows
+
+
+def make_part(root, part, src=None):
+    """Write <root>/tum/<part>/ for one part of the split; returns its path."""
+    src = src or os.path.join(SHARED, TUM_SEQ)
+    a, b = TUM_SPLIT[part]
+    out = os.path.join(root, "tum", part)
+    os.makedirs(out, exist_ok=True)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        head, rows = _rows(os.path.join(src, name))
+        if len(rows) <= b:
+            raise SystemExit(f"{src}/{name}: {len(rows)} rows, the split needs {b + 1}")
+        sel = rows[a:b + 1]
+        if name != "groundtruth.txt":
+            sel = [f"{r.split()[0]} {os.path.join(os.path.abspath(src), r.split()[1])}" for r in sel]
+        with open(os.path.join(out, name), "w") as f:
+            f.write("\n".join(head + [f"# {TUM_SEQ} frames {a}-{b} ({part} part of the LeanGate split)"] + sel) + "\n")
+    with open(os.path.join(src, "intrinsics.txt")) as f, open(os.path.join(out, "intrinsics.txt"), "w") as g:
+        g.write(f.read())
+    return out
+
+
+def _label(seq, args, out):
+    r = subprocess.run([LEANGATE, "label", "--sequence", seq, *args, "--out", out], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"leangate label {' '.join(args)} failed:\n{r.stderr}")
+    d = np.genfromtxt(out, delimiter=",", names=True)
+    return np.stack([d["i"], d["j"], d["tau"], d["f_m"], d["f_u"]], 1).astype(np.float32)
+
+
+def gate_pairs(n, horizon):
+    """(current, reference) pairs: every frame as reference against each of its next `horizon` frames."""
+    return [(j + k, j) for j in range(n) for k in range(1, horizon + 1) if j + k < n]
+
+
+def build(root, horizon=45):
+    cache = os.path.join(root, "cache")
+    os.makedirs(cache, exist_ok=True)
+    for part in TUM_SPLIT:
+        seq = make_part(root, part)
+        if part == "test":
+            continue
+        out = os.path.join(cache, f"tum_{part}.npz")
+        if os.path.exists(out):
+            continue
+        files = read_list(seq)
+        if part == "train":
+            p1 = _label(seq, ["--within", "30"], os.path.join(root, "tum", "train_within.csv"))
+            p2 = _label(seq, ["--random", "3000", "--max-gap", str(len(files) - 1), "--seed", "7"],
+                        os.path.join(root, "tum", "train_random.csv"))
+            pairs = np.concatenate([p1, p2])
+        else:
+            pcsv = os.path.join(root, "tum", f"{part}_gate_pairs.csv")
+            with open(pcsv, "w") as f:
+                f.write("i,j\n" + "".join(f"{i},{j}\n" for i, j in gate_pairs(len(files), horizon)))
+            pairs = _label(seq, ["--pairs", pcsv], os.path.join(root, "tum", f"{part}_gate.csv"))
+        pairs = pairs[np.isfinite(pairs[:, 2])]
+        frames = np.stack([load_resized(f) for f in files])
+        np.savez(out, frames=frames, pairs=pairs)
+        h, _ = np.histogram(pairs[:, 2], bins=10, range=(0, 1))
+        print(f"tum {part}: {len(files)} frames, {len(pairs)} labelled pairs, tau histogram {h.tolist()}", flush=True)
