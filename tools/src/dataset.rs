@@ -30,7 +30,6 @@
 //! colour frame is kept and the missing parts are `None` (useful to gate a whole clip whose
 //! ground truth covers only part of it).
 
-use std::fmt;
 use std::fs;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -101,9 +100,10 @@ impl DepthImage {
 }
 
 /// Errors of sequence reading and writing; messages name the file (and line) at fault.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
     /// An I/O error on `path`.
+    #[error("`{}`: {source}", path.display())]
     Io {
         /// File or directory concerned.
         path: PathBuf,
@@ -111,6 +111,7 @@ pub enum DatasetError {
         source: std::io::Error,
     },
     /// A malformed line in a text file (`line` is 1-based).
+    #[error("`{}` line {line}: {message}", path.display())]
     Parse {
         /// File concerned.
         path: PathBuf,
@@ -120,6 +121,7 @@ pub enum DatasetError {
         message: String,
     },
     /// A required file or directory does not exist.
+    #[error("`{}`: missing {what}", path.display())]
     Missing {
         /// Expected path.
         path: PathBuf,
@@ -127,6 +129,7 @@ pub enum DatasetError {
         what: String,
     },
     /// An image could not be decoded or encoded.
+    #[error("`{}`: {source}", path.display())]
     Image {
         /// Image file concerned.
         path: PathBuf,
@@ -134,6 +137,7 @@ pub enum DatasetError {
         source: image::ImageError,
     },
     /// Content that parsed but is inconsistent (bad sizes, counts, values).
+    #[error("`{}`: {message}", path.display())]
     Invalid {
         /// File or directory concerned.
         path: PathBuf,
@@ -141,46 +145,13 @@ pub enum DatasetError {
         message: String,
     },
     /// A frame index past the end of the sequence.
+    #[error("frame index {index} out of range (sequence has {len} frames)")]
     IndexOutOfRange {
         /// Requested index.
         index: usize,
         /// Number of frames.
         len: usize,
     },
-}
-
-impl fmt::Display for DatasetError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            DatasetError::Io { path, source } => write!(f, "`{}`: {}", path.display(), source),
-            DatasetError::Parse {
-                path,
-                line,
-                message,
-            } => write!(f, "`{}` line {}: {}", path.display(), line, message),
-            DatasetError::Missing { path, what } => {
-                write!(f, "`{}`: missing {}", path.display(), what)
-            }
-            DatasetError::Image { path, source } => write!(f, "`{}`: {}", path.display(), source),
-            DatasetError::Invalid { path, message } => {
-                write!(f, "`{}`: {}", path.display(), message)
-            }
-            DatasetError::IndexOutOfRange { index, len } => write!(
-                f,
-                "frame index {index} out of range (sequence has {len} frames)"
-            ),
-        }
-    }
-}
-
-impl std::error::Error for DatasetError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            DatasetError::Io { source, .. } => Some(source),
-            DatasetError::Image { source, .. } => Some(source),
-            _ => None,
-        }
-    }
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> DatasetError + '_ {
