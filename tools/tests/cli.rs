@@ -1,40 +1,16 @@
 //! The `leangate` CLI end to end, as a user runs it (synth → label → eval).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 fn leangate() -> Command {
     Command::new(env!("CARGO_BIN_EXE_leangate"))
 }
 
-/// A test model of the plugin crate's fixtures (`tests/fixtures/`, made by `make fixtures`).
-fn fixture(name: &str) -> String {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../tests/fixtures")
-        .join(name);
-    assert!(
-        p.exists(),
-        "fixture {} missing: run `make fixtures`",
-        p.display()
-    );
-    p.display().to_string()
-}
-
-/// `../shared/data/<rel>` beside the checkout, or None (with a message) when absent.
-fn shared_data(rel: &str) -> Option<PathBuf> {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/data")
-        .join(rel);
-    if p.exists() {
-        Some(p)
-    } else {
-        eprintln!(
-            "SKIPPED: {} is absent (the shared development data lives beside the checkout)",
-            p.display()
-        );
-        None
-    }
-}
+#[path = "../../tests/common/paths.rs"]
+#[allow(dead_code)]
+mod paths;
+use paths::{fixture, shared_data};
 /// Run `leangate eval --sequence SEQ EXTRA... --json OUT` and return the parsed report.
 fn eval_json(seq: &Path, extra: &[&str]) -> serde_json::Value {
     let dir = tempfile::tempdir().unwrap();

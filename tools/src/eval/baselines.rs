@@ -99,25 +99,43 @@ pub fn pixel_diff_gate(thumbs: &[Vec<u8>], scale: f64) -> Trace {
     }
 }
 
-/// `pixel_diff` with its thresholds scaled so the kept count is as close as possible to `target`.
-pub fn pixel_diff_for_budget(thumbs: &[Vec<u8>], target: usize) -> Trace {
-    // Kept count falls as the scale grows: bisect on log(scale).
-    let (mut lo, mut hi) = (-12.0f64, 6.0f64);
-    let mut best = pixel_diff_gate(thumbs, 1.0);
+/// Fit a one-parameter gate to a keep budget: bisect `ln(param)` over `[lo, hi]` (the kept
+/// count must fall as the parameter grows) and return the trace closest to `target` with its
+/// parameter.
+pub fn fit_budget(
+    target: usize,
+    (lo, hi): (f64, f64),
+    steps: usize,
+    gate: impl Fn(f64) -> Trace,
+) -> (Trace, f64) {
+    let (mut lo, mut hi) = (lo.ln(), hi.ln());
     let dist = |t: &Trace| (t.kept() as i64 - target as i64).abs();
-    for _ in 0..40 {
+    let mut best: Option<(Trace, f64)> = None;
+    for _ in 0..steps {
         let mid = 0.5 * (lo + hi);
-        let t = pixel_diff_gate(thumbs, mid.exp());
-        if dist(&t) < dist(&best) {
-            best = t.clone();
+        let t = gate(mid.exp());
+        let kept = t.kept();
+        if best.as_ref().is_none_or(|(b, _)| dist(&t) < dist(b)) {
+            best = Some((t, mid.exp()));
         }
-        if t.kept() > target {
+        if best.as_ref().is_some_and(|(b, _)| dist(b) == 0) {
+            break;
+        }
+        if kept > target {
             lo = mid;
         } else {
             hi = mid;
         }
     }
-    best
+    best.unwrap_or_else(|| (gate(hi.exp()), hi.exp()))
+}
+
+/// `pixel_diff` with its thresholds scaled so the kept count is as close as possible to `target`.
+pub fn pixel_diff_for_budget(thumbs: &[Vec<u8>], target: usize) -> Trace {
+    fit_budget(target, ((-12.0f64).exp(), 6.0f64.exp()), 40, |scale| {
+        pixel_diff_gate(thumbs, scale)
+    })
+    .0
 }
 
 #[cfg(test)]

@@ -143,13 +143,7 @@ pub fn judge(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn trace(keep: &[u8]) -> Trace {
-        Trace {
-            keep: keep.iter().map(|&k| k == 1).collect(),
-            utility: vec![None; keep.len()],
-        }
-    }
+    use crate::eval::tests::trace;
 
     #[test]
     fn judge_without_teacher_has_counts_only() {

@@ -357,10 +357,11 @@ pub fn sweep(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn trace(keep: &[u8]) -> Trace {
+    /// A trace from 0/1 keep flags, unscored.
+    pub(crate) fn trace(keep: &[u8]) -> Trace {
         Trace {
             keep: keep.iter().map(|&k| k == 1).collect(),
             utility: vec![None; keep.len()],

@@ -186,25 +186,7 @@ pub fn motion_gate(pyr: &[Pyramid], threshold_px: f64) -> Trace {
 /// `target` (bisection on the threshold; kept count falls as it grows). Returns the trace and
 /// the threshold in pixels.
 pub fn motion_for_budget(pyr: &[Pyramid], target: usize) -> (Trace, f64) {
-    let (mut lo, mut hi) = (0.01f64.ln(), 2000f64.ln());
-    let dist = |t: &Trace| (t.kept() as i64 - target as i64).abs();
-    let mut best = (motion_gate(pyr, 20.0), 20.0);
-    for _ in 0..24 {
-        let mid = 0.5 * (lo + hi);
-        let t = motion_gate(pyr, mid.exp());
-        if dist(&t) < dist(&best.0) {
-            best = (t.clone(), mid.exp());
-        }
-        if dist(&best.0) == 0 {
-            break;
-        }
-        if t.kept() > target {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    best
+    super::baselines::fit_budget(target, (0.01, 2000.0), 24, |px| motion_gate(pyr, px))
 }
 
 #[cfg(test)]
