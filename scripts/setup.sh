@@ -4,7 +4,10 @@
 #   2. ONNX Runtime 1.31.1: libonnxruntime.so from the PyPI wheel, extracted into .deps/
 #      (ORT_FLAVOR=gpu takes onnxruntime-gpu==1.31.1, for CUDA 13, into .deps/onnxruntime-gpu);
 #   3. a project-local Python venv (.venv) with `onnx` (to regenerate the test fixture models),
-#      numpy and pillow (the training package's preprocessing, checked against the element's).
+#      numpy and pillow (the training package's preprocessing, checked against the element's);
+#   4. .venv-sfm: Debian's python3 in a venv that sees the system's PyGObject and numpy
+#      (--system-site-packages), with pycolmap (COLMAP's bindings, a manylinux wheel) for the
+#      reconstruction consumer (pipelines/reconstruct.py, `leangate eval --reconstruct`).
 # Safe to run again: each step is skipped when already done.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -61,5 +64,12 @@ if [ ! -x .venv/bin/python ] || ! .venv/bin/python -c 'import onnx, PIL' 2>/dev/
   echo "setup: creating .venv with onnx, numpy, pillow"
   [ -x .venv/bin/python ] || "$PY" -m venv .venv
   .venv/bin/pip install -q --disable-pip-version-check onnx==1.23.2 numpy pillow==13.0.0
+fi
+PYCOLMAP_VERSION=4.2.1
+if [ ! -x .venv-sfm/bin/python ] || ! .venv-sfm/bin/python -c 'import pycolmap' 2>/dev/null; then
+  echo "setup: creating .venv-sfm (system site packages + pycolmap==$PYCOLMAP_VERSION)"
+  [ -x .venv-sfm/bin/python ] || /usr/bin/python3 -m venv --system-site-packages .venv-sfm
+  .venv-sfm/bin/pip install -q --disable-pip-version-check --only-binary=:all: \
+    "pycolmap==$PYCOLMAP_VERSION"
 fi
 echo "setup: done"

@@ -1,0 +1,883 @@
+"""The frames leangate keeps, into a real reconstruction engine: COLMAP's incremental SfM through
+its Python bindings ``pycolmap``.
+
+Two ways to choose the frames:
+
+* **gated** (the default): the input goes through ``leangate`` in drop mode (a video file through
+  ``filesrc ! decodebin``, an image sequence through ``multifilesrc ! decodebin``, both via
+  ``LeanGateSource``), and the frames it lets through, with their LeanGateMeta, are the images;
+* **explicit**: ``frames=[...]`` (indices into the sequence, or ``(index, path)`` pairs) or
+  ``every=k``; the gate is not run. ``leangate eval --reconstruct`` uses this for each policy.
+
+Then SIFT features (``pycolmap.extract_features``), matching (exhaustive for small sets,
+sequential otherwise), incremental mapping (``pycolmap.incremental_mapping``). The sparse models
+are written under ``OUT/sparse/N``; the largest is reported: frames registered, number of
+models, mean reprojection error, and, when the input has ground truth, the ATE of the camera
+centres after a similarity (Umeyama, with scale) alignment. ``--ply`` exports its points.
+
+Inputs: a video file; a directory in TUM RGB-D layout (``rgb.txt``, optional
+``intrinsics.txt`` ``fx fy cx cy depth_scale`` -> a shared PINHOLE camera, optional
+``groundtruth.txt`` camera-to-world ``t tx ty tz qx qy qz qw``); or a folder of images
+(``rgb/`` inside it, or the folder itself; sorted by name).
+
+Needs ``pycolmap`` (``bash scripts/setup.sh`` installs it into ``.venv-sfm``, a venv that also
+sees the system's PyGObject), imported only when a reconstruction runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple
+
+from . import _gst
+from .errors import PipelineError, SetupError
+from .source import LeanGateSource, _make, _set, buffer_to_rgb
+
+log = logging.getLogger("leangate_client.reconstruct")
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+MATCHERS = ("auto", "exhaustive", "sequential")
+#: ``matcher="auto"`` matches exhaustively up to this many images, sequentially above.
+EXHAUSTIVE_MAX = 40
+#: Ground-truth poses further than this from a frame's timestamp are not associated.
+GT_MAX_DIFFERENCE_S = 0.02
+PYCOLMAP_VERSION = "4.2.1"
+
+
+def import_pycolmap():
+    """``pycolmap``, or a SetupError saying which interpreter lacks it and how to install it."""
+    try:
+        import pycolmap  # noqa: F401
+    except ImportError as e:
+        raise SetupError(
+            f"pycolmap cannot be imported by {sys.executable} ({e}); run `bash scripts/setup.sh` "
+            f"(it creates .venv-sfm with pycolmap=={PYCOLMAP_VERSION} and the system's PyGObject) "
+            f"and use .venv-sfm/bin/python, or `pip install pycolmap=={PYCOLMAP_VERSION}`"
+        ) from None
+    return pycolmap
+
+
+# -- inputs ------------------------------------------------------------------------------------
+@dataclass
+class FrameRef:
+    """One frame of an input: its index in the sequence, timestamp (s) and image file (None for
+    a video frame not yet written)."""
+
+    index: int
+    timestamp: Optional[float] = None
+    path: Optional[str] = None
+
+
+@dataclass
+class InputSequence:
+    """What ``open_input`` found: ``kind`` is ``video``, ``sequence`` (rgb.txt) or ``images``."""
+
+    path: str
+    kind: str
+    frames: List[FrameRef] = field(default_factory=list)
+    intrinsics: Optional[Tuple[float, float, float, float]] = None
+    #: (timestamp, camera centre x, y, z), camera-to-world translations, sorted by time.
+    groundtruth: List[Tuple[float, float, float, float]] = field(default_factory=list)
+
+    def centre_at(self, t: Optional[float]) -> Optional[Tuple[float, float, float]]:
+        """Ground-truth camera centre nearest to ``t`` (within 20 ms), or None."""
+        if t is None or not self.groundtruth:
+            return None
+        import bisect
+
+        ts = [g[0] for g in self.groundtruth]
+        k = bisect.bisect_left(ts, t)
+        best = None
+        for j in (k - 1, k):
+            if 0 <= j < len(ts) and abs(ts[j] - t) <= GT_MAX_DIFFERENCE_S:
+                if best is None or abs(ts[j] - t) < abs(ts[best] - t):
+                    best = j
+        return None if best is None else tuple(self.groundtruth[best][1:])  # type: ignore
+
+
+def _data_lines(path: str) -> Iterable[Tuple[int, List[str]]]:
+    with open(path) as f:
+        for n, line in enumerate(f, 1):
+            s = line.strip()
+            if s and not s.startswith("#"):
+                yield n, s.split()
+
+
+def read_intrinsics(path: str) -> Tuple[float, float, float, float]:
+    """``fx fy cx cy [depth_scale]`` from the first data line of intrinsics.txt."""
+    for n, parts in _data_lines(path):
+        try:
+            fx, fy, cx, cy = (float(v) for v in parts[:4])
+        except ValueError:
+            raise SetupError(f"{path} line {n}: expected `fx fy cx cy depth_scale`") from None
+        return fx, fy, cx, cy
+    raise SetupError(f"{path}: no intrinsics line")
+
+
+def open_input(path: str) -> InputSequence:
+    """Describe a video file, a TUM-layout directory or a folder of images."""
+    if os.path.isfile(path):
+        return InputSequence(path=path, kind="video")
+    if not os.path.isdir(path):
+        raise SetupError(f"input not found: {path}")
+    rgb_txt = os.path.join(path, "rgb.txt")
+    if os.path.isfile(rgb_txt):
+        frames = []
+        for n, parts in _data_lines(rgb_txt):
+            if len(parts) < 2:
+                raise SetupError(f"{rgb_txt} line {n}: expected `timestamp path`")
+            frames.append(FrameRef(len(frames), float(parts[0]), os.path.join(path, parts[1])))
+        seq = InputSequence(path=path, kind="sequence", frames=frames)
+    else:
+        folder = os.path.join(path, "rgb") if os.path.isdir(os.path.join(path, "rgb")) else path
+        names = sorted(n for n in os.listdir(folder) if n.lower().endswith(IMAGE_EXTS))
+        if not names:
+            raise SetupError(f"{path}: no rgb.txt and no .png/.jpg images")
+        seq = InputSequence(
+            path=path,
+            kind="images",
+            frames=[FrameRef(i, i / 30.0, os.path.join(folder, n)) for i, n in enumerate(names)],
+        )
+    intr = os.path.join(path, "intrinsics.txt")
+    if os.path.isfile(intr):
+        seq.intrinsics = read_intrinsics(intr)
+    for name in ("groundtruth.txt", "groundtruth_tum.txt"):
+        gt = os.path.join(path, name)
+        if os.path.isfile(gt):
+            rows = []
+            for n, parts in _data_lines(gt):
+                try:
+                    rows.append(tuple(float(v) for v in parts[:4]))
+                except ValueError:
+                    raise SetupError(f"{gt} line {n}: expected `t tx ty tz qx qy qz qw`") from None
+            seq.groundtruth = sorted(rows)  # type: ignore[arg-type]
+            break
+    return seq
+
+
+# -- gating ------------------------------------------------------------------------------------
+class SequenceGateSource(LeanGateSource):
+    """``LeanGateSource`` over an image sequence: ``multifilesrc ! decodebin ! leangate ! ...``.
+    The images are linked (symlinks, else copies) as ``%06d.EXT`` into a temporary directory so
+    that multifilesrc reads them in sequence order at 30 fps; ``meta["frame"]`` is the index in
+    ``frames``. All images must share one format (PNG or JPEG)."""
+
+    def __init__(self, frames: Sequence[FrameRef], **kwargs):
+        if not frames:
+            raise SetupError("empty image sequence")
+        exts = {os.path.splitext(f.path or "")[1].lower() for f in frames}
+        exts = {".jpg" if e == ".jpeg" else e for e in exts}
+        if len(exts) != 1 or not exts <= {".jpg", ".png"}:
+            raise SetupError(f"an image sequence must be all PNG or all JPEG, found {sorted(exts)}")
+        self._ext = exts.pop()
+        self._tmp = tempfile.mkdtemp(prefix="leangate-seq-")
+        for k, f in enumerate(frames):
+            dst = os.path.join(self._tmp, f"{k:06d}{self._ext}")
+            try:
+                os.symlink(os.path.abspath(f.path), dst)  # type: ignore[arg-type]
+            except OSError:
+                shutil.copyfile(f.path, dst)  # type: ignore[arg-type]
+        self._count = len(frames)
+        super().__init__(self._tmp, **kwargs)
+
+    @staticmethod
+    def _check_source(source: str) -> None:
+        if not os.path.isdir(source):
+            raise SetupError(f"not a directory: {source}")
+
+    def _caps(self) -> str:
+        kind = "image/jpeg" if self._ext == ".jpg" else "image/png"
+        return f"{kind},framerate=30/1"
+
+    @property
+    def description(self) -> str:
+        props = " ".join(f"{k}={v}" for k, v in self.gate_properties.items())
+        return (
+            f"multifilesrc location={self._tmp}/%06d{self._ext} index=0 "
+            f"stop-index={self._count - 1} caps={self._caps()} ! decodebin ! leangate name=gate "
+            f"{props} ! videoconvert ! appsink name=sink caps=video/x-raw,format=RGB sync=false"
+        )
+
+    def _build(self):
+        Gst = _gst.Gst
+        pipeline = Gst.Pipeline.new("leangate-sequence")
+        src = _make("multifilesrc", "src")
+        _set(src, "location", os.path.join(self._tmp, f"%06d{self._ext}"))
+        _set(src, "index", 0)
+        _set(src, "stop-index", self._count - 1)
+        _set(src, "caps", Gst.Caps.from_string(self._caps()))
+        dec = _make("decodebin", "decode")
+        gate = _make("leangate", "gate")
+        for k, v in self.gate_properties.items():
+            _set(gate, k, v)
+        convert = _make("videoconvert", "convert")
+        sink = _make("appsink", "sink")
+        _set(sink, "caps", Gst.Caps.from_string("video/x-raw,format=RGB"))
+        _set(sink, "sync", False)
+        _set(sink, "max-buffers", 8)
+        _set(sink, "drop", False)
+        for el in (src, dec, gate, convert, sink):
+            pipeline.add(el)
+        if not src.link(dec) or not gate.link(convert) or not convert.link(sink):
+            raise SetupError("cannot link multifilesrc ! decodebin, leangate ! videoconvert ! appsink")
+        self._watch_decoder(dec, gate)
+        return pipeline, gate, sink
+
+    def close(self) -> None:
+        super().close()
+        if getattr(self, "_tmp", None):
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._tmp = None
+
+
+def write_image(path: str, rgb) -> None:
+    """Write an (H, W, 3) uint8 RGB array (PNG or JPEG by extension) with pycolmap's Bitmap."""
+    pycolmap = import_pycolmap()
+    bmp = pycolmap.Bitmap.from_array(_gst.np.ascontiguousarray(rgb))
+    if not bmp.write(path):
+        raise SetupError(f"cannot write {path}")
+
+
+@dataclass
+class GateResult:
+    """The frames the gate kept (with their meta) and the element's statistics."""
+
+    kept: List[FrameRef]
+    metas: List[Dict[str, Any]]
+    frames_in: int
+    stats: Any = None
+
+
+def gate_input(
+    inp: InputSequence,
+    image_dir: str,
+    *,
+    model=None,
+    threshold: Optional[float] = None,
+    warmup: Optional[int] = None,
+    max_gap: Optional[int] = None,
+    execution_provider: Optional[str] = None,
+    plugin_path=None,
+    plugin_fallbacks=(),
+    max_frames: Optional[int] = None,
+) -> GateResult:
+    """Run the input through leangate (drop mode); kept video frames are written as PNG into
+    ``image_dir`` (a sequence's kept frames are used from their files)."""
+    kw = dict(
+        model=model,
+        threshold=threshold,
+        mode="drop",
+        warmup=warmup,
+        max_gap=max_gap,
+        execution_provider=execution_provider,
+        plugin_path=plugin_path,
+        plugin_fallbacks=plugin_fallbacks,
+    )
+    kept: List[FrameRef] = []
+    metas: List[Dict[str, Any]] = []
+    if inp.kind == "video":
+        os.makedirs(image_dir, exist_ok=True)
+        src: LeanGateSource = LeanGateSource(inp.path, arrays=True, max_frames=max_frames, **kw)
+    else:
+        frames = inp.frames[:max_frames] if max_frames else inp.frames
+        src = SequenceGateSource(frames, arrays=False, **kw)
+    log.info("gating %s", inp.path)
+    with src:
+        for frame, meta in src:
+            idx = meta["frame"]
+            if idx is None:
+                raise PipelineError("a kept frame without a PTS: cannot tell its index")
+            if inp.kind == "video":
+                ref = FrameRef(idx, None if meta["pts"] is None else meta["pts"] / 1e9)
+                ref.path = os.path.join(image_dir, f"frame_{idx:06d}.png")
+                write_image(ref.path, frame)
+            else:
+                ref = inp.frames[idx]
+            kept.append(ref)
+            metas.append(meta)
+            log.info(
+                "kept frame %d (%s, utility %s, keyframe %d)",
+                idx,
+                meta["reason"],
+                "nan" if math.isnan(meta["utility"]) else f"{meta['utility']:.3f}",
+                meta["keyframe_index"],
+            )
+    log.info("gate: kept %d of %d frames", len(kept), src.frames_in)
+    return GateResult(kept, metas, src.frames_in, src.stats)
+
+
+def decode_video_frames(path: str, wanted: Iterable[int], image_dir: str) -> List[FrameRef]:
+    """Decode a video (``filesrc ! decodebin ! videoconvert ! appsink``, no gate) and write the
+    frames whose decode index is in ``wanted`` as PNG into ``image_dir``."""
+    Gst, GstVideo = _gst.Gst, _gst.GstVideo
+    wanted = sorted(set(wanted))
+    if not wanted:
+        return []
+    _gst.require_bindings()
+    os.makedirs(image_dir, exist_ok=True)
+    pipeline = Gst.Pipeline.new("decode")
+    src, dec = _make("filesrc"), _make("decodebin")
+    convert, sink = _make("videoconvert"), _make("appsink")
+    _set(src, "location", os.path.abspath(path))
+    _set(sink, "caps", Gst.Caps.from_string("video/x-raw,format=RGB"))
+    _set(sink, "sync", False)
+    for el in (src, dec, convert, sink):
+        pipeline.add(el)
+    src.link(dec)
+    convert.link(sink)
+
+    def on_pad(_dec, pad):
+        caps = pad.get_current_caps() or pad.query_caps(None)
+        if caps.get_structure(0).get_name().startswith("video/"):
+            target = convert.get_static_pad("sink")
+            if not target.is_linked():
+                pad.link(target)
+
+    dec.connect("pad-added", on_pad)
+    out: List[FrameRef] = []
+    pipeline.set_state(Gst.State.PLAYING)
+    bus = pipeline.get_bus()
+    index = 0
+    todo = set(wanted)
+    try:
+        while todo:
+            msg = bus.pop_filtered(Gst.MessageType.ERROR)
+            if msg is not None:
+                err, dbg = msg.parse_error()
+                raise PipelineError(f"decoding {path}: {err.message}")
+            sample = sink.emit("try-pull-sample", Gst.SECOND)
+            if sample is None:
+                if sink.get_property("eos"):
+                    break
+                continue
+            if index in todo:
+                info = GstVideo.VideoInfo.new_from_caps(sample.get_caps())
+                buf = sample.get_buffer()
+                ref = FrameRef(index, None if buf.pts == Gst.CLOCK_TIME_NONE else buf.pts / 1e9)
+                ref.path = os.path.join(image_dir, f"frame_{index:06d}.png")
+                write_image(ref.path, buffer_to_rgb(buf, info))
+                out.append(ref)
+                todo.discard(index)
+            index += 1
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+    if todo:
+        log.warning("%s has %d frames: %d requested frames are past its end", path, index, len(todo))
+    return out
+
+
+# -- SfM ---------------------------------------------------------------------------------------
+@dataclass
+class SfmOptions:
+    """COLMAP settings. ``matcher``: auto (exhaustive up to EXHAUSTIVE_MAX images, else
+    sequential), exhaustive or sequential (``overlap`` neighbours). ``intrinsics`` (fx, fy, cx,
+    cy): a shared PINHOLE camera, kept fixed unless ``refine_intrinsics``; None: a shared
+    SIMPLE_RADIAL camera (focal guessed, refined). ``min_model_size``: smaller models are
+    discarded (COLMAP's default is 10; 3 here, for gates that keep few frames).
+    ``init_min_tri_angle``: degrees between the two initial views (COLMAP's default 16 is too
+    strict for the short baselines of handheld video)."""
+
+    matcher: str = "auto"
+    overlap: int = 10
+    max_features: int = 4096
+    intrinsics: Optional[Tuple[float, float, float, float]] = None
+    camera_model: Optional[str] = None
+    refine_intrinsics: bool = False
+    min_model_size: int = 3
+    init_min_tri_angle: float = 4.0
+    threads: int = -1
+    seed: int = 0
+
+
+@dataclass
+class SfmResult:
+    """The outcome: ``images`` fed to COLMAP, ``models`` built, the largest model's registered
+    images (name -> camera centre), mean reprojection error, 3-D points, its directory."""
+
+    images: int
+    models: int
+    registered: int
+    registered_total: int
+    centres: Dict[str, Tuple[float, float, float]]
+    mean_reprojection_error_px: Optional[float]
+    points3d: int
+    model_dir: Optional[str]
+    seconds: Dict[str, float]
+    matcher: str
+    camera_model: str
+
+
+def run_sfm(
+    image_root: str,
+    names: Sequence[str],
+    out_dir: str,
+    opts: SfmOptions = SfmOptions(),
+    colmap_log: bool = False,
+) -> SfmResult:
+    """Incremental SfM on ``names`` (paths relative to ``image_root``): database and sparse
+    models under ``out_dir`` (``database.db``, ``sparse/N``)."""
+    pycolmap = import_pycolmap()
+    if not colmap_log:
+        pycolmap.logging.minloglevel = 2  # errors only from COLMAP's glog
+    os.makedirs(out_dir, exist_ok=True)
+    db = os.path.join(out_dir, "database.db")
+    if os.path.exists(db):
+        os.remove(db)
+    sparse = os.path.join(out_dir, "sparse")
+    shutil.rmtree(sparse, ignore_errors=True)
+    os.makedirs(sparse)
+    seconds: Dict[str, float] = {}
+    pycolmap.set_random_seed(opts.seed)
+    device = pycolmap.Device.cpu
+
+    reader = pycolmap.ImageReaderOptions()
+    if opts.intrinsics is not None:
+        reader.camera_model = opts.camera_model or "PINHOLE"
+        reader.camera_params = ",".join(f"{v:g}" for v in opts.intrinsics)
+    elif opts.camera_model:
+        reader.camera_model = opts.camera_model
+    extract = pycolmap.FeatureExtractionOptions()
+    extract.sift.max_num_features = opts.max_features
+    extract.num_threads = opts.threads
+    t = time.monotonic()
+    log.info("SIFT features of %d images (%s camera, shared)", len(names), reader.camera_model)
+    pycolmap.extract_features(
+        db,
+        image_root,
+        image_names=list(names),
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=extract,
+        device=device,
+    )
+    seconds["features"] = time.monotonic() - t
+
+    matcher = opts.matcher
+    if matcher == "auto":
+        matcher = "exhaustive" if len(names) <= EXHAUSTIVE_MAX else "sequential"
+    match = pycolmap.FeatureMatchingOptions()
+    match.num_threads = opts.threads
+    t = time.monotonic()
+    if matcher == "exhaustive":
+        log.info("exhaustive matching: %d pairs", len(names) * (len(names) - 1) // 2)
+        pycolmap.match_exhaustive(db, matching_options=match, device=device)
+    elif matcher == "sequential":
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = opts.overlap
+        log.info("sequential matching: each image with its %d successors", opts.overlap)
+        pycolmap.match_sequential(db, matching_options=match, pairing_options=pairing, device=device)
+    else:
+        raise SetupError(f"matcher must be one of {', '.join(MATCHERS)}, not {opts.matcher!r}")
+    seconds["matching"] = time.monotonic() - t
+
+    mo = pycolmap.IncrementalPipelineOptions()
+    mo.min_model_size = opts.min_model_size
+    mo.num_threads = opts.threads
+    mo.random_seed = opts.seed
+    mo.mapper.init_min_tri_angle = opts.init_min_tri_angle
+    if opts.intrinsics is not None and not opts.refine_intrinsics:
+        mo.ba_refine_focal_length = False
+        mo.ba_refine_extra_params = False
+        mo.mapper.abs_pose_refine_focal_length = False
+        mo.mapper.abs_pose_refine_extra_params = False
+    registered = [0]
+
+    def next_image():
+        registered[0] += 1
+        log.info("mapping: %d images registered", registered[0])
+
+    t = time.monotonic()
+    log.info("incremental mapping")
+    models = pycolmap.incremental_mapping(
+        db, image_root, sparse, options=mo, next_image_callback=next_image
+    )
+    seconds["mapping"] = time.monotonic() - t
+    recs = sorted(models.items(), key=lambda kv: -kv[1].num_reg_images())
+    centres: Dict[str, Tuple[float, float, float]] = {}
+    err = None
+    points = 0
+    model_dir = None
+    if recs:
+        key, rec = recs[0]
+        for img in rec.images.values():
+            if img.has_pose:
+                c = img.projection_center()
+                centres[img.name] = (float(c[0]), float(c[1]), float(c[2]))
+        err = float(rec.compute_mean_reprojection_error())
+        points = int(rec.num_points3D())
+        model_dir = os.path.join(sparse, str(key))
+    return SfmResult(
+        images=len(names),
+        models=len(recs),
+        registered=len(centres),
+        registered_total=sum(r.num_reg_images() for _, r in recs),
+        centres=centres,
+        mean_reprojection_error_px=err,
+        points3d=points,
+        model_dir=model_dir,
+        seconds=seconds,
+        matcher=matcher,
+        camera_model=reader.camera_model,
+    )
+
+
+def export_ply(model_dir: str, path: str) -> None:
+    pycolmap = import_pycolmap()
+    pycolmap.Reconstruction(model_dir).export_PLY(path)
+
+
+# -- trajectory error --------------------------------------------------------------------------
+def umeyama_sim3(src, dst):
+    """Similarity (s, R, t) minimising sum |dst - (s R src + t)|^2 (Umeyama 1991); src, dst:
+    (N, 3) arrays, N >= 3."""
+    np = _gst.np
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    var_s = (xs**2).sum() / len(src)
+    cov = xd.T @ xs / len(src)
+    u, d, vt = np.linalg.svd(cov)
+    s_fix = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s_fix[2, 2] = -1
+    r = u @ s_fix @ vt
+    scale = float((d * np.diag(s_fix)).sum() / var_s) if var_s > 0 else 1.0
+    t = mu_d - scale * r @ mu_s
+    return scale, r, t
+
+
+def ate_rmse(est, gt) -> Optional[float]:
+    """RMSE (in gt units) of the estimated camera centres against ground truth after the
+    similarity alignment; None with fewer than 3 pairs."""
+    np = _gst.np
+    if len(est) < 3:
+        return None
+    s, r, t = umeyama_sim3(est, gt)
+    aligned = (s * (r @ np.asarray(est, dtype=np.float64).T)).T + t
+    return float(np.sqrt(((aligned - np.asarray(gt)) ** 2).sum(1).mean()))
+
+
+# -- the whole consumer ------------------------------------------------------------------------
+@dataclass
+class Reconstruction:
+    """What ``reconstruct`` did: the frames used (``frames``: FrameRef, in order), the gate's
+    result when it ran, the SfM result, ATE (cm) when ground truth exists, and where it wrote."""
+
+    input: InputSequence
+    frames: List[FrameRef]
+    sfm: SfmResult
+    gate: Optional[GateResult]
+    ate_rmse_cm: Optional[float]
+    out_dir: str
+
+    def frame_rows(self) -> List[Dict[str, Any]]:
+        rows = []
+        for f in self.frames:
+            name = _name_for(self.input, f, self.out_dir)
+            c = self.sfm.centres.get(name)
+            rows.append({
+                "frame": f.index,
+                "timestamp": f.timestamp,
+                "name": name,
+                "registered": c is not None,
+                "center": list(c) if c else None,
+            })
+        return rows
+
+    def to_dict(self) -> Dict[str, Any]:
+        s = self.sfm
+        d = {
+            "input": self.input.path,
+            "kind": self.input.kind,
+            "engine": f"pycolmap {_pycolmap_version()}",
+            "kept": len(self.frames),
+            "images": s.images,
+            "registered": s.registered,
+            "registered_total": s.registered_total,
+            "models": s.models,
+            "mean_reprojection_error_px": s.mean_reprojection_error_px,
+            "points3D": s.points3d,
+            "ate_rmse_cm": self.ate_rmse_cm,
+            "matcher": s.matcher,
+            "camera_model": s.camera_model,
+            "model_dir": s.model_dir,
+            "seconds": s.seconds,
+            "frames": self.frame_rows(),
+        }
+        if self.gate is not None:
+            d["frames_in"] = self.gate.frames_in
+            d["gate"] = [{k: _jsonable(v) for k, v in m.items()} for m in self.gate.metas]
+        return d
+
+
+def _jsonable(v):
+    return None if isinstance(v, float) and math.isnan(v) else v
+
+
+def _pycolmap_version() -> str:
+    try:
+        import pycolmap
+
+        return pycolmap.__version__
+    except ImportError:
+        return "?"
+
+
+def _name_for(inp: InputSequence, f: FrameRef, out_dir: str) -> str:
+    root = _image_root(inp, out_dir)
+    return os.path.relpath(os.path.abspath(f.path), root)  # type: ignore[arg-type]
+
+
+def _image_root(inp: InputSequence, out_dir: str) -> str:
+    return os.path.abspath(out_dir if inp.kind == "video" else inp.path)
+
+
+def select_frames(
+    inp: InputSequence,
+    out_dir: str,
+    frames: Optional[Sequence[Any]] = None,
+    every: Optional[int] = None,
+) -> List[FrameRef]:
+    """Explicit frames: ``frames`` (indices, or (index, path) pairs whose path overrides the
+    sequence's file) or every ``every``-th frame; video frames are decoded and written."""
+    image_dir = os.path.join(out_dir, "images")
+    if inp.kind == "video":
+        if every:
+            raise SetupError("--every needs an image sequence; give --frames for a video")
+        idx = [f[0] if isinstance(f, (tuple, list)) else int(f) for f in frames or []]
+        return decode_video_frames(inp.path, idx, image_dir)
+    if every:
+        return inp.frames[::every]
+    out = []
+    for f in frames or []:
+        if isinstance(f, (tuple, list)):
+            i, p = int(f[0]), f[1]
+        else:
+            i, p = int(f), None
+        if p:
+            p = p if os.path.isabs(p) else os.path.join(inp.path, p)
+            t = inp.frames[i].timestamp if 0 <= i < len(inp.frames) else None
+            out.append(FrameRef(i, t, p))
+        elif 0 <= i < len(inp.frames):
+            out.append(inp.frames[i])
+        else:
+            raise SetupError(f"frame {i} out of range ({len(inp.frames)} frames in {inp.path})")
+    return out
+
+
+def reconstruct(
+    input_path: str,
+    out_dir: str,
+    *,
+    frames: Optional[Sequence[Any]] = None,
+    every: Optional[int] = None,
+    sfm: Optional[SfmOptions] = None,
+    gate: Optional[Dict[str, Any]] = None,
+    ply: Optional[str] = None,
+    colmap_log: bool = False,
+) -> Reconstruction:
+    """The consumer: choose the frames (the gate, or ``frames`` / ``every``), reconstruct them,
+    measure ATE where ground truth exists. ``gate``: keyword arguments of ``gate_input``."""
+    import_pycolmap()
+    inp = open_input(input_path)
+    opts = sfm or SfmOptions()
+    if opts.intrinsics is None and inp.intrinsics is not None:
+        opts = SfmOptions(**{**opts.__dict__, "intrinsics": inp.intrinsics})
+    os.makedirs(out_dir, exist_ok=True)
+    if inp.kind == "video":
+        shutil.rmtree(os.path.join(out_dir, "images"), ignore_errors=True)
+    gate_result = None
+    if frames is not None or every:
+        chosen = select_frames(inp, out_dir, frames, every)
+        log.info("%d frames chosen explicitly", len(chosen))
+    else:
+        gate_result = gate_input(inp, os.path.join(out_dir, "images"), **(gate or {}))
+        chosen = gate_result.kept
+    if inp.kind != "video":
+        missing = [f.path for f in chosen if not os.path.isfile(f.path)]  # type: ignore[arg-type]
+        if missing:
+            raise SetupError(f"image not found: {missing[0]}")
+    root = _image_root(inp, out_dir)
+    names = [_name_for(inp, f, out_dir) for f in chosen]
+    if len(names) < 2:
+        log.warning("%d frame(s): nothing to reconstruct", len(names))
+        result = SfmResult(len(names), 0, 0, 0, {}, None, 0, None, {}, "-", "-")
+    else:
+        result = run_sfm(root, names, out_dir, opts, colmap_log=colmap_log)
+    ate = None
+    if inp.groundtruth and result.registered >= 3:
+        est, gt = [], []
+        for f, n in zip(chosen, names):
+            c, g = result.centres.get(n), inp.centre_at(f.timestamp)
+            if c is not None and g is not None:
+                est.append(c)
+                gt.append(g)
+        e = ate_rmse(est, gt)
+        ate = None if e is None else 100.0 * e
+    if ply and result.model_dir:
+        export_ply(result.model_dir, ply)
+        log.info("points written to %s", ply)
+    return Reconstruction(inp, list(chosen), result, gate_result, ate, os.path.abspath(out_dir))
+
+
+# -- command line ------------------------------------------------------------------------------
+def _parse_frames(spec: str) -> List[Any]:
+    """``0,5,10`` or ``@FILE`` (one ``index [path]`` per line, # comments)."""
+    if spec.startswith("@"):
+        out: List[Any] = []
+        for _, parts in _data_lines(spec[1:]):
+            out.append((int(parts[0]), " ".join(parts[1:]) or None))
+        return out
+    return [int(v) for v in spec.replace(" ", "").split(",") if v]
+
+
+def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog=prog,
+        description="Gate a video or image sequence with leangate and reconstruct the kept "
+        "frames with COLMAP (pycolmap): sparse model, frames registered, models, reprojection "
+        "error, ATE against ground truth when the input has it.",
+        epilog="Video frames are written as PNG under OUT/images; the models under OUT/sparse/N. "
+        "The plugin is found through GST_PLUGIN_PATH or --plugin-path.",
+    )
+    ap.add_argument("input", help="video file, TUM-layout directory (rgb.txt), or image folder")
+    ap.add_argument("--out", default="out/reconstruct", help="output directory (default %(default)s)")
+    which = ap.add_mutually_exclusive_group()
+    which.add_argument("--frames", metavar="LIST",
+                       help="reconstruct these frames instead of gating: `0,5,10` (indices into "
+                       "the sequence / decode order) or @FILE (`index [path]` per line)")
+    which.add_argument("--every", type=int, metavar="K",
+                       help="reconstruct every K-th frame instead of gating (a dense reference)")
+    g = ap.add_argument_group("gate (when neither --frames nor --every)")
+    g.add_argument("--model", default=os.environ.get("LEANGATE_MODEL") or None,
+                   help="LeanGate model (.onnx); default $LEANGATE_MODEL, else the embedded student")
+    g.add_argument("--threshold", type=float, default=None)
+    g.add_argument("--warmup", type=int, default=None)
+    g.add_argument("--max-gap", type=int, default=None)
+    g.add_argument("--max-frames", type=int, default=None,
+                   help="gate only the first N frames of an image sequence / keep at most N of a video")
+    g.add_argument("--execution-provider", choices=("auto", "cpu", "cuda", "tensorrt"))
+    g.add_argument("--plugin-path", metavar="PATH")
+    s = ap.add_argument_group("COLMAP")
+    s.add_argument("--matcher", choices=MATCHERS, default="auto",
+                   help=f"auto: exhaustive up to {EXHAUSTIVE_MAX} images, else sequential")
+    s.add_argument("--overlap", type=int, default=10, help="sequential matching neighbours")
+    s.add_argument("--max-features", type=int, default=4096, help="SIFT features per image")
+    s.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
+                   help="PINHOLE intrinsics (default: the input's intrinsics.txt, else unknown)")
+    s.add_argument("--camera-model", help="COLMAP camera model (default PINHOLE with intrinsics, "
+                   "else SIMPLE_RADIAL)")
+    s.add_argument("--refine-intrinsics", action="store_true",
+                   help="let bundle adjustment refine given intrinsics")
+    s.add_argument("--min-model-size", type=int, default=3)
+    s.add_argument("--init-min-tri-angle", type=float, default=4.0, metavar="DEG")
+    s.add_argument("--threads", type=int, default=-1)
+    ap.add_argument("--ply", metavar="PATH", help="export the largest model's points as PLY")
+    ap.add_argument("--json", metavar="PATH", help="write the result (per frame too) as JSON")
+    ap.add_argument("--colmap-log", action="store_true", help="let COLMAP log (glog) to stderr")
+    ap.add_argument("-v", "--verbose", action="count", default=0,
+                    help="progress on stderr (-v: info, -vv: debug)")
+    return ap
+
+
+def _fmt(v, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def main(
+    argv: Optional[Sequence[str]] = None,
+    prog: Optional[str] = None,
+    plugin_fallbacks: Iterable[str] = (),
+) -> int:
+    from .cli import configure_logging
+
+    ap = build_parser(prog)
+    args = ap.parse_args(argv)
+    configure_logging(ap.prog, args.verbose)
+    try:
+        intr = None
+        if args.intrinsics:
+            try:
+                intr = tuple(float(v) for v in args.intrinsics.split(","))
+            except ValueError:
+                intr = ()
+            if len(intr) != 4:
+                ap.error("--intrinsics takes FX,FY,CX,CY")
+        opts = SfmOptions(
+            matcher=args.matcher,
+            overlap=args.overlap,
+            max_features=args.max_features,
+            intrinsics=intr,  # type: ignore[arg-type]
+            camera_model=args.camera_model,
+            refine_intrinsics=args.refine_intrinsics,
+            min_model_size=args.min_model_size,
+            init_min_tri_angle=args.init_min_tri_angle,
+            threads=args.threads,
+        )
+        gate = dict(
+            model=args.model,
+            threshold=args.threshold,
+            warmup=args.warmup,
+            max_gap=args.max_gap,
+            execution_provider=args.execution_provider,
+            plugin_path=args.plugin_path,
+            plugin_fallbacks=plugin_fallbacks,
+            max_frames=args.max_frames,
+        )
+        frames = _parse_frames(args.frames) if args.frames is not None else None
+        t = time.monotonic()
+        rec = reconstruct(
+            args.input,
+            args.out,
+            frames=frames,
+            every=args.every,
+            sfm=opts,
+            gate=gate,
+            ply=args.ply,
+            colmap_log=args.colmap_log,
+        )
+        elapsed = time.monotonic() - t
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump(rec.to_dict(), f, indent=1)
+    except SetupError as e:
+        log.error("%s", e)
+        return 2
+    except (PipelineError, RuntimeError) as e:
+        log.error("%s", e)
+        return 1
+    except OSError as e:
+        log.error("%s", e)
+        return 2
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130
+
+    s = rec.sfm
+    reg = set(s.centres)
+    for row in rec.frame_rows():
+        print(f"frame {row['frame']} {row['name']} registered {int(row['name'] in reg)}")
+    frames_in = f"frames-in={rec.gate.frames_in} " if rec.gate else ""
+    print(
+        f"summary: {frames_in}kept={len(rec.frames)} registered={s.registered}/{len(rec.frames)} "
+        f"models={s.models} mean-reproj-px={_fmt(s.mean_reprojection_error_px, '.3f')} "
+        f"points={s.points3d} ate-rmse-cm={_fmt(rec.ate_rmse_cm, '.2f')} matcher={s.matcher} "
+        f"camera={s.camera_model} seconds={elapsed:.1f} model={s.model_dir or '-'}"
+        + (f" ply={args.ply}" if args.ply and s.model_dir else ""),
+        flush=True,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
