@@ -659,15 +659,18 @@ def select_frames(
     if every:
         return inp.frames[::every]
     out = []
+    by_path = {os.path.abspath(f.path): f for f in inp.frames if f.path}
     for f in frames or []:
         if isinstance(f, (tuple, list)):
             i, p = int(f[0]), f[1]
         else:
             i, p = int(f), None
         if p:
-            p = p if os.path.isabs(p) else os.path.join(inp.path, p)
-            t = inp.frames[i].timestamp if 0 <= i < len(inp.frames) else None
-            out.append(FrameRef(i, t, p))
+            # The caller's own index (e.g. eval's, over frames with ground truth); the timestamp
+            # comes from the sequence's listing of that file.
+            p = os.path.abspath(p if os.path.isabs(p) else os.path.join(inp.path, p))
+            known = by_path.get(p)
+            out.append(FrameRef(i, known.timestamp if known else None, p))
         elif 0 <= i < len(inp.frames):
             out.append(inp.frames[i])
         else:

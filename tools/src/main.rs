@@ -135,6 +135,31 @@ enum Command {
         working_width: u32,
         #[arg(long, default_value_t = 0.1)]
         max_dist: f64,
+        /// Also reconstruct each policy's kept frames, and a dense reference (every
+        /// --dense-every-th frame), with COLMAP incremental SfM (pycolmap, through
+        /// pipelines/reconstruct.py), one policy after the other: `registered`, `models` and,
+        /// with ground truth, `ate_rmse_cm` (camera centres after a Umeyama similarity
+        /// alignment) per policy, in the JSON and printed. Needs pycolmap (`make setup`).
+        #[arg(long)]
+        reconstruct: bool,
+        /// The dense reference of --reconstruct keeps every K-th frame.
+        #[arg(long, value_name = "K", default_value_t = eval::reconstruct::DENSE_EVERY)]
+        dense_every: usize,
+        /// Python for --reconstruct (default: $LEANGATE_SFM_PYTHON, else .venv-sfm/bin/python of
+        /// the checkout, else /usr/bin/python3); needs pycolmap and PyGObject.
+        #[arg(long)]
+        sfm_python: Option<PathBuf>,
+        /// Keep the databases and sparse models of --reconstruct here (DIR/POLICY/sparse/N);
+        /// default: a temporary directory.
+        #[arg(long, value_name = "DIR")]
+        sfm_dir: Option<PathBuf>,
+        /// COLMAP matcher for --reconstruct: auto (exhaustive up to 40 frames, else
+        /// sequential), exhaustive, sequential.
+        #[arg(long, default_value = "auto", value_parser = ["auto", "exhaustive", "sequential"])]
+        sfm_matcher: String,
+        /// SIFT features per frame for --reconstruct.
+        #[arg(long, default_value_t = 4096)]
+        sfm_max_features: u32,
     },
 }
 
@@ -270,6 +295,12 @@ fn run(cli: Cli) -> Res {
             sweep_plot,
             working_width,
             max_dist,
+            reconstruct,
+            dense_every,
+            sfm_python,
+            sfm_dir,
+            sfm_matcher,
+            sfm_max_features,
         } => eval_cmd(
             &sequence,
             model.as_deref(),
@@ -280,6 +311,13 @@ fn run(cli: Cli) -> Res {
                 contact_sheet,
                 sweep: (sweep || sweep_plot.is_some()).then_some(sweep_thresholds),
                 sweep_plot,
+                reconstruct: reconstruct.then_some(eval::reconstruct::SfmConfig {
+                    python: sfm_python,
+                    dense_every,
+                    work_dir: sfm_dir,
+                    matcher: sfm_matcher,
+                    max_features: sfm_max_features,
+                }),
             },
             TeacherConfig {
                 working_width,
@@ -297,6 +335,8 @@ struct EvalOutputs {
     /// Thresholds of the equal-budget sweep, when asked for.
     sweep: Option<Vec<f64>>,
     sweep_plot: Option<PathBuf>,
+    /// `--reconstruct` and its settings.
+    reconstruct: Option<eval::reconstruct::SfmConfig>,
 }
 
 fn eval_cmd(
@@ -312,6 +352,7 @@ fn eval_cmd(
         contact_sheet,
         sweep,
         sweep_plot,
+        reconstruct,
     } = out;
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
@@ -330,12 +371,18 @@ fn eval_cmd(
     if let Some(thresholds) = &sweep {
         report.sweep = Some(eval::sweep(sequence, model, thresholds, &cfg, &mut show)?);
     }
+    if let Some(sfm) = &reconstruct {
+        eval::reconstruct::add_reconstruction(sequence, &mut report, &data, sfm, &mut show)?;
+    }
     bar.finish_and_clear();
     let text = serde_json::to_string_pretty(&report)?;
     if let Some(p) = &json {
         std::fs::write(p, &text).map_err(|e| format!("`{}`: {e}", p.display()))?;
     }
     print_summary(&report);
+    if report.reconstruction.is_some() {
+        print_reconstruction(&report);
+    }
     if let Some(points) = &report.sweep {
         print_sweep(points);
         if let Some(p) = &sweep_plot {
@@ -411,6 +458,42 @@ fn print_summary(r: &eval::EvalReport) {
             f(&g("overdue_drops"), 0),
             f(&g("utility_rmse"), 3),
             f(&g("fps"), 1),
+        );
+    }
+}
+
+fn print_reconstruction(r: &eval::EvalReport) {
+    if let Some(info) = &r.reconstruction {
+        println!(
+            "reconstruction ({}; dense = every {}th frame; ATE after a similarity alignment):",
+            info.engine, info.dense_every
+        );
+    }
+    println!(
+        "{:<11} {:>5} {:>10} {:>6} {:>8} {:>8} {:>7} {:>6}",
+        "policy", "kept", "registered", "models", "ATE cm", "reproj", "points", "s"
+    );
+    for (name, p) in &r.policies {
+        let Some(reg) = p.get("registered").and_then(|v| v.as_u64()) else {
+            continue;
+        };
+        let num = |k: &str, d: usize| {
+            p.get(k)
+                .and_then(|v| v.as_f64())
+                .map(|x| format!("{x:.d$}"))
+                .unwrap_or_else(|| "-".into())
+        };
+        let kept = p.get("kept").and_then(|v| v.as_u64()).unwrap_or(0);
+        println!(
+            "{:<11} {:>5} {:>10} {:>6} {:>8} {:>8} {:>7} {:>6}",
+            name,
+            kept,
+            format!("{reg}/{kept}"),
+            num("models", 0),
+            num("ate_rmse_cm", 2),
+            num("sfm_reproj_px", 3),
+            num("sfm_points", 0),
+            num("sfm_seconds", 1),
         );
     }
 }

@@ -32,6 +32,7 @@ mod baselines;
 mod judge;
 mod model_run;
 pub mod motion;
+pub mod reconstruct;
 mod report;
 
 pub use baselines::{
@@ -145,6 +146,10 @@ pub struct EvalReport {
     /// Equal-budget curves (`--sweep`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sweep: Option<Vec<SweepPoint>>,
+    /// How `--reconstruct` ran ([`reconstruct`]); its per-policy fields (`registered`,
+    /// `models`, `ate_rmse_cm`, ...) are in `policies`, with a `dense` reference entry.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reconstruction: Option<reconstruct::ReconstructionInfo>,
 }
 
 /// Everything a plot needs.
@@ -252,6 +257,7 @@ pub fn evaluate(
             threshold: t,
             policies,
             sweep: None,
+            reconstruction: None,
         },
         PlotData {
             teacher_tau,

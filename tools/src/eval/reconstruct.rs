@@ -1,0 +1,450 @@
+//! `leangate eval --reconstruct`: what a reconstruction engine makes of each policy's frames.
+//!
+//! For every policy of the report (and a `dense` reference: every k-th frame) the kept frames
+//! go, one policy after the other, into COLMAP's incremental SfM through the Python consumer
+//! `pipelines/reconstruct.py --frames @LIST` (pycolmap: SIFT, exhaustive matching up to 40
+//! images and sequential above, a shared PINHOLE camera from `intrinsics.txt` when the sequence
+//! has one). Each policy's JSON entry gains:
+//!
+//! - `registered`: frames registered in the largest model; `models`: models COLMAP built;
+//! - `ate_rmse_cm` (sequences with ground truth): RMSE of the registered camera centres against
+//!   the ground-truth centres after the least-squares similarity alignment (Umeyama 1991, with
+//!   scale: SfM has no metric scale), in centimetres, computed here ([`ate_rmse`]); None with
+//!   fewer than 3 registered frames;
+//! - `sfm_reproj_px` (mean reprojection error), `sfm_points`, `sfm_seconds`.
+//!
+//! The interpreter: `--sfm-python`, else `$LEANGATE_SFM_PYTHON`, else the checkout's
+//! `.venv-sfm/bin/python` (made by `scripts/setup.sh`), else `/usr/bin/python3`; it needs
+//! pycolmap and PyGObject, checked first with an error naming what is missing.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use super::{EvalError, EvalReport, PlotData, Source};
+
+/// Default `--dense-every`.
+pub const DENSE_EVERY: usize = 10;
+
+/// Settings of `--reconstruct`.
+#[derive(Debug, Clone)]
+pub struct SfmConfig {
+    /// The Python interpreter (None: [`find_python`]).
+    pub python: Option<PathBuf>,
+    /// The `dense` reference keeps every this-many-th frame.
+    pub dense_every: usize,
+    /// Keep each policy's database and sparse model under this directory (`<dir>/<policy>/`);
+    /// None: a temporary directory, removed afterwards.
+    pub work_dir: Option<PathBuf>,
+    /// COLMAP matcher: `auto`, `exhaustive` or `sequential`.
+    pub matcher: String,
+    /// SIFT features per image.
+    pub max_features: u32,
+}
+
+impl Default for SfmConfig {
+    fn default() -> Self {
+        SfmConfig {
+            python: None,
+            dense_every: DENSE_EVERY,
+            work_dir: None,
+            matcher: "auto".into(),
+            max_features: 4096,
+        }
+    }
+}
+
+/// What the report records about the reconstruction run (`reconstruction` in the JSON).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ReconstructionInfo {
+    pub engine: String,
+    pub python: String,
+    pub dense_every: usize,
+    pub matcher: String,
+    pub ate: String,
+}
+
+/// The checkout this binary was built from (pipelines/ and .venv-sfm live there).
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| PathBuf::from("."))
+}
+
+/// `explicit`, else `$LEANGATE_SFM_PYTHON`, else `<repo>/.venv-sfm/bin/python`, else
+/// `/usr/bin/python3`.
+pub fn find_python(explicit: Option<&Path>) -> PathBuf {
+    if let Some(p) = explicit {
+        return p.to_path_buf();
+    }
+    if let Some(p) = std::env::var_os("LEANGATE_SFM_PYTHON").filter(|p| !p.is_empty()) {
+        return PathBuf::from(p);
+    }
+    let venv = repo_root().join(".venv-sfm/bin/python");
+    if venv.exists() {
+        return venv;
+    }
+    PathBuf::from("/usr/bin/python3")
+}
+
+/// The consumer script, `pipelines/reconstruct.py` of the checkout.
+pub fn consumer_script() -> Result<PathBuf, EvalError> {
+    let p = repo_root().join("pipelines/reconstruct.py");
+    if p.is_file() {
+        Ok(p)
+    } else {
+        Err(EvalError(format!(
+            "--reconstruct: the consumer `{}` is missing (it ships in the repository's pipelines/)",
+            p.display()
+        )))
+    }
+}
+
+/// Check that `python` imports pycolmap (first: see pipelines/reconstruct.py) and the GStreamer
+/// bindings; returns pycolmap's version, or an error naming what is missing and how to get it.
+pub fn check_python(python: &Path) -> Result<String, EvalError> {
+    let code = "import sys\n\
+        try:\n    import pycolmap\n\
+        except ImportError as e:\n    print('pycolmap', e, file=sys.stderr); sys.exit(3)\n\
+        try:\n    import gi; gi.require_version('Gst', '1.0'); from gi.repository import Gst\n\
+        except (ImportError, ValueError) as e:\n    print('gi', e, file=sys.stderr); sys.exit(4)\n\
+        print(pycolmap.__version__)\n";
+    let out = Command::new(python)
+        .args(["-c", code])
+        .output()
+        .map_err(|e| {
+            EvalError(format!(
+                "--reconstruct: cannot run the Python interpreter `{}` ({e}); set \
+                 LEANGATE_SFM_PYTHON or --sfm-python, or run `bash scripts/setup.sh` (makes .venv-sfm)",
+                python.display()
+            ))
+        })?;
+    let stderr = String::from_utf8_lossy(&out.stderr).trim().to_string();
+    match out.status.code() {
+        Some(0) => Ok(String::from_utf8_lossy(&out.stdout).trim().to_string()),
+        Some(3) => Err(EvalError(format!(
+            "--reconstruct: pycolmap is not importable by `{}` ({}); run `bash scripts/setup.sh` \
+             (it makes .venv-sfm with pycolmap and the system's PyGObject), or point \
+             LEANGATE_SFM_PYTHON / --sfm-python at a Python that has both",
+            python.display(),
+            stderr.trim_start_matches("pycolmap ")
+        ))),
+        Some(4) => Err(EvalError(format!(
+            "--reconstruct: the GStreamer Python bindings (gi) are not importable by `{}` ({}); \
+             use a Python that sees python3-gi (Debian's /usr/bin/python3, or a venv made with \
+             --system-site-packages such as .venv-sfm from `bash scripts/setup.sh`)",
+            python.display(),
+            stderr.trim_start_matches("gi ")
+        ))),
+        _ => Err(EvalError(format!(
+            "--reconstruct: `{} -c 'import pycolmap'` failed ({}): {stderr}",
+            python.display(),
+            out.status
+        ))),
+    }
+}
+
+/// One frame of the consumer's JSON.
+#[derive(Debug, Clone, Deserialize)]
+pub struct ConsumerFrame {
+    pub frame: usize,
+    pub registered: bool,
+    pub center: Option<[f64; 3]>,
+}
+
+/// The consumer's JSON (`reconstruct.py --json`), the fields eval uses.
+#[derive(Debug, Clone, Deserialize)]
+pub struct ConsumerResult {
+    pub registered: usize,
+    pub models: usize,
+    pub mean_reprojection_error_px: Option<f64>,
+    #[serde(rename = "points3D")]
+    pub points3d: usize,
+    pub frames: Vec<ConsumerFrame>,
+}
+
+/// A policy's reconstruction as it goes into the report.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct SfmOutcome {
+    pub registered: usize,
+    pub models: usize,
+    pub ate_rmse_cm: Option<f64>,
+    pub sfm_reproj_px: Option<f64>,
+    pub sfm_points: usize,
+    pub sfm_seconds: f64,
+}
+
+/// Run the consumer on `frames` (`(index, image path)`; the path None for a video frame, which
+/// the consumer decodes) of `input`, in `out_dir`.
+pub fn run_consumer(
+    python: &Path,
+    input: &Path,
+    frames: &[(usize, Option<PathBuf>)],
+    out_dir: &Path,
+    cfg: &SfmConfig,
+) -> Result<ConsumerResult, EvalError> {
+    let script = consumer_script()?;
+    std::fs::create_dir_all(out_dir)
+        .map_err(|e| EvalError(format!("`{}`: {e}", out_dir.display())))?;
+    let list = out_dir.join("frames.txt");
+    let mut text = String::from("# index [image path]\n");
+    for (i, p) in frames {
+        match p {
+            Some(p) => text.push_str(&format!("{i} {}\n", p.display())),
+            None => text.push_str(&format!("{i}\n")),
+        }
+    }
+    std::fs::write(&list, text).map_err(|e| EvalError(format!("`{}`: {e}", list.display())))?;
+    let json = out_dir.join("result.json");
+    let mut frames_arg = std::ffi::OsString::from("@");
+    frames_arg.push(&list);
+    let out = Command::new(python)
+        .arg(&script)
+        .arg(input)
+        .arg("--frames")
+        .arg(frames_arg)
+        .arg("--out")
+        .arg(out_dir)
+        .arg("--json")
+        .arg(&json)
+        .args(["--matcher", &cfg.matcher])
+        .args(["--max-features", &cfg.max_features.to_string()])
+        .output()
+        .map_err(|e| EvalError(format!("cannot run `{}`: {e}", python.display())))?;
+    if !out.status.success() {
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        let tail: Vec<&str> = stderr.lines().rev().take(15).collect();
+        return Err(EvalError(format!(
+            "the reconstruction consumer `{} {}` failed ({}):\n{}",
+            python.display(),
+            script.display(),
+            out.status,
+            tail.into_iter().rev().collect::<Vec<_>>().join("\n")
+        )));
+    }
+    let text = std::fs::read_to_string(&json)
+        .map_err(|e| EvalError(format!("`{}`: {e}", json.display())))?;
+    serde_json::from_str(&text).map_err(|e| EvalError(format!("`{}`: {e}", json.display())))
+}
+
+/// Least-squares similarity `dst ≈ s R src + t` (Umeyama 1991). None with fewer than 3 points,
+/// different lengths, or degenerate (all equal) source points.
+pub fn umeyama(
+    src: &[Vector3<f64>],
+    dst: &[Vector3<f64>],
+) -> Option<(f64, Matrix3<f64>, Vector3<f64>)> {
+    let n = src.len();
+    if n < 3 || dst.len() != n {
+        return None;
+    }
+    let nf = n as f64;
+    let mu_s = src.iter().sum::<Vector3<f64>>() / nf;
+    let mu_d = dst.iter().sum::<Vector3<f64>>() / nf;
+    let var_s = src.iter().map(|p| (p - mu_s).norm_squared()).sum::<f64>() / nf;
+    if var_s <= 0.0 {
+        return None;
+    }
+    let cov = src
+        .iter()
+        .zip(dst)
+        .map(|(s, d)| (d - mu_d) * (s - mu_s).transpose())
+        .sum::<Matrix3<f64>>()
+        / nf;
+    let svd = cov.svd(true, true);
+    let (u, vt) = (svd.u?, svd.v_t?);
+    let mut sign = Matrix3::identity();
+    if u.determinant() * vt.determinant() < 0.0 {
+        sign[(2, 2)] = -1.0;
+    }
+    let r = u * sign * vt;
+    let s = (svd.singular_values.component_mul(&sign.diagonal())).sum() / var_s;
+    let t = mu_d - s * r * mu_s;
+    Some((s, r, t))
+}
+
+/// ATE: RMSE of `est` against `gt` after the [`umeyama`] similarity alignment (units of `gt`).
+pub fn ate_rmse(est: &[Vector3<f64>], gt: &[Vector3<f64>]) -> Option<f64> {
+    let (s, r, t) = umeyama(est, gt)?;
+    let se = est
+        .iter()
+        .zip(gt)
+        .map(|(e, g)| (s * r * e + t - g).norm_squared())
+        .sum::<f64>();
+    Some((se / est.len() as f64).sqrt())
+}
+
+/// Reconstruct every policy's kept frames (`data.kept`) and a `dense` reference, one after the
+/// other, and add the fields to `report.policies` (the `dense` entry is created).
+/// `progress(stage, done, total)` counts policies.
+pub fn add_reconstruction(
+    path: &Path,
+    report: &mut EvalReport,
+    data: &PlotData,
+    cfg: &SfmConfig,
+    mut progress: impl FnMut(&str, usize, usize),
+) -> Result<(), EvalError> {
+    if cfg.dense_every == 0 {
+        return Err(EvalError("--dense-every must be at least 1".into()));
+    }
+    let python = find_python(cfg.python.as_deref());
+    let version = check_python(&python)?;
+    consumer_script()?;
+    let source = Source::open(path)?;
+    let n = report.frames;
+    // (image path, ground-truth camera centre) per frame index of the report.
+    let (paths, gt): (Vec<Option<PathBuf>>, Vec<Option<Vector3<f64>>>) = match &source {
+        Source::Sequence(seq) => seq
+            .frames
+            .iter()
+            .map(|f| (Some(f.rgb.clone()), f.pose.map(|p| p.translation.vector)))
+            .unzip(),
+        Source::Video(_) => (vec![None; n], vec![None; n]),
+    };
+    if paths.len() != n {
+        return Err(EvalError(format!(
+            "--reconstruct: the sequence has {} frames, the report {n}",
+            paths.len()
+        )));
+    }
+    let mut runs: Vec<(String, Vec<bool>)> = data.kept.clone();
+    let dense: Vec<bool> = (0..n).map(|i| i % cfg.dense_every == 0).collect();
+    runs.push(("dense".into(), dense.clone()));
+    let kept_dense = dense.iter().filter(|k| **k).count();
+    report.policies.insert(
+        "dense".into(),
+        json!({
+            "kept": kept_dense,
+            "keep_ratio": if n > 0 { kept_dense as f64 / n as f64 } else { 0.0 },
+            "downsample": if kept_dense > 0 { n as f64 / kept_dense as f64 } else { 0.0 },
+            "every": cfg.dense_every,
+        }),
+    );
+    let tmp;
+    let root = match &cfg.work_dir {
+        Some(d) => d.clone(),
+        None => {
+            tmp = TempDir::new()?;
+            tmp.0.clone()
+        }
+    };
+    let total = runs.len();
+    for (k, (name, keep)) in runs.iter().enumerate() {
+        progress(&format!("sfm {name}"), k, total);
+        let frames: Vec<(usize, Option<PathBuf>)> = keep
+            .iter()
+            .enumerate()
+            .filter(|(_, k)| **k)
+            .map(|(i, _)| (i, paths[i].clone()))
+            .collect();
+        let t0 = std::time::Instant::now();
+        let res = run_consumer(&python, path, &frames, &root.join(name), cfg)?;
+        let (mut est, mut truth) = (Vec::new(), Vec::new());
+        for f in res.frames.iter().filter(|f| f.registered) {
+            if let (Some(c), Some(Some(g))) = (f.center, gt.get(f.frame)) {
+                est.push(Vector3::from(c));
+                truth.push(*g);
+            }
+        }
+        let outcome = SfmOutcome {
+            registered: res.registered,
+            models: res.models,
+            ate_rmse_cm: ate_rmse(&est, &truth).map(|e| e * 100.0),
+            sfm_reproj_px: res.mean_reprojection_error_px,
+            sfm_points: res.points3d,
+            sfm_seconds: t0.elapsed().as_secs_f64(),
+        };
+        if let (Some(Value::Object(entry)), Value::Object(fields)) = (
+            report.policies.get_mut(name),
+            serde_json::to_value(&outcome).unwrap(),
+        ) {
+            entry.extend(fields);
+        }
+    }
+    progress("sfm", total, total);
+    report.reconstruction = Some(ReconstructionInfo {
+        engine: format!("COLMAP incremental SfM (pycolmap {version})"),
+        python: python.display().to_string(),
+        dense_every: cfg.dense_every,
+        matcher: cfg.matcher.clone(),
+        ate: "camera centres of the largest model vs ground truth after a Umeyama similarity \
+              alignment (with scale), RMSE in cm"
+            .into(),
+    });
+    Ok(())
+}
+
+/// A temporary directory removed on drop (no extra dependency).
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new() -> Result<TempDir, EvalError> {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.subsec_nanos())
+            .unwrap_or(0);
+        let p = std::env::temp_dir().join(format!("leangate-sfm-{}-{nanos}", std::process::id()));
+        std::fs::create_dir_all(&p).map_err(|e| EvalError(format!("`{}`: {e}", p.display())))?;
+        Ok(TempDir(p))
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Rotation3, Vector3};
+
+    fn cloud() -> Vec<Vector3<f64>> {
+        (0..12)
+            .map(|i| {
+                let t = i as f64;
+                Vector3::new(t.sin() * 2.0, 0.3 * t, (0.7 * t).cos() - 1.0)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn umeyama_recovers_a_similarity() {
+        let src = cloud();
+        let r = Rotation3::from_euler_angles(0.3, -1.1, 2.0).into_inner();
+        let t = Vector3::new(1.0, -2.0, 0.5);
+        let dst: Vec<_> = src.iter().map(|p| 0.37 * r * p + t).collect();
+        let (s, r2, t2) = umeyama(&src, &dst).unwrap();
+        assert!((s - 0.37).abs() < 1e-9, "{s}");
+        assert!((r2 - r).norm() < 1e-9);
+        assert!((t2 - t).norm() < 1e-9);
+        assert!(ate_rmse(&src, &dst).unwrap() < 1e-9);
+    }
+
+    #[test]
+    fn ate_measures_what_alignment_cannot_remove() {
+        let gt = cloud();
+        // A scaled, rotated copy with a known perturbation of one point.
+        let r = Rotation3::from_euler_angles(0.0, 0.0, 0.5).into_inner();
+        let mut est: Vec<_> = gt.iter().map(|p| r * p * 3.0).collect();
+        est[5] += Vector3::new(0.3, 0.0, 0.0);
+        let e = ate_rmse(&est, &gt).unwrap();
+        assert!(e > 0.0 && e < 0.1 / (12f64).sqrt() + 1e-3, "{e}");
+        // Mirror images are not a rotation: the reflection guard keeps det(R) = +1.
+        let mirrored: Vec<_> = gt.iter().map(|p| Vector3::new(-p.x, p.y, p.z)).collect();
+        let (_, r, _) = umeyama(&mirrored, &gt).unwrap();
+        assert!((r.determinant() - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn too_few_or_degenerate_points() {
+        let p = Vector3::new(1.0, 2.0, 3.0);
+        assert!(ate_rmse(&[p, p], &[p, p]).is_none());
+        assert!(ate_rmse(&[p, p, p], &[p, p, p]).is_none());
+        assert!(ate_rmse(&cloud(), &cloud()[..5]).is_none());
+    }
+}
