@@ -354,6 +354,9 @@ fn eval_cmd(
         sweep_plot,
         reconstruct,
     } = out;
+    if let Some(sfm) = &reconstruct {
+        eval::reconstruct::preflight(sfm)?; // before the long part: a missing pycolmap fails now
+    }
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
         indicatif::ProgressStyle::with_template("{msg:>8} [{bar:40}] {pos}/{len} frames")

@@ -148,6 +148,15 @@ pub fn check_python(python: &Path) -> Result<String, EvalError> {
     }
 }
 
+/// Check the interpreter and the consumer before a long evaluation: the Python found and
+/// pycolmap's version.
+pub fn preflight(cfg: &SfmConfig) -> Result<(PathBuf, String), EvalError> {
+    let python = find_python(cfg.python.as_deref());
+    let version = check_python(&python)?;
+    consumer_script()?;
+    Ok((python, version))
+}
+
 /// One frame of the consumer's JSON.
 #[derive(Debug, Clone, Deserialize)]
 pub struct ConsumerFrame {
@@ -290,9 +299,7 @@ pub fn add_reconstruction(
     if cfg.dense_every == 0 {
         return Err(EvalError("--dense-every must be at least 1".into()));
     }
-    let python = find_python(cfg.python.as_deref());
-    let version = check_python(&python)?;
-    consumer_script()?;
+    let (python, version) = preflight(cfg)?;
     let source = Source::open(path)?;
     let n = report.frames;
     // (image path, ground-truth camera centre) per frame index of the report.

@@ -1,0 +1,317 @@
+//! The reconstruction consumer (`pipelines/reconstruct.py`, COLMAP through pycolmap) and
+//! `leangate eval --reconstruct`, run for real on the shared 7-Scenes kitchen (60 frames) and a
+//! short real clip. Needs pycolmap in the interpreter eval would use (`make setup` installs it
+//! into `.venv-sfm`), and the plugin built beside this test (`cargo build --workspace`); each
+//! test says SKIPPED when something it needs is absent.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use leangate_tools::eval::reconstruct::{find_python, repo_root};
+
+#[path = "../../tests/common/paths.rs"]
+#[allow(dead_code)]
+mod paths;
+use paths::shared_data;
+
+/// The interpreter `eval --reconstruct` finds, when it imports pycolmap and gi.
+fn sfm_python() -> Option<PathBuf> {
+    let py = find_python(None);
+    let ok = Command::new(&py)
+        .args([
+            "-c",
+            "import pycolmap, gi; gi.require_version('Gst', '1.0'); from gi.repository import Gst",
+        ])
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false);
+    if ok {
+        Some(py)
+    } else {
+        eprintln!(
+            "SKIPPED: {} cannot import pycolmap and gi (run `make setup`: it makes .venv-sfm)",
+            py.display()
+        );
+        None
+    }
+}
+
+/// The directory of the libgstleangate.so built with this test (target/<profile>).
+fn plugin_dir() -> Option<PathBuf> {
+    let exe = std::env::current_exe().unwrap();
+    let profile = exe.parent()?.parent()?.to_path_buf();
+    if profile.join("libgstleangate.so").exists() {
+        Some(profile)
+    } else {
+        eprintln!(
+            "SKIPPED: no libgstleangate.so in {} (cargo build --workspace)",
+            profile.display()
+        );
+        None
+    }
+}
+
+fn consumer(python: &Path, args: &[&str], extra: &[&Path]) -> Output {
+    let mut c = Command::new(python);
+    c.arg(repo_root().join("pipelines/reconstruct.py"))
+        .args(args)
+        .args(extra)
+        .env_remove("LEANGATE_MODEL");
+    let out = c.output().unwrap();
+    eprintln!(
+        "--- {c:?}: {}\nstdout:\n{}\nstderr:\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+fn read_json(p: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+}
+
+fn summary(out: &Output) -> std::collections::HashMap<String, String> {
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("summary: "))
+        .unwrap_or_else(|| panic!("no summary line in {text}"));
+    line["summary: ".len()..]
+        .split_whitespace()
+        .filter_map(|kv| kv.split_once('='))
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect()
+}
+
+#[test]
+fn consumer_gates_an_image_sequence_and_reconstructs_the_kept_frames() {
+    let (Some(seq), Some(py), Some(plugins)) = (
+        shared_data("7scenes_redkitchen_dev"),
+        sfm_python(),
+        plugin_dir(),
+    ) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (out_dir, json, ply) = (
+        dir.path().join("rec"),
+        dir.path().join("rec.json"),
+        dir.path().join("points.ply"),
+    );
+    // The embedded student keeps 1 of these 60 frames; max-gap 6 makes the gate keep enough
+    // (every 7th frame at least) to reconstruct, through the real element in drop mode.
+    let out = consumer(
+        &py,
+        &["--max-gap", "6", "-v", "--plugin-path"],
+        &[
+            &plugins,
+            &seq,
+            Path::new("--out"),
+            &out_dir,
+            Path::new("--json"),
+            &json,
+            Path::new("--ply"),
+            &ply,
+        ],
+    );
+    assert!(out.status.success());
+    let s = summary(&out);
+    assert_eq!(s["frames-in"], "60");
+    let kept: usize = s["kept"].parse().unwrap();
+    assert!((9..=60).contains(&kept), "{s:?}");
+    assert_eq!(s["registered"], format!("{kept}/{kept}"), "{s:?}");
+    assert_eq!(s["models"], "1");
+    assert_eq!(
+        s["camera"], "PINHOLE",
+        "intrinsics.txt gives a PINHOLE camera"
+    );
+    // Progress is logged on stderr.
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("kept frame 0 (first"), "{err}");
+    assert!(err.contains("mapping:"), "{err}");
+
+    let v = read_json(&json);
+    assert_eq!(v["kind"], "sequence");
+    assert_eq!(v["frames_in"], 60);
+    assert_eq!(v["registered"], kept);
+    assert_eq!(v["models"], 1);
+    let ate = v["ate_rmse_cm"].as_f64().expect("ground truth: an ATE");
+    assert!(ate.is_finite() && ate < 3.0, "ATE {ate} cm");
+    let reproj = v["mean_reprojection_error_px"].as_f64().unwrap();
+    assert!(reproj > 0.0 && reproj < 2.0, "{reproj}");
+    assert!(v["points3D"].as_u64().unwrap() > 300);
+    // The gate's meta came with every frame, in stream order, kept, with max-gap respected.
+    let gate = v["gate"].as_array().unwrap();
+    assert_eq!(gate.len(), kept);
+    let idx: Vec<u64> = gate.iter().map(|m| m["frame"].as_u64().unwrap()).collect();
+    assert_eq!(idx[0], 0);
+    assert!(
+        idx.windows(2).all(|w| w[0] < w[1] && w[1] - w[0] <= 7),
+        "{idx:?}"
+    );
+    assert!(gate.iter().all(|m| m["keep"] == true));
+    assert_eq!(gate[0]["reason"], "first");
+    let frames = v["frames"].as_array().unwrap();
+    assert!(frames
+        .iter()
+        .all(|f| f["registered"] == true && f["center"].as_array().unwrap().len() == 3));
+    assert_eq!(frames[1]["name"], format!("rgb/{:06}.jpg", idx[1]));
+    // The sparse model and the PLY are on disk.
+    let model = PathBuf::from(v["model_dir"].as_str().unwrap());
+    for f in ["cameras.bin", "images.bin", "points3D.bin"] {
+        assert!(model.join(f).exists(), "{f} in {}", model.display());
+    }
+    let ply_text = std::fs::read(&ply).unwrap();
+    assert!(ply_text.starts_with(b"ply"));
+}
+
+#[test]
+fn consumer_reconstructs_what_the_gate_keeps_of_a_real_clip() {
+    let (Some(clip), Some(py), Some(plugins)) = (
+        shared_data("cotracker_clips/cat.mp4"),
+        sfm_python(),
+        plugin_dir(),
+    ) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (out_dir, json) = (dir.path().join("rec"), dir.path().join("rec.json"));
+    let out = consumer(
+        &py,
+        &["--max-gap", "3", "--max-frames", "8", "--plugin-path"],
+        &[
+            &plugins,
+            &clip,
+            Path::new("--out"),
+            &out_dir,
+            Path::new("--json"),
+            &json,
+        ],
+    );
+    assert!(out.status.success());
+    let v = read_json(&json);
+    assert_eq!(v["kind"], "video");
+    assert_eq!(v["kept"], 8);
+    assert_eq!(
+        v["camera_model"], "SIMPLE_RADIAL",
+        "no intrinsics: COLMAP's default"
+    );
+    assert!(v["ate_rmse_cm"].is_null(), "no ground truth, no ATE");
+    // The kept frames were written as images and fed to COLMAP.
+    let frames = v["frames"].as_array().unwrap();
+    for f in frames {
+        assert!(out_dir.join(f["name"].as_str().unwrap()).exists(), "{f}");
+    }
+    let reg = v["registered"].as_u64().unwrap();
+    assert!(reg >= 5, "{reg} of 8 registered");
+    assert_eq!(v["models"], 1);
+}
+
+#[test]
+fn eval_reconstruct_reports_every_policy_and_a_dense_reference() {
+    let (Some(seq), Some(_py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("eval.json");
+    let out = Command::new(env!("CARGO_BIN_EXE_leangate"))
+        .args(["eval", "--sequence"])
+        .arg(&seq)
+        .args(["--reconstruct", "--dense-every", "6", "--sfm-dir"])
+        .arg(dir.path().join("sfm"))
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success());
+    assert!(stdout.contains("reconstruction (COLMAP"), "{stdout}");
+    let v = read_json(&json);
+    let info = &v["reconstruction"];
+    assert_eq!(info["dense_every"], 6);
+    assert!(info["engine"].as_str().unwrap().contains("pycolmap"));
+    let policies = v["policies"].as_object().unwrap();
+    for name in ["model", "oracle", "stride", "pixel_diff", "motion", "dense"] {
+        let p = &policies[name];
+        let kept = p["kept"].as_u64().unwrap();
+        let reg = p["registered"]
+            .as_u64()
+            .unwrap_or_else(|| panic!("{name}: {p}"));
+        assert!(reg <= kept, "{name}: {p}");
+        assert!(p["models"].is_u64(), "{name}: {p}");
+        assert!(p.get("ate_rmse_cm").is_some(), "{name}: {p}");
+        assert!(
+            dir.path()
+                .join("sfm")
+                .join(name)
+                .join("frames.txt")
+                .exists(),
+            "{name}"
+        );
+    }
+    // The dense reference: 10 frames, all registered into one model, centimetre-level ATE.
+    let d = &policies["dense"];
+    assert_eq!(d["kept"], 10);
+    assert_eq!(d["registered"], 10, "{d}");
+    assert_eq!(d["models"], 1, "{d}");
+    let ate = d["ate_rmse_cm"].as_f64().unwrap();
+    assert!(ate.is_finite() && ate < 3.0, "dense ATE {ate} cm");
+    assert!(d["sfm_reproj_px"].as_f64().unwrap() < 2.0);
+}
+
+#[test]
+fn explicit_frames_and_a_python_without_pycolmap() {
+    let (Some(seq), Some(py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("r.json");
+    // --frames: no gate, these frames (COLMAP sees rgb/000000.jpg, ...).
+    let out = consumer(
+        &py,
+        &["--frames", "0,12,24,36,48,59", "--out"],
+        &[&dir.path().join("rec"), Path::new("--json"), &json, &seq],
+    );
+    assert!(out.status.success());
+    let v = read_json(&json);
+    assert!(v.get("gate").is_none(), "no gate with --frames");
+    let idx: Vec<u64> = v["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f["frame"].as_u64().unwrap())
+        .collect();
+    assert_eq!(idx, [0, 12, 24, 36, 48, 59]);
+    assert_eq!(v["registered"], 6, "{v}");
+    assert!(v["ate_rmse_cm"].as_f64().unwrap() < 3.0);
+
+    // An out-of-range frame is a usage error (exit 2) naming it.
+    let out = consumer(&py, &["--frames", "0,60"], &[&seq]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("frame 60 out of range"));
+
+    // eval --reconstruct with an interpreter that lacks pycolmap says so, and how to fix it.
+    let fake = dir.path().join("python-without-pycolmap");
+    std::fs::write(
+        &fake,
+        "#!/bin/sh\necho \"No module named 'pycolmap'\" >&2\nexit 3\n",
+    )
+    .unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_leangate"))
+        .args(["eval", "--sequence"])
+        .arg(&seq)
+        .args(["--reconstruct", "--sfm-python"])
+        .arg(&fake)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("pycolmap is not importable") && err.contains("scripts/setup.sh"),
+        "{err}"
+    );
+}
