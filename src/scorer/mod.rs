@@ -131,6 +131,8 @@ enum Kind {
     Split {
         encoder: Session,
         head: Session,
+        /// How the head is named in messages.
+        head_name: String,
         reference: Option<Features>,
         current: Option<Features>,
         encoder_runs: u64,
@@ -264,6 +266,7 @@ impl Scorer {
                     Kind::Split {
                         encoder: session,
                         head,
+                        head_name,
                         reference: None,
                         current: None,
                         encoder_runs: 0,
@@ -299,9 +302,13 @@ impl Scorer {
         if let Kind::Split { encoder_runs, .. } = &mut self.kind {
             *encoder_runs = 0;
         }
+        let with = match &self.kind {
+            Kind::Split { head_name, .. } => format!(" (with its head {head_name})"),
+            Kind::Pair(_) => String::new(),
+        };
         r.map(|_| ()).map_err(|e| ScorerError::Contract {
             model: model.to_string(),
-            reason: format!("a dry run on a blank frame failed: {e}"),
+            reason: format!("a dry run on a blank frame{with} failed: {e}"),
         })
     }
 
@@ -357,6 +364,7 @@ impl Scorer {
                 reference: ref_feat,
                 current: cur_feat,
                 encoder_runs,
+                ..
             } => {
                 if ref_feat.is_none() {
                     *ref_feat = Some(encode(encoder, shape, reference)?);
