@@ -183,6 +183,9 @@ pub struct RawFrame<'a> {
     pub strides: [isize; 3],
 }
 
+/// Largest accepted frame side, pixels (the resampling taps grow with the frame size).
+pub const MAX_FRAME_SIDE: u32 = 1 << 15;
+
 /// A zero-filled `Vec<f32>` of `len` elements, allocated fallibly (a huge model input must be a
 /// clear error, not an abort of the host process).
 pub fn try_zeroed(len: usize) -> Result<Vec<f32>, PreprocessError> {
@@ -332,6 +335,11 @@ impl Preprocessor {
         if src_w == 0 || src_h == 0 {
             return Err(PreprocessError(format!(
                 "frame size {src_w}x{src_h} is empty"
+            )));
+        }
+        if src_w > MAX_FRAME_SIDE || src_h > MAX_FRAME_SIDE {
+            return Err(PreprocessError(format!(
+                "frame size {src_w}x{src_h} is too large (each side at most {MAX_FRAME_SIDE})"
             )));
         }
         if spec.width == 0 || spec.height == 0 {
@@ -909,6 +917,14 @@ mod tests {
             };
             assert!(p.run(&f, &mut out).is_err(), "stride {stride}");
         }
+    }
+
+    #[test]
+    fn absurd_frame_sizes_are_refused() {
+        let s = spec(16, 16, ResizeMode::ShortSideCrop);
+        let e = Preprocessor::new(PixelFormat::Rgb, 2_000_000_000, 4, YuvMatrix::BT601, s)
+            .unwrap_err();
+        assert!(e.0.contains("too large"), "{e}");
     }
 
     #[test]
