@@ -90,7 +90,10 @@ fn main() {
             stats += 1;
         }
         if i % 10_000 == 9_999 {
-            e.set_property("threshold", if i % 20_000 == 9_999 { 0.04f64 } else { 0.05 });
+            e.set_property(
+                "threshold",
+                if i % 20_000 == 9_999 { 0.04f64 } else { 0.05 },
+            );
         }
         if (i + 1) % 100_000 == 0 || i + 1 == frames {
             let rss = rss_kib();

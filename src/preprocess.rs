@@ -440,14 +440,30 @@ impl Preprocessor {
         let to_rgb = |v: [f32; 3]| yuv.to_rgb(v);
         let scratch = Scratch::new(self)?;
         match self.format {
-            PixelFormat::Rgb => self.resample(out, scratch, |x, y| px3(p0, r0.at(y) + 3 * x, [0, 1, 2]), rgb),
-            PixelFormat::Bgr => self.resample(out, scratch, |x, y| px3(p0, r0.at(y) + 3 * x, [2, 1, 0]), rgb),
-            PixelFormat::Rgbx | PixelFormat::Rgba => {
-                self.resample(out, scratch, |x, y| px3(p0, r0.at(y) + 4 * x, [0, 1, 2]), rgb)
-            }
-            PixelFormat::Bgrx | PixelFormat::Bgra => {
-                self.resample(out, scratch, |x, y| px3(p0, r0.at(y) + 4 * x, [2, 1, 0]), rgb)
-            }
+            PixelFormat::Rgb => self.resample(
+                out,
+                scratch,
+                |x, y| px3(p0, r0.at(y) + 3 * x, [0, 1, 2]),
+                rgb,
+            ),
+            PixelFormat::Bgr => self.resample(
+                out,
+                scratch,
+                |x, y| px3(p0, r0.at(y) + 3 * x, [2, 1, 0]),
+                rgb,
+            ),
+            PixelFormat::Rgbx | PixelFormat::Rgba => self.resample(
+                out,
+                scratch,
+                |x, y| px3(p0, r0.at(y) + 4 * x, [0, 1, 2]),
+                rgb,
+            ),
+            PixelFormat::Bgrx | PixelFormat::Bgra => self.resample(
+                out,
+                scratch,
+                |x, y| px3(p0, r0.at(y) + 4 * x, [2, 1, 0]),
+                rgb,
+            ),
             PixelFormat::Gray8 => self.resample(
                 out,
                 scratch,
@@ -922,8 +938,8 @@ mod tests {
     #[test]
     fn absurd_frame_sizes_are_refused() {
         let s = spec(16, 16, ResizeMode::ShortSideCrop);
-        let e = Preprocessor::new(PixelFormat::Rgb, 2_000_000_000, 4, YuvMatrix::BT601, s)
-            .unwrap_err();
+        let e =
+            Preprocessor::new(PixelFormat::Rgb, 2_000_000_000, 4, YuvMatrix::BT601, s).unwrap_err();
         assert!(e.0.contains("too large"), "{e}");
     }
 

@@ -53,7 +53,10 @@ impl StatsMessage {
             .field("inference-p99-us", self.inference_p99_us)
             .field("interval-frames-in", self.interval_frames_in)
             .field("interval-frames-kept", self.interval_frames_kept)
-            .field("interval-inference-mean-us", self.interval_inference_mean_us)
+            .field(
+                "interval-inference-mean-us",
+                self.interval_inference_mean_us,
+            )
             .field("interval-inference-p50-us", self.interval_inference_p50_us)
             .field("interval-inference-p99-us", self.interval_inference_p99_us)
             .field("execution-provider", self.execution_provider.as_str())
@@ -267,9 +270,17 @@ mod tests {
         assert!((s.mean_us() - 100.5).abs() < 1e-9);
         // Within a bucket (1/32 of the value).
         let close = |got: u64, want: u64| got >= want && got <= want + want / 32;
-        assert!(close(s.percentile_us(99.0), 198), "{}", s.percentile_us(99.0));
+        assert!(
+            close(s.percentile_us(99.0), 198),
+            "{}",
+            s.percentile_us(99.0)
+        );
         assert_eq!(s.percentile_us(100.0), 200);
-        assert!(close(s.percentile_us(50.0), 100), "{}", s.percentile_us(50.0));
+        assert!(
+            close(s.percentile_us(50.0), 100),
+            "{}",
+            s.percentile_us(50.0)
+        );
         assert_eq!(s.interval().count(), 200);
         s.start_interval();
         assert_eq!(s.interval().count(), 0);
@@ -293,7 +304,11 @@ mod tests {
         for i in 0..1_000_000u64 {
             h.record(i % 10_000);
         }
-        assert_eq!(std::mem::size_of_val(&*h.counts), size, "memory does not grow");
+        assert_eq!(
+            std::mem::size_of_val(&*h.counts),
+            size,
+            "memory does not grow"
+        );
         let p50 = h.percentile(50.0);
         assert!((4800..=5200).contains(&p50), "{p50}");
         let p99 = h.percentile(99.0);

@@ -17,7 +17,11 @@ fn repo() -> PathBuf {
 }
 
 fn fixture(name: &str) -> String {
-    repo().join("tests/fixtures").join(name).display().to_string()
+    repo()
+        .join("tests/fixtures")
+        .join(name)
+        .display()
+        .to_string()
 }
 
 /// A directory holding only a link to the cdylib built with this test (see tests/python_client.rs).
@@ -124,8 +128,18 @@ fn scenario(body: &str) -> Option<String> {
     };
     let mut out = String::new();
     let mut err = String::new();
-    child.stdout.take().unwrap().read_to_string(&mut out).unwrap();
-    child.stderr.take().unwrap().read_to_string(&mut err).unwrap();
+    child
+        .stdout
+        .take()
+        .unwrap()
+        .read_to_string(&mut out)
+        .unwrap();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
     assert!(
         status.success() && out.contains("EOS"),
         "status {status}\nstdout:\n{out}\nstderr:\n{err}"

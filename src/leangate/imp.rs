@@ -653,7 +653,12 @@ impl BaseTransformImpl for LeanGate {
                 release();
                 gst::error_msg!(
                     gst::ResourceError::NoSpaceLeft,
-                    ("cannot allocate the {} tensor of {}: {}", what, info.name, e)
+                    (
+                        "cannot allocate the {} tensor of {}: {}",
+                        what,
+                        info.name,
+                        e
+                    )
                 )
             })
         };
@@ -777,7 +782,9 @@ impl BaseTransformImpl for LeanGate {
             // Tell time-driven elements downstream (aggregators such as compositor, muxers,
             // live sinks) that nothing comes for this span, instead of letting them wait for it.
             if let Some(pts) = buf.pts() {
-                let gap = gst::event::Gap::builder(pts).duration(buf.duration()).build();
+                let gap = gst::event::Gap::builder(pts)
+                    .duration(buf.duration())
+                    .build();
                 let _ = self.obj().src_pad().push_event(gap);
             }
             return Ok(gst_base::BASE_TRANSFORM_FLOW_DROPPED);

@@ -89,7 +89,10 @@ fn input_dims(
         ));
     }
     if rank4 && (dims.len() != 4 || (dims[1] != 3 && dims[1] >= 0)) {
-        return Err(contract(model, format!("input `{want}` has shape {dims:?}")));
+        return Err(contract(
+            model,
+            format!("input `{want}` has shape {dims:?}"),
+        ));
     }
     check_batch(&dims, &format!("input `{want}`"), model)?;
     Ok(dims)
@@ -100,7 +103,9 @@ fn check_batch(dims: &[i64], what: &str, model: &str) -> Result<(), ScorerError>
     match dims.first() {
         Some(&n) if n >= 0 && n != 1 => Err(contract(
             model,
-            format!("{what} has shape {dims:?}: a fixed batch dimension of {n} (must be 1 or dynamic)"),
+            format!(
+                "{what} has shape {dims:?}: a fixed batch dimension of {n} (must be 1 or dynamic)"
+            ),
         )),
         _ => Ok(()),
     }
@@ -138,7 +143,10 @@ fn check_output(
         ));
     }
     if utility && !(dims.len() == 1 || (dims.len() == 2 && (dims[1] == 1 || dims[1] < 0))) {
-        return Err(contract(model, format!("output `{want}` has shape {dims:?}")));
+        return Err(contract(
+            model,
+            format!("output `{want}` has shape {dims:?}"),
+        ));
     }
     check_batch(&dims, &format!("output `{want}`"), model)?;
     Ok(dims)
@@ -180,8 +188,7 @@ pub(super) fn validate_head(
     for input in ["reference_features", "current_features"] {
         let d = input_dims(session, input, false, model).map_err(split_hint)?;
         let clash = d.len() != encoder_features.len()
-            || d
-                .iter()
+            || d.iter()
                 .zip(encoder_features)
                 .skip(1)
                 .any(|(&h, &e)| h >= 0 && e >= 0 && h != e);
@@ -234,7 +241,11 @@ pub(super) fn model_kind(session: &Session, model: &str) -> Result<&'static str,
 /// The head file named by the encoder's `leangate.head`: a relative path resolved inside the
 /// encoder's folder. Absolute paths, `..` and symbolic links leading out of that folder are
 /// refused.
-pub(super) fn head_path(encoder: &Path, session: &Session, model: &str) -> Result<PathBuf, ScorerError> {
+pub(super) fn head_path(
+    encoder: &Path,
+    session: &Session,
+    model: &str,
+) -> Result<PathBuf, ScorerError> {
     let meta_err = |reason: String| ScorerError::Metadata {
         model: model.to_string(),
         reason,
@@ -254,7 +265,10 @@ pub(super) fn head_path(encoder: &Path, session: &Session, model: &str) -> Resul
         })?;
     let name = name.trim();
     let rel = Path::new(name);
-    if !rel.components().all(|c| matches!(c, Component::Normal(_) | Component::CurDir)) {
+    if !rel
+        .components()
+        .all(|c| matches!(c, Component::Normal(_) | Component::CurDir))
+    {
         return Err(meta_err(format!(
             "leangate.head = {name:?} must be a file name relative to the encoder's folder (no \
              absolute path, no `..`)"

@@ -184,7 +184,8 @@ impl Scorer {
         for &provider in session::provider_order(opts.execution_provider) {
             match build_session(&env, input, provider, opts) {
                 Ok(session) => {
-                    let (kind, info) = Self::assemble(source, &env, session, provider, opts, &model)?;
+                    let (kind, info) =
+                        Self::assemble(source, &env, session, provider, opts, &model)?;
                     let mut scorer = Scorer {
                         kind,
                         info,
