@@ -86,8 +86,12 @@ fn main() {
                 gaps += 1;
             }
         }
-        while bus.pop().is_some() {
-            stats += 1;
+        while let Some(m) = bus.pop() {
+            if m.structure()
+                .is_some_and(|s| s.name() == gstleangate::STATS_MESSAGE)
+            {
+                stats += 1;
+            }
         }
         if i % 10_000 == 9_999 {
             e.set_property(
