@@ -251,12 +251,15 @@ fn noise(len: usize, seed: u32) -> Vec<u8> {
 /// Median microseconds per frame of `Preprocessor::run`.
 fn preprocess_us(format: PixelFormat, size: u32, reps: usize) -> f64 {
     let (w, h) = (W as usize, H as usize);
-    let (planes, strides): (Vec<Vec<u8>>, [usize; 3]) = match format {
-        PixelFormat::Rgb => (vec![noise(3 * w * h, 1)], [3 * w, 0, 0]),
-        PixelFormat::Nv12 => (vec![noise(w * h, 1), noise(w * h / 2, 2)], [w, w, 0]),
+    let (planes, strides): (Vec<Vec<u8>>, [isize; 3]) = match format {
+        PixelFormat::Rgb => (vec![noise(3 * w * h, 1)], [3 * w as isize, 0, 0]),
+        PixelFormat::Nv12 => (
+            vec![noise(w * h, 1), noise(w * h / 2, 2)],
+            [w as isize, w as isize, 0],
+        ),
         PixelFormat::I420 => (
             vec![noise(w * h, 1), noise(w * h / 4, 2), noise(w * h / 4, 3)],
-            [w, w / 2, w / 2],
+            [w as isize, (w / 2) as isize, (w / 2) as isize],
         ),
         other => unimplemented!("{other:?}"),
     };

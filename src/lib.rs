@@ -36,7 +36,10 @@ pub use preprocess::{
     PixelFormat, PreprocessError, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix,
 };
 pub use runtime::RuntimeError;
-pub use scorer::{ExecutionProvider, ModelInfo, ModelSource, Scorer, ScorerError, ScorerOptions};
+pub use scorer::{
+    ExecutionProvider, ModelInfo, ModelSource, Scorer, ScorerError, ScorerOptions, MAX_INPUT_SIDE,
+    MAX_TENSOR_BYTES,
+};
 pub use stats::{StatsMessage, StatsParseError, STATS_MESSAGE};
 
 fn plugin_init(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {

@@ -6,8 +6,6 @@
 //! does; or `stretch`), area-averaging when shrinking / bilinear when enlarging (separable), scale
 //! to [0,1], then `(x - mean) / std` per channel.
 
-use std::fmt;
-
 /// Pixel formats accepted by the element (its caps list exactly these).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PixelFormat {
@@ -171,13 +169,69 @@ impl YuvMatrix {
 }
 
 /// A borrowed raw frame: up to three planes with their strides.
+///
+/// `planes[p]` holds plane `p`'s bytes from its lowest address. A positive stride is the usual
+/// top-down layout (row `y` starts at `y * stride`); a negative stride is a bottom-up image
+/// (row 0, the top of the picture, is the last row in memory: row `y` starts at
+/// `(rows - 1 - y) * |stride|`), as GstVideoMeta allows and `videoconvert` reads.
 #[derive(Debug, Clone, Copy)]
 pub struct RawFrame<'a> {
     pub format: PixelFormat,
     pub width: u32,
     pub height: u32,
     pub planes: [&'a [u8]; 3],
-    pub strides: [usize; 3],
+    pub strides: [isize; 3],
+}
+
+/// Largest accepted frame side, pixels (the resampling taps grow with the frame size).
+pub const MAX_FRAME_SIDE: u32 = 1 << 15;
+
+/// A zero-filled `Vec<f32>` of `len` elements, allocated fallibly (a huge model input must be a
+/// clear error, not an abort of the host process).
+pub fn try_zeroed(len: usize) -> Result<Vec<f32>, PreprocessError> {
+    try_filled(len, 0.0f32)
+}
+
+pub(crate) fn try_filled<T: Clone>(len: usize, v: T) -> Result<Vec<T>, PreprocessError> {
+    let mut out = Vec::new();
+    out.try_reserve_exact(len).map_err(|e| {
+        PreprocessError(format!(
+            "cannot allocate {len} elements of {} bytes: {e}",
+            std::mem::size_of::<T>()
+        ))
+    })?;
+    out.resize(len, v);
+    Ok(out)
+}
+
+/// Rows, bytes per row and bytes per pixel of each plane of a `w`x`h` frame (rows 0: no plane).
+fn plane_layout(format: PixelFormat, w: usize, h: usize) -> [(usize, usize); 3] {
+    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+    // (row bytes, rows)
+    match format {
+        PixelFormat::Rgb | PixelFormat::Bgr => [(3 * w, h), (0, 0), (0, 0)],
+        PixelFormat::Rgbx | PixelFormat::Rgba | PixelFormat::Bgrx | PixelFormat::Bgra => {
+            [(4 * w, h), (0, 0), (0, 0)]
+        }
+        PixelFormat::Gray8 => [(w, h), (0, 0), (0, 0)],
+        PixelFormat::Nv12 => [(w, h), (2 * cw, ch), (0, 0)],
+        PixelFormat::I420 => [(w, h), (cw, ch), (cw, ch)],
+    }
+}
+
+/// Row addressing of one checked plane: row `y` starts at `origin + y * stride`.
+#[derive(Debug, Clone, Copy, Default)]
+struct Rows {
+    origin: isize,
+    stride: isize,
+}
+
+impl Rows {
+    #[inline(always)]
+    fn at(self, y: usize) -> usize {
+        // In range: checked by `Preprocessor::check` for every row of the plane.
+        (self.origin + y as isize * self.stride) as usize
+    }
 }
 
 /// Model-side parameters of the tensor.
@@ -200,16 +254,10 @@ impl TensorSpec {
     }
 }
 
-#[derive(Debug, Clone, PartialEq)]
+/// A frame that cannot be read (wrong size, short plane, bad stride) or a failed allocation.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
 pub struct PreprocessError(pub String);
-
-impl fmt::Display for PreprocessError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl std::error::Error for PreprocessError {}
 
 /// Resampling taps for one output coordinate: source indices `start..start+weights.len()`.
 #[derive(Debug, Clone)]
@@ -289,6 +337,11 @@ impl Preprocessor {
                 "frame size {src_w}x{src_h} is empty"
             )));
         }
+        if src_w > MAX_FRAME_SIDE || src_h > MAX_FRAME_SIDE {
+            return Err(PreprocessError(format!(
+                "frame size {src_w}x{src_h} is too large (each side at most {MAX_FRAME_SIDE})"
+            )));
+        }
         if spec.width == 0 || spec.height == 0 {
             return Err(PreprocessError(format!(
                 "model input size {}x{} is empty",
@@ -330,49 +383,50 @@ impl Preprocessor {
         &self.spec
     }
 
-    /// Minimum bytes each plane must hold (for validation of mapped frames).
-    fn check(&self, f: &RawFrame) -> Result<(), PreprocessError> {
+    /// Check that every row of every plane lies inside its slice (checked arithmetic: hostile
+    /// strides and sizes are errors, never wrapped or panicking), and return the row addressing.
+    fn check(&self, f: &RawFrame) -> Result<[Rows; 3], PreprocessError> {
         if f.format != self.format || f.width != self.src_w || f.height != self.src_h {
             return Err(PreprocessError(format!(
                 "frame is {:?} {}x{}, preprocessor was built for {:?} {}x{}",
                 f.format, f.width, f.height, self.format, self.src_w, self.src_h
             )));
         }
-        let (w, h) = (f.width as usize, f.height as usize);
-        let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
-        let need: [(usize, usize, usize); 3] = match f.format {
-            PixelFormat::Rgb | PixelFormat::Bgr => [(3 * w, h, 0), (0, 0, 0), (0, 0, 0)],
-            PixelFormat::Rgbx | PixelFormat::Rgba | PixelFormat::Bgrx | PixelFormat::Bgra => {
-                [(4 * w, h, 0), (0, 0, 0), (0, 0, 0)]
-            }
-            PixelFormat::Gray8 => [(w, h, 0), (0, 0, 0), (0, 0, 0)],
-            PixelFormat::Nv12 => [(w, h, 0), (2 * cw, ch, 1), (0, 0, 0)],
-            PixelFormat::I420 => [(w, h, 0), (cw, ch, 1), (cw, ch, 2)],
-        };
-        for (row_bytes, rows, p) in need {
+        let mut rows_out = [Rows::default(); 3];
+        let layout = plane_layout(f.format, f.width as usize, f.height as usize);
+        for (p, &(row_bytes, rows)) in layout.iter().enumerate() {
             if rows == 0 {
                 continue;
             }
+            let err = |what: String| PreprocessError(format!("plane {p}: {what}"));
             let stride = f.strides[p];
-            if stride < row_bytes {
-                return Err(PreprocessError(format!(
-                    "plane {p}: stride {stride} is smaller than a row ({row_bytes} bytes)"
+            let abs = stride.unsigned_abs();
+            if abs < row_bytes {
+                return Err(err(format!(
+                    "stride {stride} is smaller than a row ({row_bytes} bytes)"
                 )));
             }
-            let len = stride * (rows - 1) + row_bytes;
-            if f.planes[p].len() < len {
-                return Err(PreprocessError(format!(
-                    "plane {p}: {} bytes, need {len}",
-                    f.planes[p].len()
-                )));
+            let need = abs
+                .checked_mul(rows - 1)
+                .and_then(|v| v.checked_add(row_bytes))
+                .filter(|&v| v <= isize::MAX as usize)
+                .ok_or_else(|| err(format!("stride {stride} x {rows} rows overflows")))?;
+            if f.planes[p].len() < need {
+                return Err(err(format!("{} bytes, need {need}", f.planes[p].len())));
             }
+            let origin = if stride < 0 {
+                (abs * (rows - 1)) as isize
+            } else {
+                0
+            };
+            rows_out[p] = Rows { origin, stride };
         }
-        Ok(())
+        Ok(rows_out)
     }
 
     /// Fill `out` (length `3*H*W`, CHW) from the frame.
     pub fn run(&self, frame: &RawFrame, out: &mut [f32]) -> Result<(), PreprocessError> {
-        self.check(frame)?;
+        let [r0, r1, r2] = self.check(frame)?;
         if out.len() != self.spec.len() {
             return Err(PreprocessError(format!(
                 "output tensor has {} elements, need {}",
@@ -381,41 +435,60 @@ impl Preprocessor {
             )));
         }
         let [p0, p1, p2] = frame.planes;
-        let [s0, s1, s2] = frame.strides;
         let yuv = self.yuv;
         let rgb = |v: [f32; 3]| v;
         let to_rgb = |v: [f32; 3]| yuv.to_rgb(v);
+        let scratch = Scratch::new(self)?;
         match self.format {
-            PixelFormat::Rgb => self.resample(out, |x, y| px3(p0, y * s0 + 3 * x, [0, 1, 2]), rgb),
-            PixelFormat::Bgr => self.resample(out, |x, y| px3(p0, y * s0 + 3 * x, [2, 1, 0]), rgb),
-            PixelFormat::Rgbx | PixelFormat::Rgba => {
-                self.resample(out, |x, y| px3(p0, y * s0 + 4 * x, [0, 1, 2]), rgb)
-            }
-            PixelFormat::Bgrx | PixelFormat::Bgra => {
-                self.resample(out, |x, y| px3(p0, y * s0 + 4 * x, [2, 1, 0]), rgb)
-            }
+            PixelFormat::Rgb => self.resample(
+                out,
+                scratch,
+                |x, y| px3(p0, r0.at(y) + 3 * x, [0, 1, 2]),
+                rgb,
+            ),
+            PixelFormat::Bgr => self.resample(
+                out,
+                scratch,
+                |x, y| px3(p0, r0.at(y) + 3 * x, [2, 1, 0]),
+                rgb,
+            ),
+            PixelFormat::Rgbx | PixelFormat::Rgba => self.resample(
+                out,
+                scratch,
+                |x, y| px3(p0, r0.at(y) + 4 * x, [0, 1, 2]),
+                rgb,
+            ),
+            PixelFormat::Bgrx | PixelFormat::Bgra => self.resample(
+                out,
+                scratch,
+                |x, y| px3(p0, r0.at(y) + 4 * x, [2, 1, 0]),
+                rgb,
+            ),
             PixelFormat::Gray8 => self.resample(
                 out,
+                scratch,
                 |x, y| {
-                    let v = p0[y * s0 + x] as f32;
+                    let v = p0[r0.at(y) + x] as f32;
                     [v, v, v]
                 },
                 rgb,
             ),
             PixelFormat::Nv12 => self.resample(
                 out,
+                scratch,
                 |x, y| {
-                    let c = (y / 2) * s1 + (x / 2) * 2;
-                    [p0[y * s0 + x] as f32, p1[c] as f32, p1[c + 1] as f32]
+                    let c = r1.at(y / 2) + (x / 2) * 2;
+                    [p0[r0.at(y) + x] as f32, p1[c] as f32, p1[c + 1] as f32]
                 },
                 to_rgb,
             ),
             PixelFormat::I420 => self.resample(
                 out,
+                scratch,
                 |x, y| {
-                    let c1 = (y / 2) * s1 + x / 2;
-                    let c2 = (y / 2) * s2 + x / 2;
-                    [p0[y * s0 + x] as f32, p1[c1] as f32, p2[c2] as f32]
+                    let c1 = r1.at(y / 2) + x / 2;
+                    let c2 = r2.at(y / 2) + x / 2;
+                    [p0[r0.at(y) + x] as f32, p1[c1] as f32, p2[c2] as f32]
                 },
                 to_rgb,
             ),
@@ -423,27 +496,93 @@ impl Preprocessor {
         Ok(())
     }
 
-    /// Map a GStreamer video buffer described by `info` (strides and plane offsets from its
-    /// GstVideoMeta when present) and fill `out`.
+    /// Read a GStreamer video buffer described by `info` (plane offsets and strides from its
+    /// GstVideoMeta when present, negative strides included) and fill `out`. Every offset and
+    /// size is checked: a buffer that does not hold the frame is an error, never a panic.
     pub fn run_buffer(
         &self,
         buf: &gst::BufferRef,
         info: &gst_video::VideoInfo,
         out: &mut [f32],
     ) -> Result<(), PreprocessError> {
-        use gst_video::prelude::VideoFrameExt;
-        let frame = gst_video::VideoFrameRef::from_buffer_ref_readable(buf, info).map_err(|e| {
-            PreprocessError(format!("cannot map the buffer as {:?}: {e}", info.format()))
-        })?;
         let format = PixelFormat::from_video_format(info.format())
             .ok_or_else(|| PreprocessError(format!("unsupported format {:?}", info.format())))?;
+        let n = format.n_planes();
+        let mut offsets = [0usize; 3];
+        let mut strides = [0isize; 3];
+        match buf.meta::<gst_video::VideoMeta>() {
+            Some(m) => {
+                if m.format() != info.format()
+                    || m.width() != info.width()
+                    || m.height() != info.height()
+                    || m.n_planes() as usize != n
+                {
+                    return Err(PreprocessError(format!(
+                        "the buffer's video meta ({:?} {}x{}, {} planes) disagrees with the caps \
+                         ({:?} {}x{})",
+                        m.format(),
+                        m.width(),
+                        m.height(),
+                        m.n_planes(),
+                        info.format(),
+                        info.width(),
+                        info.height()
+                    )));
+                }
+                for p in 0..n {
+                    offsets[p] = m.offset()[p];
+                    strides[p] = m.stride()[p] as isize;
+                }
+            }
+            None => {
+                for p in 0..n {
+                    offsets[p] = info.offset()[p];
+                    strides[p] = info.stride()[p] as isize;
+                }
+            }
+        }
+        let map = buf
+            .map_readable()
+            .map_err(|e| PreprocessError(format!("cannot map the buffer: {e}")))?;
+        let data = map.as_slice();
+        let layout = plane_layout(format, info.width() as usize, info.height() as usize);
         let mut planes: [&[u8]; 3] = [&[], &[], &[]];
-        let mut strides = [0usize; 3];
-        for p in 0..format.n_planes() {
-            planes[p] = frame
-                .plane_data(p as u32)
-                .map_err(|e| PreprocessError(format!("plane {p}: {e}")))?;
-            strides[p] = frame.plane_stride()[p] as usize;
+        for p in 0..n {
+            let (row_bytes, rows) = layout[p];
+            let (offset, stride) = (offsets[p], strides[p]);
+            let err = |what: String| {
+                PreprocessError(format!(
+                    "plane {p} (offset {offset}, stride {stride}, {rows} rows of {row_bytes} \
+                     bytes): {what}"
+                ))
+            };
+            let abs = stride.unsigned_abs();
+            if abs < row_bytes {
+                return Err(err("the stride is smaller than a row".into()));
+            }
+            let back = abs
+                .checked_mul(rows.saturating_sub(1))
+                .ok_or_else(|| err("overflows".into()))?;
+            let span = back
+                .checked_add(row_bytes)
+                .ok_or_else(|| err("overflows".into()))?;
+            // Lowest address of the plane: the first row, or the last one when bottom-up.
+            let start = if stride < 0 {
+                offset
+                    .checked_sub(back)
+                    .ok_or_else(|| err("the rows start before the buffer".into()))?
+            } else {
+                offset
+            };
+            let end = start
+                .checked_add(span)
+                .ok_or_else(|| err("overflows".into()))?;
+            planes[p] = data.get(start..end).ok_or_else(|| {
+                err(format!(
+                    "needs bytes {start}..{end}, the buffer has {}",
+                    data.len()
+                ))
+            })?;
         }
         let raw = RawFrame {
             format,
@@ -459,7 +598,7 @@ impl Preprocessor {
     /// (each row computed once, buffers reused), a vertical pass per output row, then `post`
     /// (colour conversion to RGB) and normalisation per output pixel.
     #[inline(always)]
-    fn resample<F, P>(&self, out: &mut [f32], fetch: F, post: P)
+    fn resample<F, P>(&self, out: &mut [f32], scratch: Scratch, fetch: F, post: P)
     where
         F: Fn(usize, usize) -> [f32; 3],
         P: Fn([f32; 3]) -> [f32; 3],
@@ -467,12 +606,14 @@ impl Preprocessor {
         let ow = self.spec.width as usize;
         let oh = self.spec.height as usize;
         let plane = ow * oh;
-        let (x0, x1) = self.x_range;
-        let mut src_row = vec![[0f32; 3]; x1 - x0];
+        let x0 = self.x_range.0;
+        let Scratch {
+            mut src_row,
+            mut acc,
+            mut spare,
+        } = scratch;
         // Horizontally resampled source rows, by source row index; the taps only move forward.
-        let mut rows: Vec<(usize, Vec<[f32; 3]>)> = Vec::new();
-        let mut spare: Vec<Vec<[f32; 3]>> = Vec::new();
-        let mut acc = vec![[0f32; 3]; ow];
+        let mut rows: Vec<(usize, Vec<[f32; 3]>)> = Vec::with_capacity(spare.len());
         let (m, s) = (self.spec.mean, self.spec.std);
         let scale = [
             1.0 / (255.0 * s[0]),
@@ -527,6 +668,34 @@ impl Preprocessor {
                 }
             }
         }
+    }
+}
+
+/// The resampler's working buffers, allocated fallibly before a frame is read.
+struct Scratch {
+    src_row: Vec<[f32; 3]>,
+    acc: Vec<[f32; 3]>,
+    /// Buffers for the horizontally resampled rows alive at once.
+    spare: Vec<Vec<[f32; 3]>>,
+}
+
+impl Scratch {
+    fn new(p: &Preprocessor) -> Result<Scratch, PreprocessError> {
+        let ow = p.spec.width as usize;
+        let (x0, x1) = p.x_range;
+        let live = p.y_taps.iter().map(|t| t.weights.len()).max().unwrap_or(1) + 1;
+        let mut spare = Vec::new();
+        spare
+            .try_reserve_exact(live)
+            .map_err(|e| PreprocessError(format!("cannot allocate row buffers: {e}")))?;
+        for _ in 0..live {
+            spare.push(try_filled(ow, [0f32; 3])?);
+        }
+        Ok(Scratch {
+            src_row: try_filled(x1.saturating_sub(x0), [0f32; 3])?,
+            acc: try_filled(ow, [0f32; 3])?,
+            spare,
+        })
     }
 }
 
@@ -594,9 +763,9 @@ mod tests {
                 planes.get(2).map(|p| &p[..]).unwrap_or(&[]),
             ],
             strides: [
-                strides[0],
-                *strides.get(1).unwrap_or(&0),
-                *strides.get(2).unwrap_or(&0),
+                strides[0] as isize,
+                *strides.get(1).unwrap_or(&0) as isize,
+                *strides.get(2).unwrap_or(&0) as isize,
             ],
         };
         let p = Preprocessor::new(format, w, h, YuvMatrix::BT601, s.clone()).unwrap();
@@ -756,5 +925,48 @@ mod tests {
         let mut out = vec![0.0; 48];
         let e = p.run(&f, &mut out).unwrap_err();
         assert!(e.0.contains("need 300"), "{e}");
+        // Hostile strides: errors, never wrapped sizes or panics.
+        for stride in [isize::MAX, isize::MIN, -29, 29, isize::MAX / 4] {
+            let f = RawFrame {
+                strides: [stride, 0, 0],
+                ..f
+            };
+            assert!(p.run(&f, &mut out).is_err(), "stride {stride}");
+        }
+    }
+
+    #[test]
+    fn absurd_frame_sizes_are_refused() {
+        let s = spec(16, 16, ResizeMode::ShortSideCrop);
+        let e =
+            Preprocessor::new(PixelFormat::Rgb, 2_000_000_000, 4, YuvMatrix::BT601, s).unwrap_err();
+        assert!(e.0.contains("too large"), "{e}");
+    }
+
+    #[test]
+    fn bottom_up_rows_match_top_down() {
+        let (w, h) = (23u32, 17u32);
+        let pic = picture(w, h, false);
+        let s = spec(16, 16, ResizeMode::Stretch);
+        let want = tensor(&pic, w, h, PixelFormat::Rgb, 0, &s);
+        // Store the rows bottom-up with a padded stride.
+        let stride = 3 * w as usize + 7;
+        let mut mem = vec![0u8; stride * h as usize];
+        for y in 0..h as usize {
+            let dst = (h as usize - 1 - y) * stride;
+            mem[dst..dst + 3 * w as usize]
+                .copy_from_slice(&pic[3 * w as usize * y..3 * w as usize * (y + 1)]);
+        }
+        let f = RawFrame {
+            format: PixelFormat::Rgb,
+            width: w,
+            height: h,
+            planes: [&mem, &[], &[]],
+            strides: [-(stride as isize), 0, 0],
+        };
+        let p = Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT601, s.clone()).unwrap();
+        let mut out = vec![0.0; s.len()];
+        p.run(&f, &mut out).unwrap();
+        assert_eq!(out, want);
     }
 }

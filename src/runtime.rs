@@ -12,33 +12,25 @@ use std::sync::Mutex;
 pub const BAKED_ORT_LIB: &str = env!("LEANGATE_BAKED_ORT_LIB");
 
 /// Why ONNX Runtime could not be loaded: every attempt, with its reason.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, thiserror::Error)]
+#[error(
+    "ONNX Runtime (libonnxruntime.so, version 1.31) could not be loaded. Tried: {}. Install it \
+     with `make setup` (extracts libonnxruntime.so.1.31.1 from the PyPI wheel \
+     onnxruntime==1.31.1, or onnxruntime-gpu==1.31.1 for CUDA), or point ORT_DYLIB_PATH at a \
+     libonnxruntime.so of version 1.31 or newer",
+    attempts_text(.attempts)
+)]
 pub struct RuntimeError {
     pub attempts: Vec<(String, String)>,
 }
 
-impl std::fmt::Display for RuntimeError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "ONNX Runtime (libonnxruntime.so, version 1.31) could not be loaded. Tried: "
-        )?;
-        for (i, (what, why)) in self.attempts.iter().enumerate() {
-            if i > 0 {
-                f.write_str("; ")?;
-            }
-            write!(f, "{what}: {why}")?;
-        }
-        write!(
-            f,
-            ". Install it with `make setup` (extracts libonnxruntime.so.1.31.1 from the PyPI wheel \
-             onnxruntime==1.31.1, or onnxruntime-gpu==1.31.1 for CUDA), or point ORT_DYLIB_PATH at a \
-             libonnxruntime.so of version 1.31 or newer"
-        )
-    }
+fn attempts_text(attempts: &[(String, String)]) -> String {
+    attempts
+        .iter()
+        .map(|(what, why)| format!("{what}: {why}"))
+        .collect::<Vec<_>>()
+        .join("; ")
 }
-
-impl std::error::Error for RuntimeError {}
 
 static ENV: Mutex<Option<(ort::environment::Environment, String)>> = Mutex::new(None);
 

@@ -15,8 +15,20 @@ pub struct StatsMessage {
     pub keep_ratio: f64,
     /// Mean preprocessing + inference time per scored frame, microseconds.
     pub inference_mean_us: f64,
-    /// 99th percentile of that time, microseconds.
+    /// Median of that time, microseconds (to within about 3 %: a bounded histogram).
+    pub inference_p50_us: u64,
+    /// 99th percentile of that time, microseconds (to within about 3 %).
     pub inference_p99_us: u64,
+    /// Frames received since the previous `leangate-stats` message (or start).
+    pub interval_frames_in: u64,
+    /// Frames kept since the previous `leangate-stats` message (or start).
+    pub interval_frames_kept: u64,
+    /// Mean inference time over the frames scored since the previous message, microseconds.
+    pub interval_inference_mean_us: f64,
+    /// Median inference time since the previous message, microseconds.
+    pub interval_inference_p50_us: u64,
+    /// 99th percentile inference time since the previous message, microseconds.
+    pub interval_inference_p99_us: u64,
     /// The execution provider in use (`cpu`, `cuda`, `tensorrt`).
     pub execution_provider: String,
     /// The model's name.
@@ -37,7 +49,16 @@ impl StatsMessage {
             .field("frames-kept", self.frames_kept)
             .field("keep-ratio", self.keep_ratio)
             .field("inference-mean-us", self.inference_mean_us)
+            .field("inference-p50-us", self.inference_p50_us)
             .field("inference-p99-us", self.inference_p99_us)
+            .field("interval-frames-in", self.interval_frames_in)
+            .field("interval-frames-kept", self.interval_frames_kept)
+            .field(
+                "interval-inference-mean-us",
+                self.interval_inference_mean_us,
+            )
+            .field("interval-inference-p50-us", self.interval_inference_p50_us)
+            .field("interval-inference-p99-us", self.interval_inference_p99_us)
             .field("execution-provider", self.execution_provider.as_str())
             .field("model", self.model.as_str())
             .field("threshold", self.threshold)
@@ -60,7 +81,13 @@ impl StatsMessage {
             frames_kept: get(s, "frames-kept")?,
             keep_ratio: get(s, "keep-ratio")?,
             inference_mean_us: get(s, "inference-mean-us")?,
+            inference_p50_us: get(s, "inference-p50-us")?,
             inference_p99_us: get(s, "inference-p99-us")?,
+            interval_frames_in: get(s, "interval-frames-in")?,
+            interval_frames_kept: get(s, "interval-frames-kept")?,
+            interval_inference_mean_us: get(s, "interval-inference-mean-us")?,
+            interval_inference_p50_us: get(s, "interval-inference-p50-us")?,
+            interval_inference_p99_us: get(s, "interval-inference-p99-us")?,
             execution_provider: get(s, "execution-provider")?,
             model: get(s, "model")?,
             threshold: get(s, "threshold")?,
@@ -81,42 +108,150 @@ impl TryFrom<&gst::StructureRef> for StatsMessage {
     }
 }
 
-/// Per-frame inference times, for the mean and 99th percentile.
+/// Sub-buckets per power of two: values are kept to within 1/`SUB` (about 3 %) of their size.
+const SUB_BITS: u32 = 5;
+const SUB: usize = 1 << SUB_BITS;
+/// Buckets: values below `SUB` exactly, then `SUB` per octave up to `u64::MAX`.
+const BUCKETS: usize = SUB * (64 - SUB_BITS as usize + 1);
+
+/// A fixed-size log-bucket histogram of microsecond times (like HdrHistogram with 5 bits of
+/// precision): constant memory (a few KiB) whatever the number of samples, O(1) to record, and
+/// percentiles within about 3 % (reported as the bucket's upper bound, capped at the maximum seen).
+#[derive(Clone)]
+pub struct Histogram {
+    counts: Box<[u64; BUCKETS]>,
+    count: u64,
+    sum: u128,
+    max: u64,
+}
+
+impl std::fmt::Debug for Histogram {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Histogram")
+            .field("count", &self.count)
+            .field("mean", &self.mean())
+            .field("max", &self.max)
+            .finish()
+    }
+}
+
+impl Default for Histogram {
+    fn default() -> Self {
+        Histogram {
+            counts: Box::new([0; BUCKETS]),
+            count: 0,
+            sum: 0,
+            max: 0,
+        }
+    }
+}
+
+fn bucket_of(v: u64) -> usize {
+    if v < SUB as u64 {
+        return v as usize;
+    }
+    let msb = 63 - v.leading_zeros(); // >= SUB_BITS
+    let shift = msb - SUB_BITS;
+    let sub = ((v >> shift) as usize) - SUB; // 0..SUB
+    SUB * (shift as usize + 1) + sub
+}
+
+/// The largest value that falls in bucket `b`.
+fn bucket_high(b: usize) -> u64 {
+    if b < SUB {
+        return b as u64;
+    }
+    let shift = (b / SUB - 1) as u32;
+    let sub = (b % SUB) as u64 + SUB as u64;
+    let low = sub << shift;
+    low.saturating_add((1u64 << shift) - 1)
+}
+
+impl Histogram {
+    pub fn record(&mut self, v: u64) {
+        self.counts[bucket_of(v)] += 1;
+        self.count += 1;
+        self.sum += v as u128;
+        self.max = self.max.max(v);
+    }
+
+    #[cfg(test)]
+    fn count(&self) -> u64 {
+        self.count
+    }
+
+    pub fn clear(&mut self) {
+        if self.count > 0 {
+            self.counts.fill(0);
+        }
+        self.count = 0;
+        self.sum = 0;
+        self.max = 0;
+    }
+
+    /// Mean (0 with no sample).
+    pub fn mean(&self) -> f64 {
+        if self.count == 0 {
+            0.0
+        } else {
+            self.sum as f64 / self.count as f64
+        }
+    }
+
+    /// Nearest-rank percentile `p` in (0, 100] (0 with no sample), to within a bucket.
+    pub fn percentile(&self, p: f64) -> u64 {
+        if self.count == 0 {
+            return 0;
+        }
+        let rank = ((p / 100.0) * self.count as f64).ceil().max(1.0) as u64;
+        let rank = rank.min(self.count);
+        let mut seen = 0u64;
+        for (b, &c) in self.counts.iter().enumerate() {
+            seen += c;
+            if seen >= rank {
+                return bucket_high(b).min(self.max);
+            }
+        }
+        self.max
+    }
+}
+
+/// Per-frame inference times, over the whole run and since the last stats message, in bounded
+/// memory (two [`Histogram`]s).
 #[derive(Debug, Clone, Default)]
 pub struct InferenceStats {
-    samples_us: Vec<u64>,
-    sum_us: u128,
+    run: Histogram,
+    interval: Histogram,
 }
 
 impl InferenceStats {
     pub fn record(&mut self, us: u64) {
-        self.samples_us.push(us);
-        self.sum_us += us as u128;
+        self.run.record(us);
+        self.interval.record(us);
+    }
+
+    pub fn interval(&self) -> &Histogram {
+        &self.interval
+    }
+
+    /// Start a new interval (after a stats message).
+    pub fn start_interval(&mut self) {
+        self.interval.clear();
     }
 
     #[cfg(test)]
-    fn count(&self) -> usize {
-        self.samples_us.len()
+    fn count(&self) -> u64 {
+        self.run.count()
     }
 
-    /// Mean in microseconds (0 with no sample).
+    /// Mean over the run in microseconds (0 with no sample).
     pub fn mean_us(&self) -> f64 {
-        if self.samples_us.is_empty() {
-            0.0
-        } else {
-            self.sum_us as f64 / self.samples_us.len() as f64
-        }
+        self.run.mean()
     }
 
-    /// Nearest-rank percentile `p` in (0, 100], microseconds (0 with no sample).
+    /// Percentile `p` in (0, 100] over the run, microseconds (0 with no sample).
     pub fn percentile_us(&self, p: f64) -> u64 {
-        if self.samples_us.is_empty() {
-            return 0;
-        }
-        let mut v = self.samples_us.clone();
-        let rank = ((p / 100.0) * v.len() as f64).ceil().max(1.0) as usize;
-        let idx = rank.min(v.len()) - 1;
-        *v.select_nth_unstable(idx).1
+        self.run.percentile(p)
     }
 }
 
@@ -133,9 +268,52 @@ mod tests {
         }
         assert_eq!(s.count(), 200);
         assert!((s.mean_us() - 100.5).abs() < 1e-9);
-        assert_eq!(s.percentile_us(99.0), 198);
+        // Within a bucket (1/32 of the value).
+        let close = |got: u64, want: u64| got >= want && got <= want + want / 32;
+        assert!(
+            close(s.percentile_us(99.0), 198),
+            "{}",
+            s.percentile_us(99.0)
+        );
         assert_eq!(s.percentile_us(100.0), 200);
-        assert_eq!(s.percentile_us(50.0), 100);
+        assert!(
+            close(s.percentile_us(50.0), 100),
+            "{}",
+            s.percentile_us(50.0)
+        );
+        assert_eq!(s.interval().count(), 200);
+        s.start_interval();
+        assert_eq!(s.interval().count(), 0);
+        assert_eq!(s.interval().percentile(50.0), 0);
+        s.record(7);
+        assert_eq!(s.interval().percentile(99.0), 7);
+        assert_eq!(s.count(), 201);
+    }
+
+    #[test]
+    fn histogram_is_bounded_and_accurate() {
+        // Every bucket boundary maps back into its own bucket.
+        for v in (0..5000u64).chain([u64::MAX, u64::MAX / 3, 1 << 40]) {
+            let b = bucket_of(v);
+            assert!(b < BUCKETS);
+            assert!(bucket_high(b) >= v, "{v}");
+            assert!(v >= bucket_high(b) - bucket_high(b) / 16, "{v}");
+        }
+        let mut h = Histogram::default();
+        let size = std::mem::size_of_val(&*h.counts);
+        for i in 0..1_000_000u64 {
+            h.record(i % 10_000);
+        }
+        assert_eq!(
+            std::mem::size_of_val(&*h.counts),
+            size,
+            "memory does not grow"
+        );
+        let p50 = h.percentile(50.0);
+        assert!((4800..=5200).contains(&p50), "{p50}");
+        let p99 = h.percentile(99.0);
+        assert!((9700..=10_000).contains(&p99), "{p99}");
+        assert!((h.mean() - 4999.5).abs() < 1e-6);
     }
 
     #[test]
@@ -146,7 +324,13 @@ mod tests {
             frames_kept: 3,
             keep_ratio: 0.3,
             inference_mean_us: 812.5,
+            inference_p50_us: 800,
             inference_p99_us: 1400,
+            interval_frames_in: 4,
+            interval_frames_kept: 1,
+            interval_inference_mean_us: 790.0,
+            interval_inference_p50_us: 780,
+            interval_inference_p99_us: 900,
             execution_provider: "cpu".into(),
             model: "leangate-s".into(),
             threshold: 0.5,

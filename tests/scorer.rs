@@ -176,7 +176,7 @@ fn embedded_default_is_a_split_model_with_its_metadata() {
             width: w,
             height: h,
             planes: [img.as_raw(), &[], &[]],
-            strides: [3 * w as usize, 0, 0],
+            strides: [3 * w as isize, 0, 0],
         };
         let mut t = vec![0.0; spec.len()];
         pre.run(&raw, &mut t).unwrap();

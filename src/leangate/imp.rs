@@ -5,12 +5,13 @@ use std::time::Instant;
 use gst::glib;
 use gst::prelude::*;
 use gst::subclass::prelude::*;
+use gst_base::prelude::*;
 use gst_base::subclass::prelude::*;
 
 use super::{ExecutionProviderChoice, GateMode, FORCE_KEYFRAME_EVENT, RESET_EVENT};
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
-use crate::preprocess::{PixelFormat, Preprocessor, YuvMatrix};
+use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
 use crate::scorer::{ModelSource, Scorer, ScorerError, ScorerOptions};
 use crate::stats::{InferenceStats, StatsMessage};
 
@@ -22,15 +23,29 @@ static CAT: LazyLock<gst::DebugCategory> = LazyLock::new(|| {
     )
 });
 
-/// Threshold used when neither the property nor the model sets one.
-const DEFAULT_THRESHOLD: f64 = 0.5;
+/// `threshold` value meaning "take it from the model's `leangate.threshold` metadata".
+pub(super) const THRESHOLD_FROM_MODEL: f64 = -1.0;
+/// Threshold used when the property is [`THRESHOLD_FROM_MODEL`] and the model sets none.
+const FALLBACK_THRESHOLD: f64 = 0.5;
+
+// Property defaults: each defined once, used by `Settings::default` and the ParamSpecs.
+const DEFAULT_THRESHOLD: f64 = THRESHOLD_FROM_MODEL;
+const DEFAULT_WARMUP: u32 = 0;
+const DEFAULT_MAX_GAP: u32 = 0;
+const DEFAULT_MODE: GateMode = GateMode::Drop;
+const DEFAULT_EXECUTION_PROVIDER: ExecutionProviderChoice = ExecutionProviderChoice::Auto;
+const DEFAULT_DEVICE_ID: i32 = 0;
+const DEFAULT_THREADS: u32 = 0;
+const DEFAULT_STATS_INTERVAL: u64 = 0;
+
 /// Minimum time between two run-time warnings posted on the bus.
 const WARN_EVERY: std::time::Duration = std::time::Duration::from_secs(5);
 
 #[derive(Debug, Clone)]
 struct Settings {
     model: Option<String>,
-    /// Negative: take it from the model's metadata, else DEFAULT_THRESHOLD.
+    /// [`THRESHOLD_FROM_MODEL`] (-1): from the model's metadata, else FALLBACK_THRESHOLD;
+    /// otherwise in [0, 1].
     threshold: f64,
     warmup: u32,
     max_gap: u32,
@@ -39,20 +54,46 @@ struct Settings {
     device_id: i32,
     threads: u32,
     stats_interval: u64,
+    /// Between `start` and `stop`: the model and session settings are in use, and changing them
+    /// is refused (the properties keep reporting what is in use).
+    in_use: bool,
 }
 
 impl Default for Settings {
     fn default() -> Self {
         Settings {
             model: None,
-            threshold: -1.0,
-            warmup: 0,
-            max_gap: 0,
-            mode: GateMode::Drop,
-            execution_provider: ExecutionProviderChoice::Auto,
-            device_id: 0,
-            threads: 0,
-            stats_interval: 0,
+            threshold: DEFAULT_THRESHOLD,
+            warmup: DEFAULT_WARMUP,
+            max_gap: DEFAULT_MAX_GAP,
+            mode: DEFAULT_MODE,
+            execution_provider: DEFAULT_EXECUTION_PROVIDER,
+            device_id: DEFAULT_DEVICE_ID,
+            threads: DEFAULT_THREADS,
+            stats_interval: DEFAULT_STATS_INTERVAL,
+            in_use: false,
+        }
+    }
+}
+
+/// The settings the streaming thread needs for one frame (copied out of the settings lock).
+#[derive(Debug, Clone, Copy)]
+struct FrameSettings {
+    threshold: f64,
+    warmup: u32,
+    max_gap: u32,
+    mode: GateMode,
+    stats_interval: u64,
+}
+
+impl From<&Settings> for FrameSettings {
+    fn from(s: &Settings) -> Self {
+        FrameSettings {
+            threshold: s.threshold,
+            warmup: s.warmup,
+            max_gap: s.max_gap,
+            mode: s.mode,
+            stats_interval: s.stats_interval,
         }
     }
 }
@@ -67,10 +108,22 @@ struct State {
     current: Vec<f32>,
     stats: InferenceStats,
     last_stats_pts: Option<gst::ClockTime>,
+    /// `frames-in` / `frames-kept` at the previous stats message (for the interval fields).
+    interval_start: (u64, u64),
     last_warning: Option<Instant>,
     suppressed_warnings: u64,
 }
 
+/// What the streaming thread posts or pushes, collected under the state lock and sent after it
+/// is released (a synchronous bus handler may call back into the element).
+#[derive(Debug, Default)]
+struct Outbox {
+    warnings: Vec<String>,
+    stats: Vec<gst::Structure>,
+}
+
+/// Locking: `settings` and `state` are never held at the same time, and nothing is posted,
+/// pushed or called out while either is held.
 #[derive(Default)]
 pub struct LeanGate {
     settings: Mutex<Settings>,
@@ -85,21 +138,31 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// What one frame turned into.
+struct Verdict {
+    keep: bool,
+    meta: GateMeta,
+}
+
 impl LeanGate {
-    fn gate_config(settings: &Settings, model_threshold: Option<f64>) -> GateConfig {
+    fn gate_config(settings: &FrameSettings, model_threshold: Option<f64>) -> GateConfig {
         GateConfig {
             threshold: if settings.threshold >= 0.0 {
                 settings.threshold
             } else {
-                model_threshold.unwrap_or(DEFAULT_THRESHOLD)
+                model_threshold.unwrap_or(FALLBACK_THRESHOLD)
             },
             warmup: settings.warmup as u64,
             max_gap: settings.max_gap as u64,
         }
     }
 
-    /// Post a warning on the bus at most every WARN_EVERY; always log it.
-    fn warn_rate_limited(&self, state: &mut State, msg: &str) {
+    fn frame_settings(&self) -> FrameSettings {
+        FrameSettings::from(&*lock(&self.settings))
+    }
+
+    /// Log a run-time warning, and queue it for the bus at most every WARN_EVERY.
+    fn warn_rate_limited(&self, state: &mut State, out: &mut Outbox, msg: &str) {
         gst::warning!(CAT, imp = self, "{msg}");
         let now = Instant::now();
         let due = state
@@ -114,11 +177,8 @@ impl LeanGate {
             } else {
                 String::new()
             };
-            gst::element_imp_warning!(
-                self,
-                gst::StreamError::Failed,
-                ("{}; the frame was kept (fail open){}", msg, extra)
-            );
+            out.warnings
+                .push(format!("{msg}; the frame was kept (fail open){extra}"));
             state.last_warning = Some(now);
             state.suppressed_warnings = 0;
         } else {
@@ -126,10 +186,12 @@ impl LeanGate {
         }
     }
 
-    fn post_stats(&self, state: &State) {
+    /// The `leangate-stats` structure; starts a new interval.
+    fn stats_structure(&self, state: &mut State) -> gst::Structure {
         let frames_in = self.frames_in.load(Ordering::Relaxed);
         let frames_kept = self.frames_kept.load(Ordering::Relaxed);
-        let threshold = state.gate.config().threshold;
+        let (in0, kept0) = state.interval_start;
+        let interval = state.stats.interval();
         let s = StatsMessage {
             frames_in,
             frames_kept,
@@ -139,18 +201,36 @@ impl LeanGate {
                 0.0
             },
             inference_mean_us: state.stats.mean_us(),
+            inference_p50_us: state.stats.percentile_us(50.0),
             inference_p99_us: state.stats.percentile_us(99.0),
+            interval_frames_in: frames_in.saturating_sub(in0),
+            interval_frames_kept: frames_kept.saturating_sub(kept0),
+            interval_inference_mean_us: interval.mean(),
+            interval_inference_p50_us: interval.percentile(50.0),
+            interval_inference_p99_us: interval.percentile(99.0),
             execution_provider: state.scorer.provider().to_string(),
             model: state.scorer.info().name.clone(),
-            threshold,
+            threshold: state.gate.config().threshold,
         }
         .to_structure();
-        let _ = self
-            .obj()
-            .post_message(gst::message::Element::builder(s).src(&*self.obj()).build());
+        state.interval_start = (frames_in, frames_kept);
+        state.stats.start_interval();
+        s
     }
 
-    /// Handle the custom events (both directions); returns true when it was one of ours.
+    /// Post what was collected under the lock. Must be called with no lock held.
+    fn send(&self, out: Outbox) {
+        for w in out.warnings {
+            gst::element_imp_warning!(self, gst::StreamError::Failed, ("{}", w));
+        }
+        for s in out.stats {
+            let obj = self.obj();
+            let _ = obj.post_message(gst::message::Element::builder(s).src(&*obj).build());
+        }
+    }
+
+    /// Handle the custom events (both directions, in-band or out of band); returns true when it
+    /// was one of ours.
     fn note_custom_event(&self, event: &gst::Event) -> bool {
         let Some(s) = event.structure() else {
             return false;
@@ -177,6 +257,107 @@ impl LeanGate {
         pre.run_buffer(buf, info, current)
             .map_err(|e| e.to_string())
     }
+
+    /// Score and decide one frame under the state lock; what is to be posted goes to `out`.
+    fn gate_frame(
+        &self,
+        buf: &gst::BufferRef,
+        fs: &FrameSettings,
+        out: &mut Outbox,
+    ) -> Result<Verdict, gst::FlowError> {
+        let mut guard = lock(&self.state);
+        let Some(state) = guard.as_mut() else {
+            return Err(gst::FlowError::Flushing);
+        };
+        state
+            .gate
+            .set_config(Self::gate_config(fs, state.model_threshold));
+        self.frames_in.fetch_add(1, Ordering::Relaxed);
+        if self.reset_pending.swap(false, Ordering::SeqCst) {
+            state.gate.drop_reference();
+        }
+        if self.force_pending.swap(false, Ordering::SeqCst) {
+            state.gate.force_keyframe();
+        }
+
+        let t0 = Instant::now();
+        let pre = self.preprocess(state, buf);
+        let frame_readable = pre.is_ok();
+        let (score, utility) = match pre {
+            Err(e) => {
+                self.warn_rate_limited(state, out, &format!("cannot read frame: {e}"));
+                (Score::Failed, f64::NAN)
+            }
+            Ok(()) if !state.gate.has_reference() => (Score::NoReference, f64::NAN),
+            Ok(()) => match state.scorer.score(&state.reference, &state.current) {
+                Ok(u) => (Score::Utility(u as f64), u as f64),
+                Err(e) => {
+                    self.warn_rate_limited(state, out, &e.to_string());
+                    (Score::Failed, f64::NAN)
+                }
+            },
+        };
+        let inference_us = t0.elapsed().as_micros().min(u64::MAX as u128) as u64;
+        if matches!(score, Score::Utility(_)) {
+            state.stats.record(inference_us);
+        }
+        let pts = buf.pts();
+        let decision = state.gate.decide(score);
+        let reference_pts = if decision.keep && score == Score::NoReference {
+            pts
+        } else {
+            state.reference_pts
+        };
+        if decision.keep {
+            // A split model reuses the features it just computed for this frame.
+            state.scorer.on_keep(matches!(score, Score::Utility(_)));
+            if !frame_readable {
+                // The frame could not be read: it cannot serve as a reference tensor.
+                state.gate.drop_reference();
+            } else {
+                std::mem::swap(&mut state.reference, &mut state.current);
+            }
+            state.reference_pts = pts;
+            self.frames_kept.fetch_add(1, Ordering::Relaxed);
+        }
+
+        if let (Some(pts), true) = (pts, fs.stats_interval > 0) {
+            match state.last_stats_pts {
+                None => state.last_stats_pts = Some(pts),
+                // PTS went backwards without a flush (a looping source, a new segment): measure
+                // the interval from here instead of waiting for the old position to come back.
+                Some(last) if pts < last => state.last_stats_pts = Some(pts),
+                Some(last) if pts.nseconds() - last.nseconds() >= fs.stats_interval => {
+                    state.last_stats_pts = Some(pts);
+                    let s = self.stats_structure(state);
+                    out.stats.push(s);
+                }
+                _ => {}
+            }
+        }
+
+        gst::trace!(
+            CAT,
+            imp = self,
+            "pts {:?} utility {:.4} keep {} ({})",
+            pts,
+            utility,
+            decision.keep,
+            decision.reason
+        );
+        Ok(Verdict {
+            keep: decision.keep,
+            meta: GateMeta {
+                utility,
+                keep: decision.keep,
+                reason: decision.reason,
+                keyframe_index: decision.keyframe_index,
+                reference_pts,
+                frames_since_keyframe: decision.frames_since_keyframe.min(u32::MAX as u64) as u32,
+                inference_us,
+            },
+        })
+    }
 }
 
 #[glib::object_subclass]
@@ -196,34 +377,36 @@ impl ObjectImpl for LeanGate {
                         "Path to a LeanGate model: a pair model (.onnx: inputs `reference`, \
                          `current` [N,3,H,W] float32, output `utility`) or the encoder of a split \
                          model; unset = the embedded default student leangate-s. See \
-                         models/README.md",
+                         models/README.md. Set it before the element starts: a change while it \
+                         runs is refused with a warning (the property keeps the model in use)",
                     )
                     .mutable_ready()
                     .build(),
                 glib::ParamSpecDouble::builder("threshold")
                     .nick("Threshold")
                     .blurb(
-                        "tau_keep: keep a frame when its predicted utility is >= this. \
-                         -1 = the model's leangate.threshold metadata, else 0.5",
+                        "tau_keep in [0, 1]: keep a frame when its predicted utility is >= this. \
+                         The only negative value is -1 = the model's leangate.threshold \
+                         metadata, else 0.5; other negative values are refused with a warning",
                     )
-                    .minimum(-1.0)
+                    .minimum(THRESHOLD_FROM_MODEL)
                     .maximum(1.0)
-                    .default_value(-1.0)
+                    .default_value(DEFAULT_THRESHOLD)
                     .mutable_playing()
                     .build(),
                 glib::ParamSpecUInt::builder("warmup")
                     .nick("Warm-up frames")
                     .blurb("Always keep the first N frames after the stream (re)starts")
-                    .default_value(0)
+                    .default_value(DEFAULT_WARMUP)
                     .mutable_playing()
                     .build(),
                 glib::ParamSpecUInt::builder("max-gap")
                     .nick("Maximum gap")
                     .blurb("Force a keep after this many consecutive dropped frames (0 = off)")
-                    .default_value(0)
+                    .default_value(DEFAULT_MAX_GAP)
                     .mutable_playing()
                     .build(),
-                glib::ParamSpecEnum::builder_with_default("mode", GateMode::Drop)
+                glib::ParamSpecEnum::builder_with_default("mode", DEFAULT_MODE)
                     .nick("Mode")
                     .blurb(
                         "drop: only kept frames leave; annotate: every frame leaves, tagged \
@@ -233,7 +416,7 @@ impl ObjectImpl for LeanGate {
                     .build(),
                 glib::ParamSpecEnum::builder_with_default(
                     "execution-provider",
-                    ExecutionProviderChoice::Auto,
+                    DEFAULT_EXECUTION_PROVIDER,
                 )
                 .nick("Execution provider")
                 .blurb(
@@ -246,13 +429,13 @@ impl ObjectImpl for LeanGate {
                     .nick("GPU device id")
                     .blurb("CUDA/TensorRT device index")
                     .minimum(0)
-                    .default_value(0)
+                    .default_value(DEFAULT_DEVICE_ID)
                     .mutable_ready()
                     .build(),
                 glib::ParamSpecUInt::builder("threads")
                     .nick("CPU threads")
                     .blurb("ONNX Runtime intra-op threads on CPU (0 = ONNX Runtime's default)")
-                    .default_value(0)
+                    .default_value(DEFAULT_THREADS)
                     .mutable_ready()
                     .build(),
                 glib::ParamSpecUInt64::builder("stats-interval")
@@ -261,7 +444,7 @@ impl ObjectImpl for LeanGate {
                         "Post a `leangate-stats` element message every this many nanoseconds of \
                          stream time (0 = only at EOS)",
                     )
-                    .default_value(0)
+                    .default_value(DEFAULT_STATS_INTERVAL)
                     .mutable_playing()
                     .build(),
                 glib::ParamSpecUInt64::builder("frames-in")
@@ -280,34 +463,85 @@ impl ObjectImpl for LeanGate {
     }
 
     fn set_property(&self, _id: usize, value: &glib::Value, pspec: &glib::ParamSpec) {
-        let mut settings = lock(&self.settings);
-        match pspec.name() {
-            "model" => settings.model = value.get().expect("type checked upstream"),
-            "threshold" => settings.threshold = value.get().expect("type checked upstream"),
-            "warmup" => settings.warmup = value.get().expect("type checked upstream"),
-            "max-gap" => settings.max_gap = value.get().expect("type checked upstream"),
-            "mode" => settings.mode = value.get().expect("type checked upstream"),
-            "execution-provider" => {
-                settings.execution_provider = value.get().expect("type checked upstream")
+        let name = pspec.name();
+        let refused = {
+            let mut settings = lock(&self.settings);
+            match name {
+                "model" | "execution-provider" | "device-id" | "threads" if settings.in_use => {
+                    Some(format!(
+                        "`{name}` cannot change while the element runs (set it in the NULL or \
+                         READY state); it stays {:?}",
+                        self.property_value(&settings, name)
+                    ))
+                }
+                "model" => {
+                    settings.model = value.get().expect("type checked upstream");
+                    None
+                }
+                "threshold" => {
+                    let t: f64 = value.get().expect("type checked upstream");
+                    if t < 0.0 && t != THRESHOLD_FROM_MODEL {
+                        Some(format!(
+                            "threshold {t} refused: the only negative value is -1 (from the \
+                             model); it stays {}",
+                            settings.threshold
+                        ))
+                    } else {
+                        settings.threshold = t;
+                        None
+                    }
+                }
+                "warmup" => {
+                    settings.warmup = value.get().expect("type checked upstream");
+                    None
+                }
+                "max-gap" => {
+                    settings.max_gap = value.get().expect("type checked upstream");
+                    None
+                }
+                "mode" => {
+                    settings.mode = value.get().expect("type checked upstream");
+                    None
+                }
+                "execution-provider" => {
+                    settings.execution_provider = value.get().expect("type checked upstream");
+                    None
+                }
+                "device-id" => {
+                    settings.device_id = value.get().expect("type checked upstream");
+                    None
+                }
+                "threads" => {
+                    settings.threads = value.get().expect("type checked upstream");
+                    None
+                }
+                "stats-interval" => {
+                    settings.stats_interval = value.get().expect("type checked upstream");
+                    None
+                }
+                other => unreachable!("unknown property {other}"),
             }
-            "device-id" => settings.device_id = value.get().expect("type checked upstream"),
-            "threads" => settings.threads = value.get().expect("type checked upstream"),
-            "stats-interval" => {
-                settings.stats_interval = value.get().expect("type checked upstream")
+        };
+        // Gate parameters apply from the next frame (the streaming thread reads the settings
+        // once per frame): no other lock is taken here, and the warning is posted unlocked.
+        match refused {
+            Some(why) => {
+                gst::warning!(CAT, imp = self, "{why}");
+                gst::element_imp_warning!(self, gst::CoreError::StateChange, ("{}", why));
             }
-            other => unreachable!("unknown property {other}"),
-        }
-        // Gate parameters apply from the next frame.
-        let settings = settings.clone();
-        if let Some(state) = lock(&self.state).as_mut() {
-            let cfg = Self::gate_config(&settings, state.model_threshold);
-            state.gate.set_config(cfg);
+            None => gst::debug!(CAT, imp = self, "{name} set to {:?}", value),
         }
     }
 
     fn property(&self, _id: usize, pspec: &glib::ParamSpec) -> glib::Value {
         let settings = lock(&self.settings);
-        match pspec.name() {
+        self.property_value(&settings, pspec.name())
+    }
+}
+
+impl LeanGate {
+    fn property_value(&self, settings: &Settings, name: &str) -> glib::Value {
+        match name {
             "model" => settings.model.to_value(),
             "threshold" => settings.threshold.to_value(),
             "warmup" => settings.warmup.to_value(),
@@ -374,7 +608,14 @@ impl BaseTransformImpl for LeanGate {
     const TRANSFORM_IP_ON_PASSTHROUGH: bool = false;
 
     fn start(&self) -> Result<(), gst::ErrorMessage> {
-        let settings = lock(&self.settings).clone();
+        // Mark the model settings in use before reading them, so that a concurrent change is
+        // refused rather than reported but not used.
+        let settings = {
+            let mut s = lock(&self.settings);
+            s.in_use = true;
+            s.clone()
+        };
+        let release = || lock(&self.settings).in_use = false;
         let source = match settings.model.clone().filter(|m| !m.is_empty()) {
             Some(path) => ModelSource::File(path.into()),
             None => crate::default_model::source(),
@@ -385,6 +626,7 @@ impl BaseTransformImpl for LeanGate {
             threads: settings.threads as usize,
         };
         let scorer = Scorer::load(&source, &opts).map_err(|e| {
+            release();
             let kind = match &e {
                 ScorerError::Runtime(_) => gst::LibraryError::Init,
                 ScorerError::Provider { .. } => gst::LibraryError::Settings,
@@ -406,7 +648,23 @@ impl BaseTransformImpl for LeanGate {
             info.spec.resize.as_str(),
             scorer.provider()
         );
-        let cfg = Self::gate_config(&settings, info.threshold);
+        let alloc = |what: &str| {
+            try_zeroed(info.spec.len()).map_err(|e| {
+                release();
+                gst::error_msg!(
+                    gst::ResourceError::NoSpaceLeft,
+                    (
+                        "cannot allocate the {} tensor of {}: {}",
+                        what,
+                        info.name,
+                        e
+                    )
+                )
+            })
+        };
+        let reference = alloc("reference")?;
+        let current = alloc("current")?;
+        let cfg = Self::gate_config(&FrameSettings::from(&settings), info.threshold);
         self.frames_in.store(0, Ordering::Relaxed);
         self.frames_kept.store(0, Ordering::Relaxed);
         self.force_pending.store(false, Ordering::SeqCst);
@@ -416,11 +674,12 @@ impl BaseTransformImpl for LeanGate {
             model_threshold: info.threshold,
             pre: None,
             gate: Gate::new(cfg),
-            reference: vec![0.0; info.spec.len()],
+            reference,
             reference_pts: None,
-            current: vec![0.0; info.spec.len()],
+            current,
             stats: InferenceStats::default(),
             last_stats_pts: None,
+            interval_start: (0, 0),
             last_warning: None,
             suppressed_warnings: 0,
         });
@@ -428,7 +687,10 @@ impl BaseTransformImpl for LeanGate {
     }
 
     fn stop(&self) -> Result<(), gst::ErrorMessage> {
-        *lock(&self.state) = None;
+        let state = lock(&self.state).take();
+        // Dropping the session happens outside the lock.
+        drop(state);
+        lock(&self.settings).in_use = false;
         Ok(())
     }
 
@@ -459,7 +721,10 @@ impl BaseTransformImpl for LeanGate {
 
     fn sink_event(&self, event: gst::Event) -> bool {
         match event.view() {
-            gst::EventView::CustomDownstream(_) | gst::EventView::CustomBoth(_) => {
+            gst::EventView::CustomDownstream(_)
+            | gst::EventView::CustomDownstreamOob(_)
+            | gst::EventView::CustomBoth(_)
+            | gst::EventView::CustomBothOob(_) => {
                 self.note_custom_event(&event);
             }
             gst::EventView::FlushStop(_) | gst::EventView::StreamStart(_) => {
@@ -471,8 +736,14 @@ impl BaseTransformImpl for LeanGate {
                 self.reset_pending.store(false, Ordering::SeqCst);
             }
             gst::EventView::Eos(_) => {
-                if let Some(state) = lock(&self.state).as_ref() {
-                    self.post_stats(state);
+                let stats = lock(&self.state)
+                    .as_mut()
+                    .map(|state| self.stats_structure(state));
+                if let Some(s) = stats {
+                    self.send(Outbox {
+                        stats: vec![s],
+                        ..Outbox::default()
+                    });
                 }
             }
             _ => {}
@@ -481,109 +752,44 @@ impl BaseTransformImpl for LeanGate {
     }
 
     fn src_event(&self, event: gst::Event) -> bool {
-        if let gst::EventView::CustomUpstream(_) | gst::EventView::CustomBoth(_) = event.view() {
+        if let gst::EventView::CustomUpstream(_)
+        | gst::EventView::CustomBoth(_)
+        | gst::EventView::CustomBothOob(_) = event.view()
+        {
             self.note_custom_event(&event);
         }
         self.parent_src_event(event)
     }
 
     fn transform_ip(&self, buf: &mut gst::BufferRef) -> Result<gst::FlowSuccess, gst::FlowError> {
-        let (mode, stats_interval) = {
-            let s = lock(&self.settings);
-            (s.mode, s.stats_interval)
-        };
-        let mut guard = lock(&self.state);
-        let Some(state) = guard.as_mut() else {
-            gst::element_imp_error!(
-                self,
-                gst::CoreError::Negotiation,
-                ("buffer received before the element started")
-            );
-            return Err(gst::FlowError::Flushing);
-        };
-        self.frames_in.fetch_add(1, Ordering::Relaxed);
-        if self.reset_pending.swap(false, Ordering::SeqCst) {
-            state.gate.drop_reference();
-        }
-        if self.force_pending.swap(false, Ordering::SeqCst) {
-            state.gate.force_keyframe();
-        }
-
-        let t0 = Instant::now();
-        let pre = self.preprocess(state, buf);
-        let frame_readable = pre.is_ok();
-        let (score, utility) = match pre {
+        let fs = self.frame_settings();
+        let mut out = Outbox::default();
+        let verdict = self.gate_frame(buf, &fs, &mut out);
+        // The state lock is released: post, then push.
+        self.send(out);
+        let verdict = match verdict {
+            Ok(v) => v,
             Err(e) => {
-                self.warn_rate_limited(state, &format!("cannot read frame: {e}"));
-                (Score::Failed, f64::NAN)
+                gst::element_imp_error!(
+                    self,
+                    gst::CoreError::Negotiation,
+                    ("buffer received before the element started")
+                );
+                return Err(e);
             }
-            Ok(()) if !state.gate.has_reference() => (Score::NoReference, f64::NAN),
-            Ok(()) => match state.scorer.score(&state.reference, &state.current) {
-                Ok(u) => (Score::Utility(u as f64), u as f64),
-                Err(e) => {
-                    self.warn_rate_limited(state, &e.to_string());
-                    (Score::Failed, f64::NAN)
-                }
-            },
         };
-        let inference_us = t0.elapsed().as_micros() as u64;
-        if matches!(score, Score::Utility(_)) {
-            state.stats.record(inference_us);
-        }
-        let pts = buf.pts();
-        let decision = state.gate.decide(score);
-        let reference_pts = if decision.keep && score == Score::NoReference {
-            pts
-        } else {
-            state.reference_pts
-        };
-        if decision.keep {
-            // A split model reuses the features it just computed for this frame.
-            state.scorer.on_keep(matches!(score, Score::Utility(_)));
-            if !frame_readable {
-                // The frame could not be read: it cannot serve as a reference tensor.
-                state.gate.drop_reference();
-            } else {
-                std::mem::swap(&mut state.reference, &mut state.current);
+        if !verdict.keep && fs.mode == GateMode::Drop {
+            // Tell time-driven elements downstream (aggregators such as compositor, muxers,
+            // live sinks) that nothing comes for this span, instead of letting them wait for it.
+            if let Some(pts) = buf.pts() {
+                let gap = gst::event::Gap::builder(pts)
+                    .duration(buf.duration())
+                    .build();
+                let _ = self.obj().src_pad().push_event(gap);
             }
-            state.reference_pts = pts;
-            self.frames_kept.fetch_add(1, Ordering::Relaxed);
-        }
-
-        if let (Some(pts), true) = (pts, stats_interval > 0) {
-            match state.last_stats_pts {
-                None => state.last_stats_pts = Some(pts),
-                Some(last) if pts.nseconds().saturating_sub(last.nseconds()) >= stats_interval => {
-                    state.last_stats_pts = Some(pts);
-                    self.post_stats(state);
-                }
-                _ => {}
-            }
-        }
-
-        gst::trace!(
-            CAT,
-            imp = self,
-            "pts {:?} utility {:.4} keep {} ({})",
-            pts,
-            utility,
-            decision.keep,
-            decision.reason
-        );
-
-        if !decision.keep && mode == GateMode::Drop {
             return Ok(gst_base::BASE_TRANSFORM_FLOW_DROPPED);
         }
-        let meta = GateMeta {
-            utility,
-            keep: decision.keep,
-            reason: decision.reason,
-            keyframe_index: decision.keyframe_index,
-            reference_pts,
-            frames_since_keyframe: decision.frames_since_keyframe.min(u32::MAX as u64) as u32,
-            inference_us,
-        };
-        if let Err(e) = meta.attach(buf) {
+        if let Err(e) = verdict.meta.attach(buf) {
             gst::warning!(CAT, imp = self, "cannot attach LeanGateMeta: {e}");
         }
         Ok(gst::FlowSuccess::Ok)
