@@ -65,7 +65,7 @@ fn element_tensor(rgb: &[u8], w: u32, h: u32) -> Vec<f32> {
         width: w,
         height: h,
         planes: [rgb, &[], &[]],
-        strides: [3 * w as usize, 0, 0],
+        strides: [3 * w as isize, 0, 0],
     };
     let mut out = vec![0f32; (3 * OUT_W * OUT_H) as usize];
     pre.run(&frame, &mut out).unwrap();
