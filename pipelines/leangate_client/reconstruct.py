@@ -400,8 +400,11 @@ class SfmOptions:
 
 @dataclass
 class SfmResult:
-    """The outcome: ``images`` fed to COLMAP, ``models`` built, the largest model's registered
-    images (name -> camera centre), mean reprojection error, 3-D points, its directory."""
+    """The outcome: ``images`` fed to COLMAP; ``models``: models that register at least one
+    frame no larger model has (COLMAP may also build models from frames a larger one already
+    holds; those are not counted); ``registered``: frames in the largest model, with their
+    camera centres in ``centres`` (name -> centre); ``registered_total``: frames in any model;
+    mean reprojection error, 3-D points and directory of the largest model."""
 
     images: int
     models: int
@@ -493,7 +496,7 @@ def run_sfm(
 
     def next_image():
         registered[0] += 1
-        log.info("mapping: %d images registered", registered[0])
+        log.info("mapping: %d images registered after the initial pair", registered[0])
 
     t = time.monotonic()
     log.info("incremental mapping")
@@ -502,6 +505,18 @@ def run_sfm(
     )
     seconds["mapping"] = time.monotonic() - t
     recs = sorted(models.items(), key=lambda kv: -kv[1].num_reg_images())
+    # COLMAP may start a further model from frames a larger one already registered (up to
+    # max_model_overlap shared images): such a model splits nothing off and is not counted.
+    covered: set = set()
+    distinct = 0
+    for _, rec in recs:
+        names_in = {img.name for img in rec.images.values() if img.has_pose}
+        if names_in - covered:
+            distinct += 1
+            covered |= names_in
+    if len(recs) != distinct:
+        log.info("%d models, %d of them only re-register frames of a larger one", len(recs),
+                 len(recs) - distinct)
     centres: Dict[str, Tuple[float, float, float]] = {}
     err = None
     points = 0
@@ -517,9 +532,9 @@ def run_sfm(
         model_dir = os.path.join(sparse, str(key))
     return SfmResult(
         images=len(names),
-        models=len(recs),
+        models=distinct,
         registered=len(centres),
-        registered_total=sum(r.num_reg_images() for _, r in recs),
+        registered_total=len(covered),
         centres=centres,
         mean_reprojection_error_px=err,
         points3d=points,
