@@ -54,7 +54,17 @@ PYCOLMAP_VERSION = "4.2.1"
 
 
 def import_pycolmap():
-    """``pycolmap``, or a SetupError saying which interpreter lacks it and how to install it."""
+    """``pycolmap``, or a SetupError saying which interpreter lacks it and how to install it.
+
+    Import pycolmap *before* this package when you can (``pipelines/reconstruct.py`` does):
+    importing it after the GStreamer bindings crashed the interpreter (SIGSEGV while unwinding a
+    C++ exception inside pycolmap's import) in about half of the runs with pycolmap 4.2.1 on
+    Debian 12."""
+    if "pycolmap" not in sys.modules and "gi.repository.Gst" in sys.modules:
+        log.warning(
+            "importing pycolmap after the GStreamer bindings; if this crashes, import pycolmap "
+            "before leangate_client (pipelines/reconstruct.py does)"
+        )
     try:
         import pycolmap  # noqa: F401
     except ImportError as e:
