@@ -36,6 +36,7 @@ const DEFAULT_MODE: GateMode = GateMode::Drop;
 const DEFAULT_EXECUTION_PROVIDER: ExecutionProviderChoice = ExecutionProviderChoice::Auto;
 const DEFAULT_DEVICE_ID: i32 = 0;
 const DEFAULT_THREADS: u32 = 0;
+const DEFAULT_ORT_SPINNING: bool = false;
 const DEFAULT_STATS_INTERVAL: u64 = 0;
 
 /// Minimum time between two run-time warnings posted on the bus.
@@ -53,6 +54,7 @@ struct Settings {
     execution_provider: ExecutionProviderChoice,
     device_id: i32,
     threads: u32,
+    ort_spinning: bool,
     stats_interval: u64,
     /// Between `start` and `stop`: the model and session settings are in use, and changing them
     /// is refused (the properties keep reporting what is in use).
@@ -70,6 +72,7 @@ impl Default for Settings {
             execution_provider: DEFAULT_EXECUTION_PROVIDER,
             device_id: DEFAULT_DEVICE_ID,
             threads: DEFAULT_THREADS,
+            ort_spinning: DEFAULT_ORT_SPINNING,
             stats_interval: DEFAULT_STATS_INTERVAL,
             in_use: false,
         }
@@ -434,8 +437,21 @@ impl ObjectImpl for LeanGate {
                     .build(),
                 glib::ParamSpecUInt::builder("threads")
                     .nick("CPU threads")
-                    .blurb("ONNX Runtime intra-op threads on CPU (0 = ONNX Runtime's default)")
+                    .blurb(
+                        "ONNX Runtime intra-op threads on CPU (0 = the plugin's default: 1, \
+                         which leaves the other cores to the decoders)",
+                    )
                     .default_value(DEFAULT_THREADS)
+                    .mutable_ready()
+                    .build(),
+                glib::ParamSpecBoolean::builder("ort-spinning")
+                    .nick("ONNX Runtime spinning")
+                    .blurb(
+                        "Let ONNX Runtime's worker threads spin-wait for work \
+                         (session.intra_op/inter_op.allow_spinning); off by default so that \
+                         they do not take CPU time from the decoders",
+                    )
+                    .default_value(DEFAULT_ORT_SPINNING)
                     .mutable_ready()
                     .build(),
                 glib::ParamSpecUInt64::builder("stats-interval")
@@ -467,7 +483,9 @@ impl ObjectImpl for LeanGate {
         let refused = {
             let mut settings = lock(&self.settings);
             match name {
-                "model" | "execution-provider" | "device-id" | "threads" if settings.in_use => {
+                "model" | "execution-provider" | "device-id" | "threads" | "ort-spinning"
+                    if settings.in_use =>
+                {
                     Some(format!(
                         "`{name}` cannot change while the element runs (set it in the NULL or \
                          READY state); it stays {:?}",
@@ -515,6 +533,10 @@ impl ObjectImpl for LeanGate {
                     settings.threads = value.get().expect("type checked upstream");
                     None
                 }
+                "ort-spinning" => {
+                    settings.ort_spinning = value.get().expect("type checked upstream");
+                    None
+                }
                 "stats-interval" => {
                     settings.stats_interval = value.get().expect("type checked upstream");
                     None
@@ -550,6 +572,7 @@ impl LeanGate {
             "execution-provider" => settings.execution_provider.to_value(),
             "device-id" => settings.device_id.to_value(),
             "threads" => settings.threads.to_value(),
+            "ort-spinning" => settings.ort_spinning.to_value(),
             "stats-interval" => settings.stats_interval.to_value(),
             "frames-in" => self.frames_in.load(Ordering::Relaxed).to_value(),
             "frames-kept" => self.frames_kept.load(Ordering::Relaxed).to_value(),
@@ -624,6 +647,7 @@ impl BaseTransformImpl for LeanGate {
             execution_provider: settings.execution_provider.into(),
             device_id: settings.device_id,
             threads: settings.threads as usize,
+            spinning: settings.ort_spinning,
         };
         let scorer = Scorer::load(&source, &opts).map_err(|e| {
             release();

@@ -84,8 +84,30 @@ impl ModelSource {
 pub struct ScorerOptions {
     pub execution_provider: ExecutionProvider,
     pub device_id: i32,
-    /// CPU intra-op threads; 0 = ONNX Runtime's default.
+    /// CPU intra-op threads; 0 = [`default_threads`].
     pub threads: usize,
+    /// Let ONNX Runtime's worker threads spin-wait for work (`session.intra_op.allow_spinning`
+    /// and `session.inter_op.allow_spinning`). Off by default: spinning threads take CPU time
+    /// from the decoders and other elements of the pipeline for a few microseconds of latency.
+    pub spinning: bool,
+}
+
+impl ScorerOptions {
+    /// The intra-op thread count actually used (`threads`, or [`default_threads`] for 0).
+    pub fn effective_threads(&self) -> usize {
+        if self.threads > 0 {
+            self.threads
+        } else {
+            default_threads()
+        }
+    }
+}
+
+/// Intra-op threads when `threads` is 0: one. The students are small (a few milliseconds of
+/// work per frame at most): a second thread gains little for them and competes with the
+/// decoder and the rest of the pipeline (measured in `cargo bench --bench perf -- threads`).
+pub fn default_threads() -> usize {
+    1
 }
 
 /// Everything that can go wrong loading or running a model.

@@ -65,11 +65,16 @@ pub(super) fn build_session(
 ) -> Result<Session, BuildError> {
     let parse = |e: &dyn fmt::Display| BuildError::Parse(e.to_string());
     let mut b = Session::builder(env).map_err(|e| parse(&e))?;
-    b = b.with_intra_op_spinning(false).map_err(|e| parse(&e))?;
+    b = b
+        .with_intra_op_spinning(opts.spinning)
+        .map_err(|e| parse(&e))?;
+    b = b
+        .with_inter_op_spinning(opts.spinning)
+        .map_err(|e| parse(&e))?;
     b = b.with_inter_threads(1).map_err(|e| parse(&e))?;
-    if opts.threads > 0 {
-        b = b.with_intra_threads(opts.threads).map_err(|e| parse(&e))?;
-    }
+    b = b
+        .with_intra_threads(opts.effective_threads())
+        .map_err(|e| parse(&e))?;
     let dispatch = match provider {
         ExecutionProvider::Cpu | ExecutionProvider::Auto => None,
         ExecutionProvider::Cuda => Some(
