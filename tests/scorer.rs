@@ -191,3 +191,113 @@ fn embedded_default_is_a_split_model_with_its_metadata() {
         "same place {same}, another place {other}, threshold {t}"
     );
 }
+
+/// Stream `k`'s frames: smooth pictures that drift, with a jump every 9 frames (so that some
+/// frames are kept and the reference moves).
+fn stream_frames(len: usize, k: usize, n: usize) -> Vec<Vec<f32>> {
+    (0..n)
+        .map(|i| {
+            let phase = (i / 9) as f32 * 1.7 + k as f32 * 0.61 + (i % 9) as f32 * 0.03;
+            (0..len)
+                .map(|j| {
+                    let x = (j % 256) as f32 / 256.0;
+                    let y = (j / 256 % 256) as f32 / 256.0;
+                    0.5 + 0.4 * ((x * 7.0 + phase).sin() * (y * 5.0 - phase).cos())
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Score a stream with a simple gate (keep when utility >= 0.42, the new frame then being the
+/// reference); (utility, keep) per frame.
+fn gate_stream(s: &mut Scorer, frames: &[Vec<f32>]) -> Vec<(f32, bool)> {
+    let mut reference = 0;
+    let mut out = Vec::new();
+    for i in 1..frames.len() {
+        let u = s.score(&frames[reference], &frames[i]).unwrap();
+        let keep = u >= 0.42;
+        if keep {
+            s.on_keep(true);
+            reference = i;
+        }
+        out.push((u, keep));
+    }
+    out
+}
+
+/// Shared sessions and batched encoder runs give the same decisions and utilities (within
+/// 1e-5) as one unshared, unbatched session per stream, on the same frames.
+#[test]
+fn shared_and_batched_scoring_matches_separate_sessions() {
+    let opts = |shared: bool, batch_size: usize| ScorerOptions {
+        execution_provider: ExecutionProvider::Cpu,
+        shared,
+        batch_size,
+        batch_timeout: std::time::Duration::from_millis(200),
+        ..Default::default()
+    };
+    let streams = 4;
+    let n = 28;
+    let len = {
+        let s = Scorer::load(&gstleangate::default_model(), &opts(false, 1)).unwrap();
+        s.info().spec.len()
+    };
+    let frames: Vec<Vec<Vec<f32>>> = (0..streams).map(|k| stream_frames(len, k, n)).collect();
+
+    // Separate sessions, one stream after the other.
+    let separate: Vec<Vec<(f32, bool)>> = frames
+        .iter()
+        .map(|f| {
+            let mut s = Scorer::load(&gstleangate::default_model(), &opts(false, 1)).unwrap();
+            gate_stream(&mut s, f)
+        })
+        .collect();
+
+    for batch in [1usize, 4] {
+        let mut scorers: Vec<Scorer> = (0..streams)
+            .map(|_| Scorer::load(&gstleangate::default_model(), &opts(true, batch)).unwrap())
+            .collect();
+        for s in &scorers[1..] {
+            assert!(s.shares_session_with(&scorers[0]), "one session for all");
+            assert_eq!(s.is_batching(), batch > 1);
+        }
+        let before = scorers[0].batch_counts();
+        let results: Vec<Vec<(f32, bool)>> = std::thread::scope(|scope| {
+            let handles: Vec<_> = scorers
+                .iter_mut()
+                .zip(&frames)
+                .map(|(s, f)| scope.spawn(move || gate_stream(s, f)))
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        let (batches, batched_frames) = scorers[0].batch_counts();
+        if batch > 1 {
+            assert!(
+                batched_frames - before.1 > batches - before.0,
+                "some runs held several frames: {batches} batches, {batched_frames} frames"
+            );
+        }
+        for (k, (a, b)) in separate.iter().zip(&results).enumerate() {
+            assert_eq!(a.len(), b.len());
+            for (i, ((ua, ka), (ub, kb))) in a.iter().zip(b).enumerate() {
+                assert_eq!(
+                    ka, kb,
+                    "batch {batch} stream {k} frame {i}: decisions differ"
+                );
+                assert!(
+                    (ua - ub).abs() <= 1e-5,
+                    "batch {batch} stream {k} frame {i}: {ua} vs {ub}"
+                );
+            }
+            assert!(
+                a.iter().any(|x| x.1) && a.iter().any(|x| !x.1),
+                "keeps and drops: {a:?}"
+            );
+        }
+    }
+    // A scorer with sharing off gets its own session.
+    let a = Scorer::load(&gstleangate::default_model(), &opts(true, 1)).unwrap();
+    let b = Scorer::load(&gstleangate::default_model(), &opts(false, 1)).unwrap();
+    assert!(!a.shares_session_with(&b));
+}

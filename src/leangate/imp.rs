@@ -37,6 +37,9 @@ const DEFAULT_EXECUTION_PROVIDER: ExecutionProviderChoice = ExecutionProviderCho
 const DEFAULT_DEVICE_ID: i32 = 0;
 const DEFAULT_THREADS: u32 = 0;
 const DEFAULT_ORT_SPINNING: bool = false;
+const DEFAULT_SHARED_SESSION: bool = true;
+const DEFAULT_BATCH_SIZE: u32 = 1;
+const DEFAULT_BATCH_TIMEOUT_US: u64 = 2000;
 const DEFAULT_STATS_INTERVAL: u64 = 0;
 
 /// Minimum time between two run-time warnings posted on the bus.
@@ -55,6 +58,9 @@ struct Settings {
     device_id: i32,
     threads: u32,
     ort_spinning: bool,
+    shared_session: bool,
+    batch_size: u32,
+    batch_timeout_us: u64,
     stats_interval: u64,
     /// Between `start` and `stop`: the model and session settings are in use, and changing them
     /// is refused (the properties keep reporting what is in use).
@@ -73,6 +79,9 @@ impl Default for Settings {
             device_id: DEFAULT_DEVICE_ID,
             threads: DEFAULT_THREADS,
             ort_spinning: DEFAULT_ORT_SPINNING,
+            shared_session: DEFAULT_SHARED_SESSION,
+            batch_size: DEFAULT_BATCH_SIZE,
+            batch_timeout_us: DEFAULT_BATCH_TIMEOUT_US,
             stats_interval: DEFAULT_STATS_INTERVAL,
             in_use: false,
         }
@@ -454,6 +463,38 @@ impl ObjectImpl for LeanGate {
                     .default_value(DEFAULT_ORT_SPINNING)
                     .mutable_ready()
                     .build(),
+                glib::ParamSpecBoolean::builder("shared-session")
+                    .nick("Shared session")
+                    .blurb(
+                        "Share the ONNX Runtime session with the other leangate elements of the \
+                         process that use the same model, execution provider, device, threads \
+                         and spinning (each keeps its own reference)",
+                    )
+                    .default_value(DEFAULT_SHARED_SESSION)
+                    .mutable_ready()
+                    .build(),
+                glib::ParamSpecUInt::builder("batch-size")
+                    .nick("Batch size")
+                    .blurb(
+                        "With shared-session: coalesce up to this many concurrent frames of the \
+                         elements sharing the session into one batched encoder run (split \
+                         models with a dynamic batch dimension; 1 = off)",
+                    )
+                    .minimum(1)
+                    .maximum(256)
+                    .default_value(DEFAULT_BATCH_SIZE)
+                    .mutable_ready()
+                    .build(),
+                glib::ParamSpecUInt64::builder("batch-timeout")
+                    .nick("Batch timeout")
+                    .blurb(
+                        "Longest time (µs) a frame waits for others to fill a batch; no wait \
+                         when a single element batches on the session",
+                    )
+                    .maximum(1_000_000)
+                    .default_value(DEFAULT_BATCH_TIMEOUT_US)
+                    .mutable_ready()
+                    .build(),
                 glib::ParamSpecUInt64::builder("stats-interval")
                     .nick("Statistics interval")
                     .blurb(
@@ -484,6 +525,7 @@ impl ObjectImpl for LeanGate {
             let mut settings = lock(&self.settings);
             match name {
                 "model" | "execution-provider" | "device-id" | "threads" | "ort-spinning"
+                | "shared-session" | "batch-size" | "batch-timeout"
                     if settings.in_use =>
                 {
                     Some(format!(
@@ -537,6 +579,18 @@ impl ObjectImpl for LeanGate {
                     settings.ort_spinning = value.get().expect("type checked upstream");
                     None
                 }
+                "shared-session" => {
+                    settings.shared_session = value.get().expect("type checked upstream");
+                    None
+                }
+                "batch-size" => {
+                    settings.batch_size = value.get().expect("type checked upstream");
+                    None
+                }
+                "batch-timeout" => {
+                    settings.batch_timeout_us = value.get().expect("type checked upstream");
+                    None
+                }
                 "stats-interval" => {
                     settings.stats_interval = value.get().expect("type checked upstream");
                     None
@@ -573,6 +627,9 @@ impl LeanGate {
             "device-id" => settings.device_id.to_value(),
             "threads" => settings.threads.to_value(),
             "ort-spinning" => settings.ort_spinning.to_value(),
+            "shared-session" => settings.shared_session.to_value(),
+            "batch-size" => settings.batch_size.to_value(),
+            "batch-timeout" => settings.batch_timeout_us.to_value(),
             "stats-interval" => settings.stats_interval.to_value(),
             "frames-in" => self.frames_in.load(Ordering::Relaxed).to_value(),
             "frames-kept" => self.frames_kept.load(Ordering::Relaxed).to_value(),
@@ -648,6 +705,9 @@ impl BaseTransformImpl for LeanGate {
             device_id: settings.device_id,
             threads: settings.threads as usize,
             spinning: settings.ort_spinning,
+            shared: settings.shared_session,
+            batch_size: settings.batch_size as usize,
+            batch_timeout: std::time::Duration::from_micros(settings.batch_timeout_us),
         };
         let scorer = Scorer::load(&source, &opts).map_err(|e| {
             release();

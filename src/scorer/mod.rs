@@ -10,8 +10,12 @@
 //! Runtime sessions on the chosen execution provider; this module loads a model (pair or split),
 //! proves it with one dry run on a blank frame, and scores frames.
 
+use std::collections::HashMap;
 use std::fmt;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Condvar, LazyLock, Mutex, MutexGuard, Weak};
+use std::time::{Duration, Instant};
 
 use ort::session::Session;
 use ort::value::TensorRef;
@@ -90,6 +94,18 @@ pub struct ScorerOptions {
     /// and `session.inter_op.allow_spinning`). Off by default: spinning threads take CPU time
     /// from the decoders and other elements of the pipeline for a few microseconds of latency.
     pub spinning: bool,
+    /// Share the ONNX Runtime sessions with every other scorer of the process that loads the
+    /// same model (same file, size and modification time, or the same embedded bytes) with the
+    /// same provider, device, threads and spinning (a process-wide registry). Each scorer keeps
+    /// its own reference features.
+    pub shared: bool,
+    /// Coalesce up to this many concurrent frames of the scorers sharing a session into one
+    /// batched encoder run (split models whose encoder has a dynamic batch dimension; others
+    /// run unbatched). 0 or 1 = off. Only with `shared`.
+    pub batch_size: usize,
+    /// The longest a frame waits for others to fill a batch. No wait when this scorer is the
+    /// only one using the session with batching on.
+    pub batch_timeout: Duration,
 }
 
 impl ScorerOptions {
@@ -144,20 +160,19 @@ pub struct ModelInfo {
     pub threshold: Option<f64>,
 }
 
-/// The two model forms.
+/// The two model forms, sessions only (shareable between streams).
 enum Kind {
     /// One graph: (reference, current) → utility.
-    Pair(Session),
+    Pair(Mutex<Session>),
     /// `encoder` (image → features) and `head` (features, features → utility); the reference's
-    /// features are computed once and kept until the next keep.
+    /// features are computed once per stream and kept until the next keep.
     Split {
-        encoder: Session,
-        head: Session,
+        encoder: Mutex<Session>,
+        head: Mutex<Session>,
         /// How the head is named in messages.
         head_name: String,
-        reference: Option<Features>,
-        current: Option<Features>,
-        encoder_runs: u64,
+        /// The encoder takes a dynamic batch dimension.
+        batchable: bool,
     },
 }
 
@@ -167,22 +182,110 @@ struct Features {
     data: Vec<f32>,
 }
 
-/// A loaded model (pair or split).
-pub struct Scorer {
+/// A loaded, validated model: its sessions, shared by the scorers using it.
+struct Model {
     kind: Kind,
     info: ModelInfo,
     provider: &'static str,
+    warnings: Vec<String>,
+    batcher: Batcher,
+}
+
+/// Registry key: what must be equal for two scorers to share sessions.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+struct ModelKey {
+    identity: String,
+    provider: &'static str,
+    device_id: i32,
+    threads: usize,
+    spinning: bool,
+}
+
+static REGISTRY: LazyLock<Mutex<HashMap<ModelKey, Weak<Model>>>> =
+    LazyLock::new(|| Mutex::new(HashMap::new()));
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A model's identity for the registry: the canonical path with size and modification time (a
+/// replaced file is a new model), or the embedded bytes' name, address and length.
+fn identity(source: &ModelSource) -> Option<String> {
+    match source {
+        ModelSource::File(p) => {
+            let canon = std::fs::canonicalize(p).ok()?;
+            let md = std::fs::metadata(&canon).ok()?;
+            let mtime = md
+                .modified()
+                .ok()
+                .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                .map(|d| d.as_nanos())
+                .unwrap_or(0);
+            Some(format!("file:{}:{}:{mtime}", canon.display(), md.len()))
+        }
+        ModelSource::Memory { name, bytes, head } => Some(format!(
+            "memory:{name}:{:p}:{}:{:?}",
+            bytes.as_ptr(),
+            bytes.len(),
+            head.map(|h| (h.as_ptr(), h.len()))
+        )),
+    }
+}
+
+/// A scorer: one stream's view of a (possibly shared) model, with its own reference features.
+pub struct Scorer {
+    model: Arc<Model>,
+    reference: Option<Features>,
+    current: Option<Features>,
+    encoder_runs: u64,
+    batch_size: usize,
+    batch_timeout: Duration,
+    /// Registered as a batching user of `model.batcher` (unregistered on drop).
+    batching: bool,
     /// Warnings collected while choosing the provider (`auto` fallbacks).
     pub warnings: Vec<String>,
+}
+
+impl Drop for Scorer {
+    fn drop(&mut self) {
+        if self.batching {
+            self.model.batcher.users.fetch_sub(1, Ordering::SeqCst);
+            self.model.batcher.cv.notify_all();
+        }
+    }
 }
 
 impl fmt::Debug for Scorer {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("Scorer")
-            .field("info", &self.info)
-            .field("provider", &self.provider)
+            .field("info", &self.model.info)
+            .field("provider", &self.model.provider)
+            .field("batch_size", &self.batch_size)
             .finish()
     }
+}
+
+/// Coalesces concurrent encoder runs of the scorers sharing a model into batches.
+#[derive(Default)]
+struct Batcher {
+    state: Mutex<BatchState>,
+    cv: Condvar,
+    /// Scorers with batching on.
+    users: AtomicUsize,
+}
+
+#[derive(Default)]
+struct BatchState {
+    queue: Vec<(u64, Vec<f32>)>,
+    next_ticket: u64,
+    /// A scorer is collecting or running a batch.
+    leader: bool,
+    done: HashMap<u64, Result<Features, String>>,
+    /// The batched input, reused.
+    input: Vec<f32>,
+    /// Batches run and frames in them (for tests and benchmarks).
+    batches: u64,
+    frames: u64,
 }
 
 impl Scorer {
@@ -191,6 +294,60 @@ impl Scorer {
     /// batch of 2, a head that does not fit its encoder, NaN out) is a start error, not a
     /// failure on every frame.
     pub fn load(source: &ModelSource, opts: &ScorerOptions) -> Result<Scorer, ScorerError> {
+        let model = if opts.shared {
+            match identity(source) {
+                Some(id) => {
+                    let key = ModelKey {
+                        identity: id,
+                        provider: opts.execution_provider.as_str(),
+                        device_id: opts.device_id,
+                        threads: opts.effective_threads(),
+                        spinning: opts.spinning,
+                    };
+                    // Held while loading: a second stream starting at the same time waits for
+                    // the first's model instead of loading its own.
+                    let mut reg = lock(&REGISTRY);
+                    reg.retain(|_, w| w.strong_count() > 0);
+                    match reg.get(&key).and_then(Weak::upgrade) {
+                        Some(m) => m,
+                        None => {
+                            let m = Arc::new(Self::load_model(source, opts)?);
+                            reg.insert(key, Arc::downgrade(&m));
+                            m
+                        }
+                    }
+                }
+                None => Arc::new(Self::load_model(source, opts)?),
+            }
+        } else {
+            Arc::new(Self::load_model(source, opts)?)
+        };
+        let batching = opts.shared
+            && opts.batch_size > 1
+            && matches!(
+                model.kind,
+                Kind::Split {
+                    batchable: true,
+                    ..
+                }
+            );
+        if batching {
+            model.batcher.users.fetch_add(1, Ordering::SeqCst);
+        }
+        Ok(Scorer {
+            warnings: model.warnings.clone(),
+            model,
+            reference: None,
+            current: None,
+            encoder_runs: 0,
+            batch_size: opts.batch_size.max(1),
+            batch_timeout: opts.batch_timeout,
+            batching,
+        })
+    }
+
+    /// Load, check and dry-run a model (its sessions, unshared).
+    fn load_model(source: &ModelSource, opts: &ScorerOptions) -> Result<Model, ScorerError> {
         let model = source.describe();
         let input = match source {
             ModelSource::File(p) => {
@@ -208,14 +365,27 @@ impl Scorer {
                 Ok(session) => {
                     let (kind, info) =
                         Self::assemble(source, &env, session, provider, opts, &model)?;
-                    let mut scorer = Scorer {
+                    let m = Arc::new(Model {
                         kind,
                         info,
                         provider: provider.as_str(),
                         warnings,
+                        batcher: Batcher::default(),
+                    });
+                    let mut scorer = Scorer {
+                        model: m.clone(),
+                        reference: None,
+                        current: None,
+                        encoder_runs: 0,
+                        batch_size: 1,
+                        batch_timeout: Duration::ZERO,
+                        batching: false,
+                        warnings: Vec::new(),
                     };
-                    scorer.dry_run(&model)?;
-                    return Ok(scorer);
+                    let r = scorer.dry_run(&model);
+                    drop(scorer);
+                    r?;
+                    return Ok(Arc::into_inner(m).expect("not shared yet"));
                 }
                 Err(BuildError::Parse(reason)) => {
                     return Err(ScorerError::Parse { model, reason });
@@ -249,7 +419,7 @@ impl Scorer {
         match contract::model_kind(&session, model)? {
             "pair" => {
                 let info = contract::validate_pair(&session, model)?;
-                Ok((Kind::Pair(session), info))
+                Ok((Kind::Pair(Mutex::new(session)), info))
             }
             "encoder" => {
                 let (info, features) = contract::validate_encoder(&session, model)?;
@@ -285,14 +455,13 @@ impl Scorer {
                     }
                 })?;
                 contract::validate_head(&head, &head_name, &features)?;
+                let batchable = contract::dynamic_batch(&session, "image", "features");
                 Ok((
                     Kind::Split {
-                        encoder: session,
-                        head,
+                        encoder: Mutex::new(session),
+                        head: Mutex::new(head),
                         head_name,
-                        reference: None,
-                        current: None,
-                        encoder_runs: 0,
+                        batchable,
                     },
                     info,
                 ))
@@ -308,7 +477,7 @@ impl Scorer {
 
     /// Score a blank (black) frame against itself: the output must be one finite number.
     fn dry_run(&mut self, model: &str) -> Result<(), ScorerError> {
-        let spec = self.info.spec.clone();
+        let spec = self.model.info.spec.clone();
         let mut blank = try_zeroed(spec.len()).map_err(|e| ScorerError::Metadata {
             model: model.to_string(),
             reason: format!(
@@ -322,10 +491,8 @@ impl Scorer {
         }
         let r = self.score(&blank, &blank);
         self.reset_reference();
-        if let Kind::Split { encoder_runs, .. } = &mut self.kind {
-            *encoder_runs = 0;
-        }
-        let with = match &self.kind {
+        self.encoder_runs = 0;
+        let with = match &self.model.kind {
             Kind::Split { head_name, .. } => format!(" (with its head {head_name})"),
             Kind::Pair(_) => String::new(),
         };
@@ -336,31 +503,45 @@ impl Scorer {
     }
 
     pub fn info(&self) -> &ModelInfo {
-        &self.info
+        &self.model.info
     }
 
     /// The execution provider in use (`cpu`, `cuda`, `tensorrt`).
     pub fn provider(&self) -> &'static str {
-        self.provider
+        self.model.provider
     }
 
     /// Whether this is a split model (encoder + head, with the reference's features cached).
     pub fn is_split(&self) -> bool {
-        matches!(self.kind, Kind::Split { .. })
+        matches!(self.model.kind, Kind::Split { .. })
     }
 
-    /// Encoder runs so far (split models; 0 for pair models).
+    /// Encoder runs for this scorer's frames so far (split models; 0 for pair models).
     pub fn encoder_runs(&self) -> u64 {
-        match &self.kind {
-            Kind::Split { encoder_runs, .. } => *encoder_runs,
-            Kind::Pair(_) => 0,
-        }
+        self.encoder_runs
+    }
+
+    /// Whether this scorer shares its sessions with `other` (same registry entry).
+    pub fn shares_session_with(&self, other: &Scorer) -> bool {
+        Arc::ptr_eq(&self.model, &other.model)
+    }
+
+    /// Whether this scorer's frames go through the batcher (shared, `batch_size` > 1, and a
+    /// model whose encoder takes a dynamic batch).
+    pub fn is_batching(&self) -> bool {
+        self.batching
+    }
+
+    /// Batched encoder runs of the shared model so far, and the frames in them.
+    pub fn batch_counts(&self) -> (u64, u64) {
+        let st = lock(&self.model.batcher.state);
+        (st.batches, st.frames)
     }
 
     /// Score one pair of preprocessed tensors (CHW, `spec.len()` elements each). A split model
     /// encodes `reference` only when it has no cached features for it (see [`Scorer::on_keep`]).
     pub fn score(&mut self, reference: &[f32], current: &[f32]) -> Result<f32, ScorerError> {
-        let spec = &self.info.spec;
+        let spec = &self.model.info.spec;
         let shape = [1usize, 3, spec.height as usize, spec.width as usize];
         if reference.len() != spec.len() || current.len() != spec.len() {
             return Err(ScorerError::Inference(format!(
@@ -372,40 +553,37 @@ impl Scorer {
             )));
         }
         let inf = |e: ort::Error| ScorerError::Inference(e.to_string());
-        let u = match &mut self.kind {
+        let model = self.model.clone();
+        let u = match &model.kind {
             Kind::Pair(session) => {
                 let r = TensorRef::from_array_view((shape, reference)).map_err(inf)?;
                 let c = TensorRef::from_array_view((shape, current)).map_err(inf)?;
+                let mut session = lock(session);
                 let outputs = session
                     .run(ort::inputs!["reference" => r, "current" => c])
                     .map_err(inf)?;
                 first_utility(&outputs)?
             }
-            Kind::Split {
-                encoder,
-                head,
-                reference: ref_feat,
-                current: cur_feat,
-                encoder_runs,
-                ..
-            } => {
-                if ref_feat.is_none() {
-                    *ref_feat = Some(encode(encoder, shape, reference)?);
-                    *encoder_runs += 1;
+            Kind::Split { encoder, head, .. } => {
+                if self.reference.is_none() {
+                    self.reference = Some(self.encode(encoder, shape, reference)?);
+                    self.encoder_runs += 1;
                 }
-                let cf = encode(encoder, shape, current)?;
-                *encoder_runs += 1;
-                let rf = ref_feat.as_ref().expect("encoded above");
+                let cf = self.encode(encoder, shape, current)?;
+                self.encoder_runs += 1;
+                let rf = self.reference.as_ref().expect("encoded above");
                 let r =
                     TensorRef::from_array_view((rf.shape.clone(), &rf.data[..])).map_err(inf)?;
                 let c =
                     TensorRef::from_array_view((cf.shape.clone(), &cf.data[..])).map_err(inf)?;
+                let mut head = lock(head);
                 let outputs = head
                     .run(ort::inputs!["reference_features" => r, "current_features" => c])
                     .map_err(inf)?;
                 let u = first_utility(&outputs)?;
                 drop(outputs);
-                *cur_feat = Some(cf);
+                drop(head);
+                self.current = Some(cf);
                 u
             }
         };
@@ -417,16 +595,93 @@ impl Scorer {
         Ok(u)
     }
 
+    /// Encode one image, through the batcher when batching.
+    fn encode(
+        &self,
+        encoder: &Mutex<Session>,
+        shape: [usize; 4],
+        image: &[f32],
+    ) -> Result<Features, ScorerError> {
+        if self.batching {
+            self.encode_batched(encoder, shape, image)
+        } else {
+            encode(&mut lock(encoder), shape, image)
+        }
+    }
+
+    /// Queue the image; the first waiting scorer leads: it waits (at most `batch_timeout`)
+    /// until as many frames as there are batching scorers (at most `batch_size`) are queued,
+    /// runs them as one batch, and hands each its features.
+    fn encode_batched(
+        &self,
+        encoder: &Mutex<Session>,
+        shape: [usize; 4],
+        image: &[f32],
+    ) -> Result<Features, ScorerError> {
+        let b = &self.model.batcher;
+        let mut own = Vec::new();
+        own.try_reserve_exact(image.len())
+            .map_err(|e| ScorerError::Inference(format!("cannot queue a frame: {e}")))?;
+        own.extend_from_slice(image);
+        let mut st = lock(&b.state);
+        let ticket = st.next_ticket;
+        st.next_ticket += 1;
+        st.queue.push((ticket, own));
+        b.cv.notify_all();
+        loop {
+            if let Some(r) = st.done.remove(&ticket) {
+                return r.map_err(ScorerError::Inference);
+            }
+            if st.leader {
+                st = b.cv.wait(st).unwrap_or_else(|e| e.into_inner());
+                continue;
+            }
+            st.leader = true;
+            let deadline = Instant::now() + self.batch_timeout;
+            loop {
+                let want = self.batch_size.min(b.users.load(Ordering::SeqCst)).max(1);
+                let now = Instant::now();
+                if st.queue.len() >= want || now >= deadline {
+                    break;
+                }
+                st =
+                    b.cv.wait_timeout(st, deadline - now)
+                        .unwrap_or_else(|e| e.into_inner())
+                        .0;
+            }
+            let take = st.queue.len().min(self.batch_size);
+            let jobs: Vec<(u64, Vec<f32>)> = st.queue.drain(..take).collect();
+            let mut input = std::mem::take(&mut st.input);
+            drop(st);
+            let results = run_batch(encoder, shape, &jobs, &mut input);
+            st = lock(&b.state);
+            st.input = input;
+            st.batches += 1;
+            st.frames += jobs.len() as u64;
+            match results {
+                Ok(feats) => {
+                    for ((t, _), f) in jobs.iter().zip(feats) {
+                        st.done.insert(*t, Ok(f));
+                    }
+                }
+                Err(e) => {
+                    for (t, _) in &jobs {
+                        st.done.insert(*t, Err(e.clone()));
+                    }
+                }
+            }
+            st.leader = false;
+            b.cv.notify_all();
+        }
+    }
+
     /// The frame just decided was kept and is the new reference. `scored`: it was scored by the
     /// last [`Scorer::score`] call (its features can be reused); otherwise the reference's
     /// features are recomputed at the next score.
     pub fn on_keep(&mut self, scored: bool) {
-        if let Kind::Split {
-            reference, current, ..
-        } = &mut self.kind
-        {
-            *reference = if scored { current.take() } else { None };
-            *current = None;
+        if self.is_split() {
+            self.reference = if scored { self.current.take() } else { None };
+            self.current = None;
         }
     }
 
@@ -434,6 +689,57 @@ impl Scorer {
     pub fn reset_reference(&mut self) {
         self.on_keep(false);
     }
+}
+
+/// Run `jobs` (images of `shape` [1,3,H,W] each) through the encoder as one batch; the
+/// features of each, in order.
+fn run_batch(
+    encoder: &Mutex<Session>,
+    shape: [usize; 4],
+    jobs: &[(u64, Vec<f32>)],
+    input: &mut Vec<f32>,
+) -> Result<Vec<Features>, String> {
+    let n = jobs.len();
+    let one = shape[1] * shape[2] * shape[3];
+    input.clear();
+    input
+        .try_reserve(n * one)
+        .map_err(|e| format!("cannot allocate a batch of {n}: {e}"))?;
+    for (_, x) in jobs {
+        input.extend_from_slice(x);
+    }
+    let shape = [n, shape[1], shape[2], shape[3]];
+    let t = TensorRef::from_array_view((shape, &input[..])).map_err(|e| e.to_string())?;
+    let mut session = lock(encoder);
+    let outputs = session
+        .run(ort::inputs!["image" => t])
+        .map_err(|e| e.to_string())?;
+    let f = outputs
+        .get("features")
+        .ok_or_else(|| "no `features` output".to_string())?;
+    let (fshape, data) = f.try_extract_tensor::<f32>().map_err(|e| e.to_string())?;
+    if fshape.first().copied() != Some(n as i64) || data.len() % n != 0 {
+        return Err(format!(
+            "`features` has shape {:?} for a batch of {n}",
+            &**fshape
+        ));
+    }
+    let per = data.len() / n;
+    let mut item_shape: Vec<usize> = fshape.iter().map(|&d| d.max(0) as usize).collect();
+    item_shape[0] = 1;
+    let mut out = Vec::with_capacity(n);
+    for chunk in data.chunks_exact(per) {
+        let mut owned = Vec::new();
+        owned
+            .try_reserve_exact(per)
+            .map_err(|e| format!("cannot allocate {per} features: {e}"))?;
+        owned.extend_from_slice(chunk);
+        out.push(Features {
+            shape: item_shape.clone(),
+            data: owned,
+        });
+    }
+    Ok(out)
 }
 
 fn encode(
