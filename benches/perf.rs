@@ -1,0 +1,594 @@
+//! Performance, side by side in one run (issue 9): the cost of `leangate` in real pipelines
+//! against `identity`, the ONNX Runtime threading settings, ffmpeg's `mpdecimate`, the frame →
+//! tensor preprocessing per format (fast path vs the float reference), and many streams sharing
+//! one session (batched) vs one session per stream.
+//!
+//!     cargo bench --bench perf                 # everything
+//!     cargo bench --bench perf -- threads pre  # only the sections whose name contains a filter
+//!
+//! Sections: `threads`, `pipeline`, `mpdecimate`, `preprocess`, `streams`. Environment:
+//! LEANGATE_BENCH_REPS (repetitions, default 5; medians, A/B runs interleaved so that the load
+//! of a shared machine hits both alike), LEANGATE_BENCH_FRAMES (frames per synthetic run,
+//! default 200). The model is the embedded default student `leangate-s`.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use gst::prelude::*;
+use gstleangate::{PixelFormat, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix};
+
+fn env_or<T: std::str::FromStr>(k: &str, d: T) -> T {
+    std::env::var(k)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(d)
+}
+
+fn median(v: &[f64]) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        (v[n / 2 - 1] + v[n / 2]) / 2.0
+    }
+}
+
+fn has(factory: &str) -> bool {
+    gst::ElementFactory::find(factory).is_some()
+}
+
+/// Run a pipeline to EOS; panics on an error message.
+fn run_to_eos(desc: &str) {
+    let pipeline = gst::parse::launch(desc).unwrap_or_else(|e| panic!("`{desc}`: {e}"));
+    let bus = pipeline.bus().unwrap();
+    pipeline.set_state(gst::State::Playing).unwrap();
+    for msg in bus.iter_timed(gst::ClockTime::from_seconds(600)) {
+        match msg.view() {
+            gst::MessageView::Eos(_) => break,
+            gst::MessageView::Error(e) => panic!("`{desc}`: {} ({:?})", e.error(), e.debug()),
+            _ => {}
+        }
+    }
+    pipeline.set_state(gst::State::Null).unwrap();
+}
+
+/// Frames/s of `desc` (which names the measured element `gate`), counted at the gate's sink pad
+/// from the first buffer to EOS (start-up and model loading excluded).
+fn fps(desc: &str) -> f64 {
+    let pipeline = gst::parse::launch(desc).unwrap_or_else(|e| panic!("`{desc}`: {e}"));
+    let bin = pipeline.downcast_ref::<gst::Bin>().unwrap();
+    let gate = bin.by_name("gate").expect("an element named gate");
+    let count = Arc::new(AtomicU64::new(0));
+    let first: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
+    {
+        let (count, first) = (count.clone(), first.clone());
+        gate.static_pad("sink")
+            .unwrap()
+            .add_probe(gst::PadProbeType::BUFFER, move |_, _| {
+                if count.fetch_add(1, Ordering::Relaxed) == 0 {
+                    *first.lock().unwrap() = Some(Instant::now());
+                }
+                gst::PadProbeReturn::Ok
+            });
+    }
+    let bus = pipeline.bus().unwrap();
+    pipeline.set_state(gst::State::Playing).unwrap();
+    let end = loop {
+        let msg = bus
+            .timed_pop(gst::ClockTime::from_seconds(600))
+            .unwrap_or_else(|| panic!("`{desc}` timed out"));
+        match msg.view() {
+            gst::MessageView::Eos(_) => break Instant::now(),
+            gst::MessageView::Error(e) => panic!("`{desc}`: {} ({:?})", e.error(), e.debug()),
+            _ => {}
+        }
+    };
+    pipeline.set_state(gst::State::Null).unwrap();
+    let frames = count.load(Ordering::Relaxed);
+    let first = first.lock().unwrap().expect("at least one buffer");
+    frames as f64 / end.duration_since(first).as_secs_f64()
+}
+
+/// Run each variant of `template` (GATE replaced) `reps` times, interleaved; median frames/s.
+fn interleaved(template: &str, variants: &[(&str, String)], reps: usize) -> Vec<f64> {
+    let descs: Vec<String> = variants
+        .iter()
+        .map(|(_, v)| template.replace("GATE", v))
+        .collect();
+    for d in &descs {
+        fps(d); // warm-up: page cache, library loading
+    }
+    let mut all = vec![Vec::new(); descs.len()];
+    for _ in 0..reps {
+        for (i, d) in descs.iter().enumerate() {
+            all[i].push(fps(d));
+        }
+    }
+    all.iter().map(|v| median(v)).collect()
+}
+
+/// Encode `frames` of the `ball` test pattern at `w`x`h` into `dir` with the first available
+/// encoder (H.264 preferred); None when there is none.
+fn make_clip(dir: &Path, w: u32, h: u32, frames: u64) -> Option<(PathBuf, &'static str)> {
+    let (enc, mux, ext, codec) = if has("x264enc") {
+        ("x264enc speed-preset=veryfast", "mp4mux", "mp4", "h264")
+    } else if has("openh264enc") {
+        ("openh264enc", "mp4mux", "mp4", "h264")
+    } else if has("avenc_mpeg4") {
+        ("avenc_mpeg4 bitrate=8000000", "mp4mux", "mp4", "mpeg4")
+    } else {
+        return None;
+    };
+    let path = dir.join(format!("ball_{w}x{h}.{ext}"));
+    run_to_eos(&format!(
+        "videotestsrc pattern=ball num-buffers={frames} ! \
+         video/x-raw,format=I420,width={w},height={h},framerate=30/1 ! {enc} ! {mux} ! \
+         filesink location=\"{}\"",
+        path.display()
+    ));
+    Some((path, codec))
+}
+
+fn bear() -> Option<PathBuf> {
+    let p = PathBuf::from(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../shared/data/cotracker_clips/bear.mp4"
+    ));
+    p.exists().then_some(p)
+}
+
+// ---------------------------------------------------------------------------------------------
+
+fn section_threads(reps: usize) {
+    println!("\n## ONNX Runtime threading (default student, decoded H.264 bear.mp4 854x480, frames/s at the gate; median of {reps}, interleaved)");
+    let Some(bear) = bear() else {
+        println!("SKIPPED: ../shared/data/cotracker_clips/bear.mp4 absent");
+        return;
+    };
+    let template = format!(
+        "filesrc location=\"{}\" ! decodebin ! GATE ! fakesink sync=false",
+        bear.display()
+    );
+    let lg = |extra: &str| format!("leangate name=gate threshold=0.3 {extra}");
+    let variants = [
+        ("identity (no gate)", "identity name=gate".to_string()),
+        (
+            "threads=2, spinning on (ONNX Runtime's own defaults)",
+            lg("threads=2 ort-spinning=true"),
+        ),
+        (
+            "threads=2, spinning off (before: threads=0 meant ORT's default, 2 here)",
+            lg("threads=2"),
+        ),
+        (
+            "threads=1, spinning off (now: the default, threads=0)",
+            lg(""),
+        ),
+    ];
+    let r = interleaved(&template, &variants, reps);
+    println!("| configuration | frames/s | vs identity |");
+    println!("|---|---|---|");
+    for ((name, _), f) in variants.iter().zip(&r) {
+        println!("| {name} | {f:.1} | {:.3} |", f / r[0]);
+    }
+}
+
+fn section_pipeline(reps: usize, n: u64, tmp: &Path) {
+    println!("\n## Pipelines: leangate (default student, defaults) vs identity, frames/s at the gate (median of {reps}, interleaved)");
+    let mut cases: Vec<(String, String)> = Vec::new();
+    for (w, h) in [(640u32, 480u32), (1920, 1080)] {
+        for fmt in ["I420", "NV12"] {
+            cases.push((
+                format!("raw videotestsrc {fmt} {w}x{h}"),
+                format!(
+                    "videotestsrc pattern=ball num-buffers={n} ! \
+                     video/x-raw,format={fmt},width={w},height={h},framerate=30/1 ! GATE ! \
+                     fakesink sync=false"
+                ),
+            ));
+        }
+    }
+    let encoder = if has("x264enc") || has("openh264enc") {
+        None
+    } else {
+        Some("no H.264 encoder here (x264enc, openh264enc, avenc_h264 absent): the synthetic clips are MPEG-4 part 2")
+    };
+    for (w, h) in [(640u32, 480u32), (1920, 1080)] {
+        match make_clip(tmp, w, h, n) {
+            Some((clip, codec)) => cases.push((
+                format!("decoded {codec} {w}x{h} (ball)"),
+                format!(
+                    "filesrc location=\"{}\" ! decodebin ! GATE ! fakesink sync=false",
+                    clip.display()
+                ),
+            )),
+            None => println!("SKIPPED: no encoder for the {w}x{h} decoded case"),
+        }
+    }
+    if let Some(bear) = bear() {
+        cases.push((
+            "decoded h264 bear.mp4 854x480 (real)".into(),
+            format!(
+                "filesrc location=\"{}\" ! decodebin ! GATE ! fakesink sync=false",
+                bear.display()
+            ),
+        ));
+        cases.push((
+            "decoded h264 bear.mp4 →1920x1080 (videoscale in both)".into(),
+            format!(
+                "filesrc location=\"{}\" ! decodebin ! videoscale ! \
+                 video/x-raw,width=1920,height=1080 ! GATE ! fakesink sync=false",
+                bear.display()
+            ),
+        ));
+    }
+    if let Some(why) = encoder {
+        println!("note: {why}");
+    }
+    println!("| case | leangate fps | identity fps | leangate/identity wall time |");
+    println!("|---|---|---|---|");
+    for (case, template) in cases {
+        let r = interleaved(
+            &template,
+            &[
+                ("leangate", "leangate name=gate threshold=0.3".to_string()),
+                ("identity", "identity name=gate".to_string()),
+            ],
+            reps,
+        );
+        println!(
+            "| {case} | {:.1} | {:.1} | {:.3} |",
+            r[0],
+            r[1],
+            r[1] / r[0]
+        );
+    }
+}
+
+fn section_mpdecimate(reps: usize) {
+    println!("\n## ffmpeg mpdecimate");
+    let ok = std::process::Command::new("ffmpeg")
+        .arg("-version")
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false);
+    if !ok {
+        println!("SKIPPED: ffmpeg is not installed on this machine");
+        return;
+    }
+    let Some(bear) = bear() else {
+        println!("SKIPPED: bear.mp4 absent");
+        return;
+    };
+    let run = |filter: bool| {
+        let mut c = std::process::Command::new("ffmpeg");
+        c.args(["-v", "error", "-nostdin", "-i"]).arg(&bear);
+        if filter {
+            c.args(["-vf", "mpdecimate"]);
+        }
+        c.args(["-f", "null", "-"]);
+        let t = Instant::now();
+        assert!(c.status().unwrap().success());
+        t.elapsed().as_secs_f64()
+    };
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    for _ in 0..reps {
+        a.push(run(true));
+        b.push(run(false));
+    }
+    println!("| case | mpdecimate s | decode only s | ratio |");
+    println!("|---|---|---|---|");
+    println!(
+        "| bear.mp4 | {:.3} | {:.3} | {:.3} |",
+        median(&a),
+        median(&b),
+        median(&a) / median(&b)
+    );
+}
+
+/// A deterministic, textured plane of `len` bytes.
+fn noise(len: usize, seed: u32) -> Vec<u8> {
+    let mut x = 0x9E37_79B9u32 ^ seed;
+    (0..len)
+        .map(|i| {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            ((i as u32 / 7) as u8).wrapping_add((x >> 24) as u8 / 4)
+        })
+        .collect()
+}
+
+fn frame_planes(format: PixelFormat, w: usize, h: usize) -> (Vec<Vec<u8>>, [isize; 3]) {
+    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+    match format {
+        PixelFormat::Rgb | PixelFormat::Bgr => (vec![noise(3 * w * h, 1)], [3 * w as isize, 0, 0]),
+        PixelFormat::Gray8 => (vec![noise(w * h, 1)], [w as isize, 0, 0]),
+        PixelFormat::Nv12 => (
+            vec![noise(w * h, 1), noise(2 * cw * ch, 2)],
+            [w as isize, 2 * cw as isize, 0],
+        ),
+        PixelFormat::I420 => (
+            vec![noise(w * h, 1), noise(cw * ch, 2), noise(cw * ch, 3)],
+            [w as isize, cw as isize, cw as isize],
+        ),
+        _ => (vec![noise(4 * w * h, 1)], [4 * w as isize, 0, 0]),
+    }
+}
+
+/// Median µs per frame of (fast `run`, reference `run_reference`), interleaved.
+fn preprocess_us(format: PixelFormat, w: u32, h: u32, reps: usize) -> (f64, f64) {
+    let (planes, strides) = frame_planes(format, w as usize, h as usize);
+    let mut p: [&[u8]; 3] = [&[], &[], &[]];
+    for (i, plane) in planes.iter().enumerate() {
+        p[i] = plane;
+    }
+    let frame = RawFrame {
+        format,
+        width: w,
+        height: h,
+        planes: p,
+        strides,
+    };
+    let spec = TensorSpec {
+        width: 256,
+        height: 256,
+        resize: ResizeMode::ShortSideCrop,
+        mean: [0.485, 0.456, 0.406],
+        std: [0.229, 0.224, 0.225],
+    };
+    let pre = Preprocessor::new(format, w, h, YuvMatrix::BT709, spec).unwrap();
+    let mut out = vec![0f32; pre.spec().len()];
+    let time = |fast: bool, iters: usize, out: &mut [f32]| {
+        let t = Instant::now();
+        for _ in 0..iters {
+            if fast {
+                pre.run(&frame, std::hint::black_box(&mut *out)).unwrap();
+            } else {
+                pre.run_reference(&frame, std::hint::black_box(&mut *out))
+                    .unwrap();
+            }
+        }
+        t.elapsed().as_secs_f64() * 1e6 / iters as f64
+    };
+    let once_fast = time(true, 3, &mut out);
+    let once_ref = time(false, 2, &mut out);
+    let it_fast = ((100_000.0 / once_fast) as usize).clamp(3, 5000);
+    let it_ref = ((100_000.0 / once_ref) as usize).clamp(2, 5000);
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    for _ in 0..reps {
+        a.push(time(true, it_fast, &mut out));
+        b.push(time(false, it_ref, &mut out));
+    }
+    (median(&a), median(&b))
+}
+
+fn section_preprocess(reps: usize) {
+    println!("\n## Preprocessing → 256x256 short-side-crop, one core, µs per frame (median of {reps}, interleaved): fast path (`run`) vs the previous float path (`run_reference`)");
+    println!("| format | size | fast µs | float reference µs | speed-up |");
+    println!("|---|---|---|---|---|");
+    for (w, h) in [(1920u32, 1080u32), (640, 480)] {
+        for f in PixelFormat::ALL {
+            let (a, b) = preprocess_us(f, w, h, reps);
+            println!("| {f:?} | {w}x{h} | {a:.0} | {b:.0} | {:.1}x |", b / a);
+        }
+    }
+}
+
+fn main() {
+    if let Some(arg) =
+        std::env::args().find_map(|a| a.strip_prefix(streams::CHILD_FLAG).map(str::to_string))
+    {
+        gst::init().unwrap();
+        gstleangate::plugin_register_static().expect("register the leangate plugin");
+        streams::child(&arg);
+        return;
+    }
+    let filter: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .collect();
+    let wanted = |s: &str| filter.is_empty() || filter.iter().any(|f| s.contains(f.as_str()));
+    gst::init().unwrap();
+    gstleangate::plugin_register_static().expect("register the leangate plugin");
+    let reps: usize = env_or("LEANGATE_BENCH_REPS", 5).max(1);
+    let n: u64 = env_or("LEANGATE_BENCH_FRAMES", 200);
+    let cores = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1);
+    println!("# LeanGate perf bench: {cores} CPU cores, {reps} repetitions (medians), {n} frames per synthetic run, default student");
+    let tmp = tempfile::tempdir().unwrap();
+    if wanted("preprocess") {
+        section_preprocess(reps);
+    }
+    if wanted("threads") {
+        section_threads(reps);
+    }
+    if wanted("pipeline") {
+        section_pipeline(reps, n, tmp.path());
+    }
+    if wanted("mpdecimate") {
+        section_mpdecimate(reps);
+    }
+    if wanted("streams") {
+        streams::section(reps);
+    }
+    let _ = Duration::ZERO;
+}
+
+mod streams {
+    //! N pipelines of 640x480 in one process (a child process per configuration, so that its
+    //! peak RSS is its own): aggregate frames/s through the gates, counted from the first buffer
+    //! at any gate to the last EOS, and peak RSS.
+
+    use super::*;
+
+    pub const CHILD_FLAG: &str = "--streams-child=";
+
+    /// (label, extra leangate properties)
+    const CONFIGS: [(&str, &str); 4] = [
+        ("separate sessions", "shared-session=false"),
+        ("shared, unbatched", "shared-session=true batch-size=1"),
+        ("shared, batched", "shared-session=true batch-size=16"),
+        (
+            "shared, batched, threads=2",
+            "shared-session=true batch-size=16 threads=2",
+        ),
+    ];
+
+    fn rss_kib(key: &str) -> u64 {
+        std::fs::read_to_string("/proc/self/status")
+            .ok()
+            .and_then(|s| {
+                s.lines()
+                    .find(|l| l.starts_with(key))
+                    .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
+            })
+            .unwrap_or(0)
+    }
+
+    /// In the child: run `n` pipelines with `props`, print "fps peak_rss_kib".
+    pub fn child(arg: &str) {
+        let mut it = arg.splitn(3, ',');
+        let n: usize = it.next().unwrap().parse().unwrap();
+        let frames: u64 = it.next().unwrap().parse().unwrap();
+        let props = it.next().unwrap_or("");
+        let count = Arc::new(AtomicU64::new(0));
+        let first: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
+        let pipelines: Vec<gst::Element> = (0..n)
+            .map(|k| {
+                let desc = format!(
+                    "videotestsrc pattern=ball num-buffers={frames} ! \
+                     video/x-raw,format=I420,width=640,height=480,framerate=30/1 ! \
+                     leangate name=gate threshold=0.3 batch-timeout=2000 {props} ! \
+                     fakesink sync=false"
+                );
+                let p = gst::parse::launch(&desc).unwrap();
+                let gate = p
+                    .downcast_ref::<gst::Bin>()
+                    .unwrap()
+                    .by_name("gate")
+                    .unwrap();
+                let src = p
+                    .downcast_ref::<gst::Bin>()
+                    .unwrap()
+                    .iterate_sources()
+                    .next()
+                    .unwrap()
+                    .unwrap();
+                src.set_property_from_str("pattern", ["ball", "smpte", "snow", "pinwheel"][k % 4]);
+                let (count, first) = (count.clone(), first.clone());
+                gate.static_pad("sink").unwrap().add_probe(
+                    gst::PadProbeType::BUFFER,
+                    move |_, _| {
+                        if count.fetch_add(1, Ordering::Relaxed) == 0 {
+                            *first.lock().unwrap() = Some(Instant::now());
+                        }
+                        gst::PadProbeReturn::Ok
+                    },
+                );
+                p
+            })
+            .collect();
+        for p in &pipelines {
+            p.set_state(gst::State::Playing).unwrap();
+        }
+        for p in &pipelines {
+            let bus = p.bus().unwrap();
+            for msg in bus.iter_timed(gst::ClockTime::from_seconds(600)) {
+                match msg.view() {
+                    gst::MessageView::Eos(_) => break,
+                    gst::MessageView::Error(e) => panic!("{} ({:?})", e.error(), e.debug()),
+                    _ => {}
+                }
+            }
+        }
+        let end = Instant::now();
+        let hwm = rss_kib("VmHWM:");
+        for p in &pipelines {
+            p.set_state(gst::State::Null).unwrap();
+        }
+        let first = first.lock().unwrap().unwrap();
+        let fps = count.load(Ordering::Relaxed) as f64 / end.duration_since(first).as_secs_f64();
+        println!("RESULT {fps} {hwm}");
+    }
+
+    fn run_child(n: usize, frames: u64, props: &str) -> (f64, f64) {
+        let out = std::process::Command::new(std::env::current_exe().unwrap())
+            .arg(format!("{CHILD_FLAG}{n},{frames},{props}"))
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        let line = text
+            .lines()
+            .find(|l| l.starts_with("RESULT "))
+            .unwrap_or_else(|| {
+                panic!(
+                    "child failed: {}\n{}",
+                    text,
+                    String::from_utf8_lossy(&out.stderr)
+                )
+            });
+        let v: Vec<f64> = line
+            .split_whitespace()
+            .skip(1)
+            .map(|x| x.parse().unwrap())
+            .collect();
+        (v[0], v[1])
+    }
+
+    pub fn section(reps: usize) {
+        let reps = reps.min(3);
+        let frames: u64 = env_or("LEANGATE_BENCH_STREAM_FRAMES", 100);
+        println!("\n## Many streams of 640x480 I420 (videotestsrc), one process, default student: aggregate frames/s through the gates and peak RSS (median of {reps}, configurations interleaved; {frames} frames per stream)");
+        let counts = [1usize, 4, 8, 16];
+        let mut res = vec![vec![(Vec::new(), Vec::new()); CONFIGS.len()]; counts.len()];
+        for _ in 0..reps {
+            for (ni, &n) in counts.iter().enumerate() {
+                for (ci, (_, props)) in CONFIGS.iter().enumerate() {
+                    let (fps, rss) = run_child(n, frames, props);
+                    res[ni][ci].0.push(fps);
+                    res[ni][ci].1.push(rss);
+                }
+            }
+        }
+        print!("| streams |");
+        for (label, _) in CONFIGS {
+            print!(" {label} fps | RSS MiB |");
+        }
+        println!(" best shared / separate fps |");
+        print!("|---|");
+        for _ in CONFIGS {
+            print!("---|---|");
+        }
+        println!("---|");
+        let med: Vec<Vec<(f64, f64)>> = res
+            .iter()
+            .map(|r| r.iter().map(|(f, m)| (median(f), median(m))).collect())
+            .collect();
+        for (ni, &n) in counts.iter().enumerate() {
+            print!("| {n} |");
+            for (fps, rss) in &med[ni] {
+                print!(" {fps:.1} | {:.1} |", rss / 1024.0);
+            }
+            let best = med[ni][1..].iter().map(|x| x.0).fold(0.0, f64::max);
+            println!(" {:.2} |", best / med[ni][0].0);
+        }
+        let (i1, i16) = (0, counts.len() - 1);
+        print!("RSS per added stream (1 → 16), MiB:");
+        for (ci, (label, _)) in CONFIGS.iter().enumerate() {
+            print!(
+                " {label} {:.2};",
+                (med[i16][ci].1 - med[i1][ci].1) / 1024.0 / 15.0
+            );
+        }
+        println!();
+    }
+}
