@@ -141,6 +141,27 @@ impl YuvMatrix {
         }
     }
 
+    /// The conversion as one affine map (for the fast path): `R = ys (Y - y0) + rv (V - 128)`,
+    /// `G = ys (Y - y0) - gu (U - 128) - gv (V - 128)`, `B = ys (Y - y0) + bu (U - 128)`.
+    fn coefficients(self) -> YuvCoefficients {
+        let (ys, y0, cs) = if self.full_range {
+            (1.0, 0.0, 1.0)
+        } else {
+            (255.0 / 219.0, 16.0, 255.0 / 224.0)
+        };
+        let kg = 1.0 - self.kr - self.kb;
+        let rv = 2.0 * (1.0 - self.kr) * cs;
+        let bu = 2.0 * (1.0 - self.kb) * cs;
+        YuvCoefficients {
+            ys,
+            y0,
+            rv,
+            bu,
+            gu: self.kb * bu / kg,
+            gv: self.kr * rv / kg,
+        }
+    }
+
     /// Convert (averaged) Y, U, V code values to RGB in 0..255. The map is affine, so averaging
     /// YUV first and converting once per output pixel equals converting every source pixel and
     /// averaging (up to the final clamp).
@@ -166,6 +187,16 @@ impl YuvMatrix {
             b.clamp(0.0, 255.0),
         ]
     }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct YuvCoefficients {
+    ys: f32,
+    y0: f32,
+    rv: f32,
+    bu: f32,
+    gu: f32,
+    gv: f32,
 }
 
 /// A borrowed raw frame: up to three planes with their strides.
@@ -380,8 +411,8 @@ struct FastScratch {
     /// Per pass: the vertically averaged samples of the pass's pixel range, plus `t` zeroed
     /// pixels of padding for the fixed-length horizontal taps.
     acc: Vec<Vec<f32>>,
-    /// One output row, 3 slots per pixel (RGB, or YUV before conversion).
-    pix: Vec<[f32; 3]>,
+    /// Per pass: one output row, `bpp` interleaved samples per output pixel.
+    rows: Vec<Vec<f32>>,
 }
 
 /// Taps of a plane subsampled 2:1 (chroma): luma taps merged by `index / 2`. With chroma
@@ -613,15 +644,17 @@ impl Preprocessor {
 
     fn fast_scratch(&self) -> Result<FastScratch, PreprocessError> {
         let mut acc = Vec::new();
-        acc.try_reserve_exact(self.passes.len())
-            .map_err(|e| PreprocessError(format!("cannot allocate row buffers: {e}")))?;
+        let mut rows = Vec::new();
+        let e = |e: std::collections::TryReserveError| {
+            PreprocessError(format!("cannot allocate row buffers: {e}"))
+        };
+        acc.try_reserve_exact(self.passes.len()).map_err(e)?;
+        rows.try_reserve_exact(self.passes.len()).map_err(e)?;
         for p in &self.passes {
             acc.push(try_zeroed((p.x1 - p.x0 + p.x.t) * p.bpp)?);
+            rows.push(try_zeroed(self.spec.width as usize * p.bpp)?);
         }
-        Ok(FastScratch {
-            acc,
-            pix: try_filled(self.spec.width as usize, [0f32; 3])?,
-        })
+        Ok(FastScratch { acc, rows })
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -659,11 +692,27 @@ impl Preprocessor {
         ];
         let offset = [m[0] / sd[0], m[1] / sd[1], m[2] / sd[2]];
         let yuv = matches!(self.format, PixelFormat::Nv12 | PixelFormat::I420);
-        let FastScratch { acc: accs, pix } = s;
+        let c = self.yuv.coefficients();
+        let FastScratch {
+            acc: accs,
+            rows: hrows,
+        } = s;
+        // Where each output slot (R, G, B or Y, U, V) is read: (pass, samples per pixel, sample).
+        let mut slots = [(0usize, 1usize, 0usize); 3];
+        for (k, pass) in self.passes.iter().enumerate() {
+            for &(sample, slot) in &pass.chans {
+                slots[slot] = (k, pass.bpp, sample);
+            }
+        }
         let (out_r, rest) = out.split_at_mut(plane_len);
         let (out_g, out_b) = rest.split_at_mut(plane_len);
         for oy in 0..oh {
-            for (pass, acc) in self.passes.iter().zip(accs.iter_mut()) {
+            for ((pass, acc), hrow) in self
+                .passes
+                .iter()
+                .zip(accs.iter_mut())
+                .zip(hrows.iter_mut())
+            {
                 let bpp = pass.bpp;
                 let n = (pass.x1 - pass.x0) * bpp;
                 let data = frame.planes[pass.plane];
@@ -684,23 +733,42 @@ impl Preprocessor {
                     }
                 }
                 match bpp {
-                    1 => hpass::<1>(acc, pass, pix),
-                    2 => hpass::<2>(acc, pass, pix),
-                    3 => hpass::<3>(acc, pass, pix),
-                    _ => hpass::<4>(acc, pass, pix),
+                    1 => hpass::<1>(acc, pass, hrow),
+                    2 => hpass::<2>(acc, pass, hrow),
+                    3 => hpass::<3>(acc, pass, hrow),
+                    _ => hpass::<4>(acc, pass, hrow),
                 }
             }
+            let slot = |k: usize| {
+                let (pass, bpp, sample) = slots[k];
+                hrows[pass][sample..].iter().step_by(bpp)
+            };
             let row = oy * ow;
             let (r, g, b) = (
                 &mut out_r[row..row + ow],
                 &mut out_g[row..row + ow],
                 &mut out_b[row..row + ow],
             );
-            for (((p, r), g), b) in pix.iter().zip(r).zip(g).zip(b) {
-                let v = if yuv { self.yuv.to_rgb(*p) } else { *p };
-                *r = v[0] * scale[0] - offset[0];
-                *g = v[1] * scale[1] - offset[1];
-                *b = v[2] * scale[2] - offset[2];
+            let px = slot(0).zip(slot(1)).zip(slot(2));
+            let out = r.iter_mut().zip(g.iter_mut()).zip(b.iter_mut());
+            if yuv {
+                for (((y, u), v), ((r, g), b)) in px.zip(out) {
+                    let y = (y - c.y0) * c.ys;
+                    let cb = u - 128.0;
+                    let cr = v - 128.0;
+                    let rv = (y + c.rv * cr).clamp(0.0, 255.0);
+                    let gv = (y - c.gu * cb - c.gv * cr).clamp(0.0, 255.0);
+                    let bv = (y + c.bu * cb).clamp(0.0, 255.0);
+                    *r = rv * scale[0] - offset[0];
+                    *g = gv * scale[1] - offset[1];
+                    *b = bv * scale[2] - offset[2];
+                }
+            } else {
+                for (((p0, p1), p2), ((r, g), b)) in px.zip(out) {
+                    *r = p0 * scale[0] - offset[0];
+                    *g = p1 * scale[1] - offset[1];
+                    *b = p2 * scale[2] - offset[2];
+                }
             }
         }
     }
@@ -998,15 +1066,50 @@ fn vacc(acc: &mut [f32], src: &[u8], w: f32) {
     }
 }
 
-/// Horizontal taps over one vertically averaged row of `B` samples per pixel; the used samples
-/// go to their output slots in `pix`.
+/// Horizontal taps over one vertically averaged row of `B` samples per pixel, into `out` (`B`
+/// samples per output pixel).
 #[inline(always)]
-fn hpass<const B: usize>(acc: &[f32], pass: &PlanePass, pix: &mut [[f32; 3]]) {
+fn hpass<const B: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
+    match pass.x.t {
+        1 => hpass_t::<B, 1>(acc, pass, out),
+        2 => hpass_t::<B, 2>(acc, pass, out),
+        3 => hpass_t::<B, 3>(acc, pass, out),
+        4 => hpass_t::<B, 4>(acc, pass, out),
+        5 => hpass_t::<B, 5>(acc, pass, out),
+        6 => hpass_t::<B, 6>(acc, pass, out),
+        7 => hpass_t::<B, 7>(acc, pass, out),
+        8 => hpass_t::<B, 8>(acc, pass, out),
+        _ => hpass_any::<B>(acc, pass, out),
+    }
+}
+
+/// [`hpass`] with `T` taps per output (unrolled).
+#[inline(always)]
+fn hpass_t<const B: usize, const T: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
+    let n = pass.x.start.len();
+    for o in 0..n {
+        let st = pass.x.start[o];
+        let w: &[f32; T] = pass.x.w[o * T..o * T + T].try_into().expect("T taps");
+        let src: &[f32] = &acc[st * B..(st + T) * B];
+        let mut a = [0f32; B];
+        for k in 0..T {
+            for c in 0..B {
+                a[c] += w[k] * src[k * B + c];
+            }
+        }
+        out[o * B..o * B + B].copy_from_slice(&a);
+    }
+}
+
+#[inline(always)]
+fn hpass_any<const B: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
     let t = pass.x.t;
-    for ((px, &st), w) in pix
-        .iter_mut()
-        .zip(&pass.x.start)
+    for (o, (&st, w)) in pass
+        .x
+        .start
+        .iter()
         .zip(pass.x.w.chunks_exact(t))
+        .enumerate()
     {
         let src = &acc[st * B..(st + t) * B];
         let mut a = [0f32; B];
@@ -1015,9 +1118,7 @@ fn hpass<const B: usize>(acc: &[f32], pass: &PlanePass, pix: &mut [[f32; 3]]) {
                 a[c] += wk * p[c];
             }
         }
-        for &(sample, slot) in &pass.chans {
-            px[slot] = a[sample];
-        }
+        out[o * B..o * B + B].copy_from_slice(&a);
     }
 }
 
