@@ -401,6 +401,23 @@ pub(super) fn read_metadata(
     })
 }
 
+/// Whether `input` and `output` of the graph both have a dynamic first (batch) dimension, so
+/// that several frames can be run as one batch.
+pub(super) fn dynamic_batch(session: &Session, input: &str, output: &str) -> bool {
+    let first = |vt: &ValueType| tensor_dims(vt).and_then(|(_, d)| d.first().copied());
+    let i = session
+        .inputs()
+        .iter()
+        .find(|i| i.name() == input)
+        .and_then(|i| first(i.dtype()));
+    let o = session
+        .outputs()
+        .iter()
+        .find(|o| o.name() == output)
+        .and_then(|o| first(o.dtype()));
+    matches!((i, o), (Some(a), Some(b)) if a < 0 && b < 0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -423,21 +440,4 @@ mod tests {
         assert!(check_input_size(4096, 4096, "m").is_err(), "192 MiB");
         assert!(check_input_size(4097, 1, "m").is_err());
     }
-}
-
-/// Whether `input` and `output` of the graph both have a dynamic first (batch) dimension, so
-/// that several frames can be run as one batch.
-pub(super) fn dynamic_batch(session: &Session, input: &str, output: &str) -> bool {
-    let first = |vt: &ValueType| tensor_dims(vt).and_then(|(_, d)| d.first().copied());
-    let i = session
-        .inputs()
-        .iter()
-        .find(|i| i.name() == input)
-        .and_then(|i| first(i.dtype()));
-    let o = session
-        .outputs()
-        .iter()
-        .find(|o| o.name() == output)
-        .and_then(|o| first(o.dtype()));
-    matches!((i, o), (Some(a), Some(b)) if a < 0 && b < 0)
 }
