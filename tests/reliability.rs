@@ -563,12 +563,20 @@ fn compositor_does_not_stall_on_a_gated_branch() {
 
 /// Run a deterministic annotate-mode pipeline and return (reason, utility bits, keep) per frame.
 fn annotate_run(seed: u32, frames: u64) -> Vec<(String, u64, bool, u64)> {
+    annotate_run_with(
+        seed,
+        frames,
+        &format!("model={} threshold=0.2", fixture("mad.onnx")),
+    )
+}
+
+/// [`annotate_run`] with other `leangate` properties (model, threshold, sessions).
+fn annotate_run_with(seed: u32, frames: u64, props: &str) -> Vec<(String, u64, bool, u64)> {
     init();
     let desc = format!(
-        "appsrc name=src format=time caps={} ! leangate model={} mode=annotate threshold=0.2 \
-         max-gap=7 ! appsink name=out sync=false",
+        "appsrc name=src format=time caps={} ! leangate {props} mode=annotate max-gap=7 ! \
+         appsink name=out sync=false",
         rgb_caps(W, H),
-        fixture("mad.onnx")
     );
     let pipeline = gst::parse::launch(&desc)
         .unwrap()
@@ -620,6 +628,33 @@ fn eight_concurrent_pipelines_are_identical_to_solo_runs() {
         .collect();
     for (s, h) in handles.into_iter().enumerate() {
         assert_eq!(h.join().unwrap(), solo[s], "pipeline {s}");
+    }
+}
+
+/// Elements sharing one session of the default student, their frames batched, decide as
+/// elements with a session each, with the same utilities (within 1e-5).
+#[test]
+fn shared_batched_elements_match_separate_sessions() {
+    let frames = 40;
+    let separate = "execution-provider=cpu shared-session=false";
+    let batched = "execution-provider=cpu shared-session=true batch-size=4 batch-timeout=20000";
+    let solo: Vec<_> = (0..4)
+        .map(|s| annotate_run_with(s, frames, separate))
+        .collect();
+    let handles: Vec<_> = (0..4)
+        .map(|s| std::thread::spawn(move || annotate_run_with(s, frames, batched)))
+        .collect();
+    for (s, h) in handles.into_iter().enumerate() {
+        let got = h.join().unwrap();
+        assert_eq!(got.len(), solo[s].len(), "pipeline {s}");
+        for (i, (a, b)) in solo[s].iter().zip(&got).enumerate() {
+            assert_eq!((&a.0, a.2, a.3), (&b.0, b.2, b.3), "pipeline {s} frame {i}");
+            let (ua, ub) = (f64::from_bits(a.1), f64::from_bits(b.1));
+            assert!(
+                (ua.is_nan() && ub.is_nan()) || (ua - ub).abs() <= 1e-5,
+                "pipeline {s} frame {i}: {ua} vs {ub}"
+            );
+        }
     }
 }
 
