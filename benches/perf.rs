@@ -433,12 +433,13 @@ mod streams {
     pub const CHILD_FLAG: &str = "--streams-child=";
 
     /// (label, extra leangate properties)
-    const CONFIGS: [(&str, &str); 4] = [
+    const CONFIGS: [(&str, &str); 5] = [
         ("separate sessions", "shared-session=false"),
         ("shared, unbatched", "shared-session=true batch-size=1"),
-        ("shared, batched", "shared-session=true batch-size=16"),
+        ("shared, batch-size=16", "shared-session=true batch-size=16"),
+        ("shared, batch-size=4", "shared-session=true batch-size=4"),
         (
-            "shared, batched, threads=2",
+            "shared, batch-size=16, threads=2",
             "shared-session=true batch-size=16 threads=2",
         ),
     ];
@@ -544,8 +545,66 @@ mod streams {
         (v[0], v[1])
     }
 
+    /// Scorer only (no GStreamer): `k` threads each scoring `frames` tensors (a keep every 10th),
+    /// aggregate scored frames/s.
+    fn scorer_fps(k: usize, frames: usize, shared: bool, batch: usize) -> f64 {
+        use gstleangate::{ExecutionProvider, Scorer, ScorerOptions};
+        let opts = ScorerOptions {
+            execution_provider: ExecutionProvider::Cpu,
+            shared,
+            batch_size: batch,
+            batch_timeout: Duration::from_micros(2000),
+            ..Default::default()
+        };
+        let mut scorers: Vec<Scorer> = (0..k)
+            .map(|_| Scorer::load(&gstleangate::default_model(), &opts).unwrap())
+            .collect();
+        let len = scorers[0].info().spec.len();
+        let pics: Vec<Vec<f32>> = (0..4)
+            .map(|j| {
+                (0..len)
+                    .map(|i| (((i * (j + 3)) % 97) as f32) / 97.0)
+                    .collect()
+            })
+            .collect();
+        let t = Instant::now();
+        std::thread::scope(|scope| {
+            for s in scorers.iter_mut() {
+                let pics = &pics;
+                scope.spawn(move || {
+                    for i in 1..=frames {
+                        s.score(&pics[0], &pics[i % 4]).unwrap();
+                        if i % 10 == 0 {
+                            s.on_keep(false);
+                        }
+                    }
+                });
+            }
+        });
+        (k * frames) as f64 / t.elapsed().as_secs_f64()
+    }
+
     pub fn section(reps: usize) {
         let reps = reps.min(3);
+        println!("\n## Scorer only (no pipeline), default student, K threads scoring 100 frames each: aggregate scored frames/s (median of {reps}, interleaved)");
+        println!("| threads K | separate sessions | shared, unbatched | shared, batch-size=K | batched / separate |");
+        println!("|---|---|---|---|---|");
+        for k in [1usize, 4, 8] {
+            let mut r = vec![Vec::new(), Vec::new(), Vec::new()];
+            for _ in 0..reps {
+                r[0].push(scorer_fps(k, 100, false, 1));
+                r[1].push(scorer_fps(k, 100, true, 1));
+                r[2].push(scorer_fps(k, 100, true, k));
+            }
+            let m: Vec<f64> = r.iter().map(|v| median(v)).collect();
+            println!(
+                "| {k} | {:.1} | {:.1} | {:.1} | {:.2} |",
+                m[0],
+                m[1],
+                m[2],
+                m[2] / m[0]
+            );
+        }
         let frames: u64 = env_or("LEANGATE_BENCH_STREAM_FRAMES", 100);
         println!("\n## Many streams of 640x480 I420 (videotestsrc), one process, default student: aggregate frames/s through the gates and peak RSS (median of {reps}, configurations interleaved; {frames} frames per stream)");
         let counts = [1usize, 4, 8, 16];
