@@ -411,7 +411,8 @@ struct FastScratch {
     /// Per pass: the vertically averaged samples of the pass's pixel range, plus `t` zeroed
     /// pixels of padding for the fixed-length horizontal taps.
     acc: Vec<Vec<f32>>,
-    /// Per pass: one output row, `bpp` interleaved samples per output pixel.
+    /// Per pass: one output row per sample (`bpp` rows of the output width, one after the
+    /// other).
     rows: Vec<Vec<f32>>,
 }
 
@@ -720,16 +721,27 @@ impl Preprocessor {
                 let ty = &pass.y[oy];
                 {
                     let acc = &mut acc[..n];
-                    for (j, &wy) in ty.weights.iter().enumerate() {
-                        // In range: `check` validated every row of the plane, and the pass's
-                        // pixel range lies inside a row.
+                    // In range: `check` validated every row of the plane, and the pass's pixel
+                    // range lies inside a row.
+                    let src = |j: usize| {
                         let at = r.at(ty.start + j) + pass.x0 * bpp;
-                        let src = &data[at..at + n];
-                        if j == 0 {
-                            vinit(acc, src, wy);
-                        } else {
-                            vacc(acc, src, wy);
-                        }
+                        &data[at..at + n]
+                    };
+                    let w = &ty.weights;
+                    // Two source rows per sweep over the accumulator.
+                    let mut j = if w.len() >= 2 {
+                        vinit2(acc, src(0), w[0], src(1), w[1]);
+                        2
+                    } else {
+                        vinit(acc, src(0), w[0]);
+                        1
+                    };
+                    while j + 1 < w.len() {
+                        vacc2(acc, src(j), w[j], src(j + 1), w[j + 1]);
+                        j += 2;
+                    }
+                    if j < w.len() {
+                        vacc(acc, src(j), w[j]);
                     }
                 }
                 match bpp {
@@ -740,8 +752,8 @@ impl Preprocessor {
                 }
             }
             let slot = |k: usize| {
-                let (pass, bpp, sample) = slots[k];
-                hrows[pass][sample..].iter().step_by(bpp)
+                let (pass, _, sample) = slots[k];
+                hrows[pass][sample * ow..(sample + 1) * ow].iter()
             };
             let row = oy * ow;
             let (r, g, b) = (
@@ -1058,6 +1070,22 @@ fn vinit(acc: &mut [f32], src: &[u8], w: f32) {
     }
 }
 
+/// `acc = w0 * s0 + w1 * s1`, vectorised.
+#[inline(always)]
+fn vinit2(acc: &mut [f32], s0: &[u8], w0: f32, s1: &[u8], w1: f32) {
+    for ((a, &p), &q) in acc.iter_mut().zip(s0).zip(s1) {
+        *a = w0 * p as f32 + w1 * q as f32;
+    }
+}
+
+/// `acc += w0 * s0 + w1 * s1`, vectorised.
+#[inline(always)]
+fn vacc2(acc: &mut [f32], s0: &[u8], w0: f32, s1: &[u8], w1: f32) {
+    for ((a, &p), &q) in acc.iter_mut().zip(s0).zip(s1) {
+        *a = *a + w0 * p as f32 + w1 * q as f32;
+    }
+}
+
 /// `acc += w * src`, vectorised.
 #[inline(always)]
 fn vacc(acc: &mut [f32], src: &[u8], w: f32) {
@@ -1066,8 +1094,8 @@ fn vacc(acc: &mut [f32], src: &[u8], w: f32) {
     }
 }
 
-/// Horizontal taps over one vertically averaged row of `B` samples per pixel, into `out` (`B`
-/// samples per output pixel).
+/// Horizontal taps over one vertically averaged row of `B` samples per pixel, into `out`: `B`
+/// rows of the output width, one per sample.
 #[inline(always)]
 fn hpass<const B: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
     match pass.x.t {
@@ -1087,6 +1115,8 @@ fn hpass<const B: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
 #[inline(always)]
 fn hpass_t<const B: usize, const T: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
     let n = pass.x.start.len();
+    let mut rows = out.chunks_exact_mut(n);
+    let outs: [&mut [f32]; B] = std::array::from_fn(|_| rows.next().expect("B rows"));
     for o in 0..n {
         let st = pass.x.start[o];
         let w: &[f32; T] = pass.x.w[o * T..o * T + T].try_into().expect("T taps");
@@ -1097,13 +1127,18 @@ fn hpass_t<const B: usize, const T: usize>(acc: &[f32], pass: &PlanePass, out: &
                 a[c] += w[k] * src[k * B + c];
             }
         }
-        out[o * B..o * B + B].copy_from_slice(&a);
+        for c in 0..B {
+            outs[c][o] = a[c];
+        }
     }
 }
 
 #[inline(always)]
 fn hpass_any<const B: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
     let t = pass.x.t;
+    let n = pass.x.start.len();
+    let mut rows = out.chunks_exact_mut(n);
+    let outs: [&mut [f32]; B] = std::array::from_fn(|_| rows.next().expect("B rows"));
     for (o, (&st, w)) in pass
         .x
         .start
@@ -1118,7 +1153,9 @@ fn hpass_any<const B: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
                 a[c] += wk * p[c];
             }
         }
-        out[o * B..o * B + B].copy_from_slice(&a);
+        for c in 0..B {
+            outs[c][o] = a[c];
+        }
     }
 }
 
