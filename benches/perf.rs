@@ -590,7 +590,7 @@ mod streams {
         println!("| threads K | separate sessions | shared, unbatched | shared, batch-size=K | batched / separate |");
         println!("|---|---|---|---|---|");
         for k in [1usize, 4, 8] {
-            let mut r = vec![Vec::new(), Vec::new(), Vec::new()];
+            let mut r = [Vec::new(), Vec::new(), Vec::new()];
             for _ in 0..reps {
                 r[0].push(scorer_fps(k, 100, false, 1));
                 r[1].push(scorer_fps(k, 100, true, 1));

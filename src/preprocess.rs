@@ -1117,9 +1117,14 @@ fn hpass_t<const B: usize, const T: usize>(acc: &[f32], pass: &PlanePass, out: &
     let n = pass.x.start.len();
     let mut rows = out.chunks_exact_mut(n);
     let outs: [&mut [f32]; B] = std::array::from_fn(|_| rows.next().expect("B rows"));
-    for o in 0..n {
-        let st = pass.x.start[o];
-        let w: &[f32; T] = pass.x.w[o * T..o * T + T].try_into().expect("T taps");
+    for (o, (&st, w)) in pass
+        .x
+        .start
+        .iter()
+        .zip(pass.x.w.chunks_exact(T))
+        .enumerate()
+    {
+        let w: &[f32; T] = w.try_into().expect("T taps");
         let src: &[f32] = &acc[st * B..(st + T) * B];
         let mut a = [0f32; B];
         for k in 0..T {
