@@ -301,3 +301,31 @@ fn shared_and_batched_scoring_matches_separate_sessions() {
     let b = Scorer::load(&gstleangate::default_model(), &opts(false, 1)).unwrap();
     assert!(!a.shares_session_with(&b));
 }
+
+/// Batching adds no latency to a stream that is alone on its session: with a one-second
+/// `batch_timeout`, five frames take far less than a second.
+#[test]
+fn a_single_batching_stream_never_waits() {
+    let opts = ScorerOptions {
+        execution_provider: ExecutionProvider::Cpu,
+        shared: true,
+        batch_size: 8,
+        batch_timeout: std::time::Duration::from_secs(1),
+        // A key no other test of this binary uses: a session of its own.
+        threads: 3,
+        ..Default::default()
+    };
+    let mut s = Scorer::load(&gstleangate::default_model(), &opts).unwrap();
+    assert!(s.is_batching());
+    let len = s.info().spec.len();
+    let frames = stream_frames(len, 7, 6);
+    let t = std::time::Instant::now();
+    for f in &frames[1..] {
+        s.score(&frames[0], f).unwrap();
+    }
+    assert!(
+        t.elapsed() < std::time::Duration::from_millis(900),
+        "{:?} for five frames",
+        t.elapsed()
+    );
+}
