@@ -424,8 +424,8 @@ fn eval_cmd(
 
 fn print_summary(r: &eval::EvalReport) {
     println!(
-        "{}: {} frames, threshold {:.3}",
-        r.sequence, r.frames, r.threshold
+        "{}: {} frames, model {} ({}), threshold {:.3}",
+        r.sequence, r.frames, r.model, r.execution_provider, r.threshold
     );
     println!(
         "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7}",

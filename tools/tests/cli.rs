@@ -119,6 +119,8 @@ fn synth_label_eval_end_to_end() {
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(v["frames"], 40);
     assert_eq!(v["threshold"], 0.05);
+    assert_eq!(v["model"], "fixture-mad", "the model the element ran");
+    assert_eq!(v["execution_provider"], "cpu");
     let oracle = &v["policies"]["oracle"];
     assert_eq!(oracle["overdue_drops"], 0);
     assert_eq!(oracle["utility_mae"], 0.0);
