@@ -42,15 +42,19 @@ mod materials;
 mod motion;
 mod noise;
 mod render;
+pub mod replay;
 mod scene;
+pub mod sensor;
 #[cfg(test)]
 mod tests;
 
 pub use materials::load_textures;
 pub use motion::{camera_path, pose_from_angles, MotionProfile, Segment};
 pub use noise::SplitMix64;
-pub use render::{render_sequence, SynthConfig, SynthSummary};
+pub use render::{render_sequence, try_camera_path, SynthConfig, SynthSummary};
+pub use replay::{MotionSpec, Replay, ReplayEnd, Trajectory};
 pub use scene::{Lighting, Scene};
+pub use sensor::SensorConfig;
 
 use crate::dataset::DatasetError;
 

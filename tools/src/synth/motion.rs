@@ -290,8 +290,9 @@ pub(crate) fn interpolate(a: &Isometry3<f64>, b: &Isometry3<f64>, s: f64) -> Iso
     Isometry3::from_parts(Translation3::from(t), r)
 }
 
-/// The generated camera path of a configuration (camera-to-world per frame) and its segments,
-/// without rendering.
+/// The generated camera path of a configuration's motion profile (camera-to-world per frame)
+/// and its segments, without rendering. It ignores `cfg.replay`: use
+/// [`super::try_camera_path`] for a path that may be replayed.
 pub fn camera_path(cfg: &SynthConfig, scene: &Scene) -> (Vec<Isometry3<f64>>, Vec<Segment>) {
     let (samples, segs) = generate_path(scene, cfg.motion, cfg.fps, cfg.frames, cfg.seed);
     (

@@ -10,6 +10,8 @@ use rayon::prelude::*;
 use super::materials::load_textures;
 use super::motion::{generate_path, interpolate, MotionProfile, Segment, SUBSTEPS};
 use super::noise::{mix64, noise1};
+use super::replay::{replay_path, Placement, Replay};
+use super::sensor::{self, FrameSensor, SensorConfig, SensorParams};
 use super::{Lighting, Scene, SynthError};
 use crate::dataset::{DatasetError, DepthImage, Intrinsics, RgbFormat, SequenceWriter};
 
@@ -77,6 +79,10 @@ pub struct SynthConfig {
     pub lighting_changes: bool,
     /// Encoding of the colour frames (default PNG).
     pub rgb_format: RgbFormat,
+    /// Replay a real camera trajectory instead of `motion` (see [`super::replay`]).
+    pub replay: Option<Replay>,
+    /// Opt-in sensor effects (see [`super::sensor`]; default: none).
+    pub sensor: SensorConfig,
 }
 
 impl Default for SynthConfig {
@@ -93,6 +99,8 @@ impl Default for SynthConfig {
             blur: false,
             lighting_changes: false,
             rgb_format: RgbFormat::Png,
+            replay: None,
+            sensor: SensorConfig::default(),
         }
     }
 }
@@ -159,11 +167,47 @@ pub(crate) fn lighting_at(cfg: &SynthConfig, i: usize) -> Lighting {
     }
 }
 
-/// Renders one frame `i` of a configuration: colour (with blur/noise) and depth.
+/// The sensor model of a sequence: parameters and per-frame camera state.
+#[derive(Debug, Clone)]
+pub(crate) struct SensorSetup {
+    pub(crate) params: SensorParams,
+    pub(crate) track: Vec<FrameSensor>,
+}
+
+impl SensorSetup {
+    /// Runs the auto-exposure and white balance over the path (`None` when no effect is on).
+    pub(crate) fn new(
+        cfg: &SynthConfig,
+        scene: &Scene,
+        samples: &[Isometry3<f64>],
+    ) -> Option<SensorSetup> {
+        if !cfg.sensor.any() {
+            return None;
+        }
+        let params = SensorParams::new(cfg.seed);
+        let track = sensor::sensor_track(
+            &cfg.sensor,
+            &params,
+            cfg.seed,
+            cfg.fps,
+            scene,
+            samples,
+            &cfg.intrinsics(),
+            (cfg.width, cfg.height),
+            &|i| lighting_at(cfg, i),
+            cfg.frames,
+        );
+        Some(SensorSetup { params, track })
+    }
+}
+
+/// Renders one frame `i` of a configuration: colour (with blur/noise and the sensor effects of
+/// `sensor`) and depth.
 pub(crate) fn render_frame(
     cfg: &SynthConfig,
     scene: &Scene,
     samples: &[Isometry3<f64>],
+    sensor: Option<&SensorSetup>,
     i: usize,
 ) -> (RgbImage, DepthImage) {
     let (w, h) = (cfg.width, cfg.height);
@@ -172,37 +216,113 @@ pub(crate) fn render_frame(
     let mut acc = vec![0.0f32; w as usize * h as usize * 3];
     let mut depth = DepthImage::new(w, h);
     let c = i * SUBSTEPS;
-    scene.render_into(
-        &samples[c],
-        &intr,
-        w,
-        h,
-        &light,
-        &mut acc,
-        Some(&mut depth.data),
-    );
+    let sc = &cfg.sensor;
+    let colour_effects = sc.any_colour();
     let mut div = 1.0;
-    if cfg.blur {
-        // Samples are a quarter frame apart: c-1 and c+1 span half a frame interval.
-        let before = if c > 0 {
-            samples[c - 1]
-        } else {
-            interpolate(&samples[c], &samples[c + 1], -1.0)
-        };
-        for p in [before, samples[c + 1]] {
-            scene.render_into(&p, &intr, w, h, &light, &mut acc, None);
+    let mut noise = cfg.noise;
+    match sensor {
+        Some(setup) if colour_effects => {
+            let fs = setup.track.get(i).copied().unwrap_or_default();
+            // depth at the frame pose (global shutter); colour from the sensor model
+            scene.render_into(
+                &samples[c],
+                &intr,
+                w,
+                h,
+                &light,
+                &mut acc,
+                Some(&mut depth.data),
+            );
+            acc.iter_mut().for_each(|x| *x = 0.0);
+            noise *= sensor::render_colour(
+                sc,
+                &setup.params,
+                &fs,
+                scene,
+                samples,
+                &intr,
+                (w, h),
+                &light,
+                cfg.fps,
+                i,
+                cfg.blur,
+                &mut acc,
+            );
         }
-        div = 3.0;
+        _ => {
+            scene.render_into(
+                &samples[c],
+                &intr,
+                w,
+                h,
+                &light,
+                &mut acc,
+                Some(&mut depth.data),
+            );
+            if cfg.blur {
+                // Samples are a quarter frame apart: c-1 and c+1 span half a frame interval.
+                let before = if c > 0 {
+                    samples[c - 1]
+                } else {
+                    interpolate(&samples[c], &samples[c + 1], -1.0)
+                };
+                for p in [before, samples[c + 1]] {
+                    scene.render_into(&p, &intr, w, h, &light, &mut acc, None);
+                }
+                div = 3.0;
+            }
+        }
+    }
+    if let Some(setup) = sensor {
+        sensor::degrade_depth(sc, &setup.params, &mut depth, intr.fx, cfg.seed, i);
     }
     let rgb = to_rgb(
         &acc,
         w,
         h,
         div,
-        cfg.noise,
+        noise,
         mix64(cfg.seed ^ (i as u64 + 1).wrapping_mul(0xA5A5_5A5A)),
     );
     (rgb, depth)
+}
+
+/// The camera path of a configuration at `SUBSTEPS` samples per frame, its segments (none for a
+/// replay), the replay placement, and the number of frames (a replay may stop early).
+pub(crate) fn path_samples(
+    cfg: &SynthConfig,
+    scene: &Scene,
+) -> Result<(Vec<Isometry3<f64>>, Vec<Segment>, Option<Placement>, usize), SynthError> {
+    match &cfg.replay {
+        Some(r) => {
+            let (samples, placement) = replay_path(r, scene, cfg.fps, cfg.frames)?;
+            let frames = placement.frames;
+            Ok((samples, Vec::new(), Some(placement), frames))
+        }
+        None => {
+            let (samples, segments) =
+                generate_path(scene, cfg.motion, cfg.fps, cfg.frames, cfg.seed);
+            Ok((samples, segments, None, cfg.frames))
+        }
+    }
+}
+
+/// The camera path of a configuration (camera-to-world per frame, a replay included) and its
+/// segments, without rendering.
+pub fn try_camera_path(
+    cfg: &SynthConfig,
+    scene: &Scene,
+) -> Result<(Vec<Isometry3<f64>>, Vec<Segment>), SynthError> {
+    let (samples, segments, _, frames) = path_samples(cfg, scene)?;
+    Ok((
+        samples
+            .iter()
+            .step_by(SUBSTEPS)
+            .take(frames)
+            .copied()
+            .collect(),
+        segments,
+    ))
 }
 
 /// Renders a whole sequence into `out` (TUM layout, depth_scale 1000, camera-to-world
@@ -226,12 +346,36 @@ pub fn render_sequence(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, Sy
         None => Vec::new(),
     };
     let scene = Scene::with_textures(cfg.seed, &textures);
-    let (samples, segments) = generate_path(&scene, cfg.motion, cfg.fps, cfg.frames, cfg.seed);
+    let (samples, segments, placement, frames) = path_samples(cfg, &scene)?;
+    if frames < cfg.frames {
+        eprintln!(
+            "synth: the replayed trajectory covers {frames} of the {} frames asked for (replay end `stop`)",
+            cfg.frames
+        );
+    }
+    let cfg = &SynthConfig {
+        frames,
+        ..cfg.clone()
+    };
+    let sensor = SensorSetup::new(cfg, &scene, &samples);
+    let rgb_format = match (&sensor, cfg.rgb_format) {
+        (Some(s), RgbFormat::Png) if cfg.sensor.jpeg => RgbFormat::Jpeg(s.params.jpeg_quality),
+        (_, f) => f,
+    };
     let intr = cfg.intrinsics();
-    let mut writer = SequenceWriter::create(out, intr, cfg.rgb_format)?;
+    let mut writer = SequenceWriter::create(out, intr, rgb_format)?;
+    let motion = match &cfg.replay {
+        Some(r) => format!("replay:{}", r.path.display()),
+        None => cfg.motion.to_string(),
+    };
+    let sensor_note = if cfg.sensor.any() {
+        format!(" sensor {}", cfg.sensor)
+    } else {
+        String::new()
+    };
     writer.set_header(&format!(
-        "LeanGate synthetic sequence: seed {} motion {} {}x{} at {} fps",
-        cfg.seed, cfg.motion, cfg.width, cfg.height, cfg.fps
+        "LeanGate synthetic sequence: seed {} motion {motion} {}x{} at {} fps{sensor_note}",
+        cfg.seed, cfg.width, cfg.height, cfg.fps
     ));
     let (mut render_s, mut write_s) = (0.0, 0.0);
     let chunk = 8;
@@ -239,7 +383,7 @@ pub fn render_sequence(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, Sy
         let end = (start + chunk).min(cfg.frames);
         let t0 = Instant::now();
         let rendered: Vec<(RgbImage, DepthImage)> = (start..end)
-            .map(|i| render_frame(cfg, &scene, &samples, i))
+            .map(|i| render_frame(cfg, &scene, &samples, sensor.as_ref(), i))
             .collect();
         render_s += t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
@@ -270,7 +414,7 @@ pub fn render_sequence(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, Sy
         render_seconds: render_s,
         write_seconds: write_s + t1.elapsed().as_secs_f64(),
     };
-    let meta = serde_json::json!({
+    let mut meta = serde_json::json!({
         "seed": cfg.seed,
         "frames": cfg.frames,
         "width": cfg.width,
@@ -284,6 +428,20 @@ pub fn render_sequence(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, Sy
         "segments": summary.segments,
         "room": scene.room,
     });
+    if let Some(p) = &placement {
+        meta["motion"] = serde_json::json!("replay");
+        meta["replay"] = serde_json::json!({
+            "file": cfg.replay.as_ref().map(|r| r.path.clone()),
+            "placement": p,
+        });
+    }
+    if let Some(s) = &sensor {
+        meta["sensor"] = serde_json::json!(cfg.sensor.to_string());
+        meta["sensor_params"] = serde_json::json!(s.params);
+        let r3 = |x: f64| (x * 1e3).round() / 1e3;
+        meta["exposure_gain"] =
+            serde_json::json!(s.track.iter().map(|f| r3(f.gain)).collect::<Vec<_>>());
+    }
     let meta_path = root.join("synth.json");
     std::fs::write(
         &meta_path,

@@ -270,15 +270,51 @@ impl Scene {
         acc: &mut [f32],
         depth: Option<&mut [f32]>,
     ) {
+        self.render_impl(pose, None, intr, w, h, light, acc, depth);
+    }
+
+    /// Like [`Scene::render_into`], but row `v` is seen from `row_pose(v)` (a rolling shutter).
+    #[allow(clippy::too_many_arguments)]
+    pub fn render_into_rows(
+        &self,
+        row_pose: &(dyn Fn(usize) -> Isometry3<f64> + Sync),
+        intr: &Intrinsics,
+        w: u32,
+        h: u32,
+        light: &Lighting,
+        acc: &mut [f32],
+        depth: Option<&mut [f32]>,
+    ) {
+        let centre = row_pose(h as usize / 2);
+        self.render_impl(&centre, Some(row_pose), intr, w, h, light, acc, depth);
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn render_impl(
+        &self,
+        pose: &Isometry3<f64>,
+        row_pose: Option<&(dyn Fn(usize) -> Isometry3<f64> + Sync)>,
+        intr: &Intrinsics,
+        w: u32,
+        h: u32,
+        light: &Lighting,
+        acc: &mut [f32],
+        depth: Option<&mut [f32]>,
+    ) {
         let (wu, hu) = (w as usize, h as usize);
         if wu == 0 || hu == 0 || acc.len() < wu * hu * 3 {
             return;
         }
-        let r = pose.rotation.to_rotation_matrix();
-        let m = r.matrix();
-        let rm: [[f32; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)] as f32));
-        let o = pose.translation.vector;
-        let o = [o.x as f32, o.y as f32, o.z as f32];
+        let setup = |pose: &Isometry3<f64>| {
+            let r = pose.rotation.to_rotation_matrix();
+            let m = r.matrix();
+            let rm: [[f32; 3]; 3] =
+                std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)] as f32));
+            let o = pose.translation.vector;
+            let o = [o.x as f32, o.y as f32, o.z as f32];
+            (rm, o)
+        };
+        let (rm, o) = setup(pose);
         let (fx, fy, cx, cy) = (
             intr.fx as f32,
             intr.fy as f32,
@@ -294,13 +330,18 @@ impl Scene {
         let exposure = light.exposure;
         let room_hi = self.room.map(|x| x as f32);
         let rects = self.screen_rects(pose, intr, w, h);
-        let shade_row = |v: usize, acc_row: &mut [f32], depth_row: Option<&mut [f32]>| {
+        let shade_row = |v: usize,
+                         acc_row: &mut [f32],
+                         depth_row: Option<&mut [f32]>,
+                         rm: &[[f32; 3]; 3],
+                         o: &[f32; 3],
+                         rects: &[(u16, i32, i32, i32, i32)]| {
             let yc = (v as f32 - cy) / fy;
             let mut depth_row = depth_row;
             // Boxes whose screen rectangle covers this row.
             let mut row_boxes = [(0u16, 0i32, 0i32); MAX_BOXES];
             let mut n_row = 0;
-            for &(bi, u0, u1, v0, v1) in &rects {
+            for &(bi, u0, u1, v0, v1) in rects {
                 if (v as i32) >= v0 && (v as i32) <= v1 && n_row < MAX_BOXES {
                     row_boxes[n_row] = (bi, u0, u1);
                     n_row += 1;
@@ -391,17 +432,26 @@ impl Scene {
                 acc_row[3 * u + 2] += rgb[2];
             }
         };
+        let row = |v: usize, a: &mut [f32], d: Option<&mut [f32]>| match row_pose {
+            None => shade_row(v, a, d, &rm, &o, &rects),
+            Some(f) => {
+                let p = f(v);
+                let (rm, o) = setup(&p);
+                let rects = self.screen_rects(&p, intr, w, h);
+                shade_row(v, a, d, &rm, &o, &rects)
+            }
+        };
         let acc = &mut acc[..wu * hu * 3];
         match depth {
             Some(dep) if dep.len() >= wu * hu => acc
                 .par_chunks_mut(wu * 3)
                 .zip(dep[..wu * hu].par_chunks_mut(wu))
                 .enumerate()
-                .for_each(|(v, (a, d))| shade_row(v, a, Some(d))),
+                .for_each(|(v, (a, d))| row(v, a, Some(d))),
             _ => acc
                 .par_chunks_mut(wu * 3)
                 .enumerate()
-                .for_each(|(v, a)| shade_row(v, a, None)),
+                .for_each(|(v, a)| row(v, a, None)),
         }
     }
 }
