@@ -233,7 +233,6 @@ pub(crate) fn render_frame(
                 &mut acc,
                 Some(&mut depth.data),
             );
-            acc.iter_mut().for_each(|x| *x = 0.0);
             noise *= sensor::render_colour(
                 sc,
                 &setup.params,

@@ -7,9 +7,9 @@
 //!
 //! | name | effect |
 //! |---|---|
-//! | `exposure` | auto-exposure: the camera meters each frame's mean linear luminance (a 1/8-resolution render) and moves its log gain toward `target / mean` with a time constant of 0.15-0.6 s and one frame of delay; the target itself drifts by about +-10 % (slow noise). The gain is split into exposure time (up to 0.9 / fps) and analog gain, which multiplies the colour noise by its square root. |
+//! | `exposure` | auto-exposure: the camera meters each frame's mean linear luminance (a 1/8-resolution render) and moves its log gain toward `target / mean` (target 0.24: mean display level about 0.47) with a time constant of 0.15-0.6 s and one frame of delay; the target itself drifts by about +-10 % (slow noise). The gain is split into exposure time (up to 0.9 / fps) and analog gain, which multiplies the colour noise by its square root. |
 //! | `wb` | white-balance drift: red and blue gains wander slowly (0.1 Hz noise) by 3-8 %. |
-//! | `blur` | motion blur from the actual motion during the exposure: the exposure time (`t_ref * gain`, `t_ref` 4-14 ms, at most 0.9 / fps) is covered by `n` sub-frame renders along the pose interpolation, `n = ceil(image motion / 2 px)` clamped to 1..8 (image motion estimated as `f * (rotation angle + translation / 1 m)` between the exposure's start and end). Replaces `--blur`. |
+//! | `blur` | motion blur from the actual motion during the exposure: the exposure time (`t_ref * gain`, `t_ref` 4-14 ms, at most 0.9 / fps) is covered by `n` evenly spaced sub-frame renders along the pose interpolation, averaged: `n = 1` below 1 px of image motion during the exposure, else `2 ceil(motion / 4 px) + 1`, at most 9 (sub-frames about 2 px apart; faster motion shows faint ghosts). Image motion is estimated as `f * (rotation angle + translation / 1 m)` between the exposure's start and end. Replaces `--blur`. |
 //! | `rolling` | rolling shutter: row `v` is exposed at `t + readout * (v / (H-1) - 1/2)`, readout 10-30 ms, each row ray-cast from its own pose (combined with `blur`, per sub-frame). Depth stays global-shutter at the frame time, like an RGB-D sensor's separate depth camera, so depth and `groundtruth.txt` stay exact. |
 //! | `depth-noise` | Kinect-like depth noise: Gaussian in inverse depth, sigma 1.0-2.0e-3 /m (so `sigma_z` is about 1.4e-3 z^2 m: 1.3 cm at 3 m), then quantised in inverse depth with step 2.85e-3 /m (disparity quantisation: 2.6 cm steps at 3 m, 10 cm at 6 m). |
 //! | `holes` | invalid depth (written as 0): out of range (nearer than 0.4 m or beyond 5.5-9 m); a 1-pixel band at depth discontinuities (mixed pixels); the projector shadow left of foreground edges, `f * 0.075 m * (1/z_fg - 1/z_bg)` pixels wide (structured light, projector 7.5 cm to the camera's right); random dropout blobs (radius 2-8 px, 0.5-4 % of the image, new every frame) and 0.2 % single-pixel speckle. The teacher treats 0 as invalid. |
@@ -121,10 +121,12 @@ impl FromStr for SensorConfig {
                 "holes" | "depth-holes" => c.depth_holes = true,
                 "vignette" | "vignetting" => c.vignetting = true,
                 "jpeg" => c.jpeg = true,
-                other => return Err(format!(
+                other => {
+                    return Err(format!(
                     "unknown sensor effect `{other}` (expected none, realistic or a list of: {})",
                     SensorConfig::NAMES.join(", ")
-                )),
+                ))
+                }
             }
         }
         Ok(c)
@@ -177,9 +179,10 @@ pub const INV_DEPTH_STEP: f64 = 2.85e-3;
 pub const MIN_RANGE_M: f32 = 0.4;
 /// Projector-camera baseline of the shadow model, metres.
 pub const BASELINE_M: f64 = 0.075;
-/// Mean linear luminance the auto-exposure aims at (about the mean of the default renders, so
-/// that the typical gain is near 1).
-pub const AE_TARGET: f64 = 0.2;
+/// Mean linear luminance the auto-exposure aims at: a mean display level of about 0.45-0.5 after
+/// the tone curve and vignetting, like the real sequences in `shared/data` (0.43-0.53; the
+/// default renders average about 0.7).
+pub const AE_TARGET: f64 = 0.24;
 
 impl SensorParams {
     /// Parameters of the sequence with `seed`.
@@ -321,6 +324,8 @@ pub(crate) fn sensor_track(
 
 /// Renders the colour of frame `i` with the colour effects (blur, rolling shutter, vignetting,
 /// white balance, exposure) into `acc` (linear, already divided by the sub-frame count).
+/// `acc` holds the global-shutter render at the frame time on entry; it is reused as the
+/// central sub-frame when there is one and no rolling shutter, and cleared otherwise.
 /// Returns the colour-noise multiplier (`sqrt(analog gain)`).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn render_colour(
@@ -346,13 +351,15 @@ pub(crate) fn render_colour(
         let b = sample_at(samples, c + half);
         let rel = a.inverse() * b;
         let px = intr.fx * (rel.rotation.angle() + rel.translation.vector.norm() / 1.0);
-        let n = ((px / 2.0).ceil() as usize).clamp(1, 8);
+        // an odd count, so that the central sub-frame is the frame time
+        let n = 2 * ((px / 4.0).ceil() as usize).min(4) + 1;
+        let n = if px < 1.0 { 1 } else { n };
         (0..n)
             .map(|k| {
-                if n > 1 {
-                    fs.exposure_s * ((k as f64 + 0.5) / n as f64 - 0.5)
-                } else {
+                if 2 * k + 1 == n {
                     0.0
+                } else {
+                    fs.exposure_s * ((k as f64 + 0.5) / n as f64 - 0.5)
                 }
             })
             .collect()
@@ -369,7 +376,14 @@ pub(crate) fn render_colour(
         0.0
     };
     let hm1 = (h.max(2) - 1) as f64;
+    let reuse = rs == 0.0 && offsets.contains(&0.0);
+    if !reuse {
+        acc.iter_mut().for_each(|x| *x = 0.0);
+    }
     for &off in &offsets {
+        if reuse && off == 0.0 {
+            continue;
+        }
         if rs > 0.0 {
             let row_pose =
                 |v: usize| sample_at(samples, c + (off + rs * (v as f64 / hm1 - 0.5)) * per_s);
