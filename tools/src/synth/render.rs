@@ -286,22 +286,39 @@ pub(crate) fn render_frame(
     (rgb, depth)
 }
 
-/// The camera path of a configuration at `SUBSTEPS` samples per frame, its segments (none for a
-/// replay), the replay placement, and the number of frames (a replay may stop early).
-pub(crate) fn path_samples(
-    cfg: &SynthConfig,
-    scene: &Scene,
-) -> Result<(Vec<Isometry3<f64>>, Vec<Segment>, Option<Placement>, usize), SynthError> {
+/// The camera path of a configuration.
+pub(crate) struct PathSamples {
+    /// `SUBSTEPS` samples per frame (frame `i` is sample `SUBSTEPS * i`), and one frame more.
+    pub(crate) samples: Vec<Isometry3<f64>>,
+    /// Motion segments (none for a replay).
+    pub(crate) segments: Vec<Segment>,
+    /// How a replayed trajectory was placed.
+    pub(crate) placement: Option<Placement>,
+    /// Number of frames (a replay may stop early).
+    pub(crate) frames: usize,
+}
+
+/// The camera path of a configuration, generated or replayed.
+pub(crate) fn path_samples(cfg: &SynthConfig, scene: &Scene) -> Result<PathSamples, SynthError> {
     match &cfg.replay {
         Some(r) => {
             let (samples, placement) = replay_path(r, scene, cfg.fps, cfg.frames)?;
-            let frames = placement.frames;
-            Ok((samples, Vec::new(), Some(placement), frames))
+            Ok(PathSamples {
+                samples,
+                segments: Vec::new(),
+                frames: placement.frames,
+                placement: Some(placement),
+            })
         }
         None => {
             let (samples, segments) =
                 generate_path(scene, cfg.motion, cfg.fps, cfg.frames, cfg.seed);
-            Ok((samples, segments, None, cfg.frames))
+            Ok(PathSamples {
+                samples,
+                segments,
+                placement: None,
+                frames: cfg.frames,
+            })
         }
     }
 }
@@ -312,15 +329,15 @@ pub fn try_camera_path(
     cfg: &SynthConfig,
     scene: &Scene,
 ) -> Result<(Vec<Isometry3<f64>>, Vec<Segment>), SynthError> {
-    let (samples, segments, _, frames) = path_samples(cfg, scene)?;
+    let p = path_samples(cfg, scene)?;
     Ok((
-        samples
+        p.samples
             .iter()
             .step_by(SUBSTEPS)
-            .take(frames)
+            .take(p.frames)
             .copied()
             .collect(),
-        segments,
+        p.segments,
     ))
 }
 
@@ -345,7 +362,12 @@ pub fn render_sequence(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, Sy
         None => Vec::new(),
     };
     let scene = Scene::with_textures(cfg.seed, &textures);
-    let (samples, segments, placement, frames) = path_samples(cfg, &scene)?;
+    let PathSamples {
+        samples,
+        segments,
+        placement,
+        frames,
+    } = path_samples(cfg, &scene)?;
     if frames < cfg.frames {
         eprintln!(
             "synth: the replayed trajectory covers {frames} of the {} frames asked for (replay end `stop`)",

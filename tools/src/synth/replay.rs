@@ -299,17 +299,18 @@ pub struct Placement {
     pub frames: usize,
 }
 
+/// A similarity `p' = s a (p - c_src) + m` from a file's world to the room.
+struct Similarity {
+    a: UnitQuaternion<f64>,
+    s: f64,
+    c_src: Vector3<f64>,
+    m: Vector3<f64>,
+    /// Camera-centre bounding box in the file's frame.
+    source_bbox: [[f64; 3]; 2],
+}
+
 /// The similarity that places trajectory `traj` in `scene` (see the module documentation).
-fn placement(
-    traj: &Trajectory,
-    scene: &Scene,
-) -> (
-    UnitQuaternion<f64>,
-    f64,
-    Vector3<f64>,
-    Vector3<f64>,
-    [[f64; 3]; 2],
-) {
+fn placement(traj: &Trajectory, scene: &Scene) -> Similarity {
     // 1. up: mean camera "down" axis -> -z
     let mut down = Vector3::zeros();
     for (_, p) in &traj.poses {
@@ -402,7 +403,13 @@ fn placement(
     };
     // a * (p - c_src) with c = a * c_src
     let c_src = a.inverse() * c;
-    (a, s, c_src, m, [slo, shi])
+    Similarity {
+        a,
+        s,
+        c_src,
+        m,
+        source_bbox: [slo, shi],
+    }
 }
 
 /// Samples of a replayed path: `frames * SUBSTEPS + SUBSTEPS` poses (frame `i` is sample
@@ -427,7 +434,13 @@ pub(crate) fn replay_path(
         ReplayEnd::Stop => frames.min((avail * fps + 1e-6).floor() as usize + 1),
         _ => frames,
     };
-    let (a, s, c_src, m, source_bbox) = placement(&traj, scene);
+    let Similarity {
+        a,
+        s,
+        c_src,
+        m,
+        source_bbox,
+    } = placement(&traj, scene);
     let t0 = traj.poses[0].0;
     let period = avail;
     let n = frames * SUBSTEPS + SUBSTEPS;

@@ -407,8 +407,8 @@ pub(crate) fn render_colour(
         for (u, px) in row.chunks_exact_mut(3).enumerate() {
             let dx = u as f32 - cx;
             let vig = 1.0 - k_v * (dx * dx + dy * dy) / r2max;
-            for ch in 0..3 {
-                px[ch] *= g * vig * fs.wb[ch];
+            for (x, wb) in px.iter_mut().zip(fs.wb) {
+                *x *= g * vig * wb;
             }
         }
     }
@@ -518,7 +518,7 @@ pub(crate) fn degrade_depth(
         }
     }
     for (k, hole) in holes.iter_mut().enumerate() {
-        if mix64(fseed ^ 0x5BEC ^ (k as u64).wrapping_mul(0x9E37_79B9)) % 500 == 0 {
+        if mix64(fseed ^ 0x5BEC ^ (k as u64).wrapping_mul(0x9E37_79B9)).is_multiple_of(500) {
             *hole = true;
         }
     }

@@ -438,8 +438,6 @@ fn replay_resamples_loops_and_bounces() {
     };
     let s = try_camera_path(&cfg, &scene).unwrap().0;
     assert_eq!(s.len(), 16);
-    let (et, er) = rel_err((&s[0], &s[5]), (&p[0], &p[0]).clone());
-    assert!(et > 0.0 || er > 0.0);
     let (et, er) = rel_err((&s[0], &s[5]), (&traj[10].1, &traj[15].1));
     assert!(et < 1e-6 && er < 1e-6, "{et} {er}");
     // errors
