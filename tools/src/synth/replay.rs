@@ -106,10 +106,11 @@ impl FromStr for MotionSpec {
         match s.trim().strip_prefix("replay:") {
             Some(file) if !file.is_empty() => Ok(MotionSpec::Replay(PathBuf::from(file))),
             Some(_) => Err("`replay:` needs a file: replay:FILE".into()),
-            None => s
-                .parse::<MotionProfile>()
-                .map(MotionSpec::Profile)
-                .map_err(|e| format!("{e}, or replay:FILE")),
+            None => s.parse::<MotionProfile>().map(MotionSpec::Profile).map_err(|_| {
+                format!(
+                    "unknown motion `{s}` (expected static, pan, shaky, walk, rotate, bursts, mixed or replay:FILE)"
+                )
+            }),
         }
     }
 }
