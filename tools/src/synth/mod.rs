@@ -24,15 +24,32 @@
 //! [`MotionProfile`] selects the camera path, integrated at 4 sub-steps per frame from smoothed
 //! velocity / angular-rate targets (so paths are continuous and human-like): `static` (tremor
 //! only), `pan`, `shaky`, `walk`, `rotate`, `bursts` (pauses and bursts), and `mixed` (random
-//! segments of 1.5 to 4 s of all the others; the default).
+//! segments of 1.5 to 4 s of all the others; the default). Alternatively [`replay`] replays a
+//! real camera trajectory (TUM `groundtruth.txt`, NeRF `transforms.json`), placed in the room and
+//! resampled to the frame rate (`--motion replay:FILE`).
+//!
+//! # Sensor
+//!
+//! By default the colour image is the ideal render plus Gaussian noise (`--noise`), with
+//! optional `--blur` and `--lighting`, and depth is exact. [`sensor`] adds opt-in camera effects
+//! (`--sensor realistic` or a list): auto-exposure, white-balance drift, motion blur over the
+//! exposure time, rolling shutter, vignetting, JPEG, Kinect-like depth noise and depth holes.
+//! With none of them on, output is byte-identical to earlier versions.
+//!
+//! # Modules
+//!
+//! `noise` (splitmix64, hashes, value noise), `materials` (patterns, texture images), `scene`
+//! (room generation and the ray caster), `motion` (profiles and path integration), [`replay`],
+//! [`sensor`], `render` (configuration, frames, sequences and `synth.json`).
 //!
 //! # Speed
 //!
 //! Per frame, each box's projected screen rectangle is computed once and each image row only
 //! tests the boxes whose rectangle covers it; rows are rendered in parallel with rayon. On a
 //! 2-core machine a 640x480 frame renders at about 70 frames/s (about 50 frames/s including
-//! PNG encoding and writing; `cargo test synth_speed -- --ignored --nocapture`). Motion blur
-//! renders 3 sub-frames and costs about 3x.
+//! PNG encoding and writing; `cargo bench -p leangate-tools --bench tools`). `--blur` renders 3
+//! sub-frames and costs about 3x; `--sensor blur` renders 1 to 9 depending on the motion, and
+//! `--sensor rolling` costs about 2x (depth is rendered separately).
 //!
 //! Everything is deterministic for a seed: random numbers come from a splitmix64 generator and
 //! from counter-based hashes (noise is a function of frame, pixel and channel), so results do not
