@@ -223,16 +223,21 @@ pub(crate) fn render_frame(
     match sensor {
         Some(setup) if colour_effects => {
             let fs = setup.track.get(i).copied().unwrap_or_default();
-            // depth at the frame pose (global shutter); colour from the sensor model
-            scene.render_into(
-                &samples[c],
-                &intr,
-                w,
-                h,
-                &light,
-                &mut acc,
-                Some(&mut depth.data),
-            );
+            // depth at the frame pose (global shutter); colour from the sensor model, which
+            // reuses this render as its central sub-frame when there is no rolling shutter
+            if sc.rolling_shutter {
+                scene.render_depth(&samples[c], &intr, w, h, &mut depth.data);
+            } else {
+                scene.render_into(
+                    &samples[c],
+                    &intr,
+                    w,
+                    h,
+                    &light,
+                    &mut acc,
+                    Some(&mut depth.data),
+                );
+            }
             noise *= sensor::render_colour(
                 sc,
                 &setup.params,

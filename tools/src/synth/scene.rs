@@ -270,7 +270,20 @@ impl Scene {
         acc: &mut [f32],
         depth: Option<&mut [f32]>,
     ) {
-        self.render_impl(pose, None, intr, w, h, light, acc, depth);
+        self.render_impl(pose, None, intr, w, h, light, Some(acc), depth);
+    }
+
+    /// Writes only the z-depth at `pose` to `depth` (`w h` floats; no shading).
+    pub fn render_depth(
+        &self,
+        pose: &Isometry3<f64>,
+        intr: &Intrinsics,
+        w: u32,
+        h: u32,
+        depth: &mut [f32],
+    ) {
+        let light = Lighting::default();
+        self.render_impl(pose, None, intr, w, h, &light, None, Some(depth));
     }
 
     /// Like [`Scene::render_into`], but row `v` is seen from `row_pose(v)` (a rolling shutter).
@@ -286,7 +299,7 @@ impl Scene {
         depth: Option<&mut [f32]>,
     ) {
         let centre = row_pose(h as usize / 2);
-        self.render_impl(&centre, Some(row_pose), intr, w, h, light, acc, depth);
+        self.render_impl(&centre, Some(row_pose), intr, w, h, light, Some(acc), depth);
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -298,11 +311,14 @@ impl Scene {
         w: u32,
         h: u32,
         light: &Lighting,
-        acc: &mut [f32],
+        acc: Option<&mut [f32]>,
         depth: Option<&mut [f32]>,
     ) {
         let (wu, hu) = (w as usize, h as usize);
-        if wu == 0 || hu == 0 || acc.len() < wu * hu * 3 {
+        let colour = acc.is_some();
+        let acc_ok = acc.as_ref().is_none_or(|a| a.len() >= wu * hu * 3);
+        let depth_ok = colour || depth.as_ref().is_some_and(|d| d.len() >= wu * hu);
+        if wu == 0 || hu == 0 || !acc_ok || !depth_ok {
             return;
         }
         let setup = |pose: &Isometry3<f64>| {
@@ -398,6 +414,16 @@ impl Scene {
                         mat = if axis == 2 { b.top } else { b.side };
                     }
                 }
+                if !colour {
+                    if let Some(dr) = depth_row.as_deref_mut() {
+                        dr[u] = if best.is_finite() && best > 0.0 {
+                            best
+                        } else {
+                            0.0
+                        };
+                    }
+                    continue;
+                }
                 let (z, rgb) = if best.is_finite() && best > 0.0 {
                     let p = [o[0] + best * d[0], o[1] + best * d[1], o[2] + best * d[2]];
                     let mut n = [0.0f32; 3];
@@ -440,6 +466,15 @@ impl Scene {
                 let rects = self.screen_rects(&p, intr, w, h);
                 shade_row(v, a, d, &rm, &o, &rects)
             }
+        };
+        let Some(acc) = acc else {
+            if let Some(dep) = depth {
+                dep[..wu * hu]
+                    .par_chunks_mut(wu)
+                    .enumerate()
+                    .for_each(|(v, d)| row(v, &mut [], Some(d)));
+            }
+            return;
         };
         let acc = &mut acc[..wu * hu * 3];
         match depth {

@@ -614,9 +614,10 @@ fn sensor_names_round_trip() {
     assert!("fisheye".parse::<SensorConfig>().is_err());
 }
 
-/// With a constant pose the rolling-shutter path renders exactly what the global one does.
+/// With a constant pose the rolling-shutter path renders exactly what the global one does, and
+/// the depth-only render writes the same depth.
 #[test]
-fn rolling_render_with_constant_pose_is_global() {
+fn rolling_and_depth_only_renders_match_the_global_one() {
     let cfg = small_cfg(MotionProfile::Shaky, 20);
     let scene = Scene::new(4);
     let (poses, _) = camera_path(&cfg, &scene);
@@ -630,6 +631,11 @@ fn rolling_render_with_constant_pose_is_global() {
     let p = poses[10];
     scene.render_into_rows(&|_| p, &intr, cfg.width, cfg.height, &light, &mut b, None);
     assert_eq!(a, b);
+    // and the depth-only render matches the full one
+    let (_, d) = scene.render(&p, &intr, cfg.width, cfg.height);
+    let mut z = vec![-1.0f32; (cfg.width * cfg.height) as usize];
+    scene.render_depth(&p, &intr, cfg.width, cfg.height, &mut z);
+    assert_eq!(d.data, z);
 }
 
 #[test]
