@@ -13,6 +13,8 @@
 //!   [`ResizeMode`], [`TensorSpec`], [`YuvMatrix`], [`PreprocessError`];
 //! - what leaves the element: [`GateMeta`] (`LeanGateMeta` on every buffer), [`StatsMessage`]
 //!   (the `leangate-stats` bus message), the custom event names;
+//! - remote scoring on a KServe V2 server: [`RemoteScorer`], [`RemoteOptions`], [`Backend`]
+//!   (module [`remote`], its HTTP client in [`remote::client`]);
 //! - the element type [`LeanGate`] and its property enums.
 
 use gst::glib;
@@ -22,6 +24,7 @@ mod leangate;
 mod meta;
 mod policy;
 mod preprocess;
+pub mod remote;
 mod runtime;
 mod scorer;
 mod stats;
@@ -40,7 +43,8 @@ pub use scorer::{
     ExecutionProvider, ModelInfo, ModelSource, Scorer, ScorerError, ScorerOptions, MAX_INPUT_SIDE,
     MAX_TENSOR_BYTES,
 };
-pub use stats::{StatsMessage, StatsParseError, STATS_MESSAGE};
+pub use remote::{Backend, RemoteError, RemoteOptions, RemoteScorer};
+pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};
 
 fn plugin_init(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     meta::register();
