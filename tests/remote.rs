@@ -275,7 +275,7 @@ fn server_killed_mid_stream_fails_open_and_scoring_resumes() {
     // Killed (as a crash): frames keep flowing, kept with reason `error`, none waits long.
     let pgid = server.pgid().unwrap();
     server.kill();
-    assert!(!v2server::group_alive(pgid), "the killed server left processes");
+    assert!(!v2server::group_alive(pgid, Duration::from_secs(5)), "the killed server left processes");
     let t_down = Instant::now();
     let mut failed = 0;
     while t_down.elapsed() < Duration::from_secs(2) {
@@ -357,5 +357,5 @@ fn server_killed_mid_stream_fails_open_and_scoring_resumes() {
     drop(h);
     let pgid = server.pgid().unwrap();
     drop(server);
-    assert!(!v2server::group_alive(pgid), "the server left processes");
+    assert!(!v2server::group_alive(pgid, Duration::from_secs(5)), "the server left processes");
 }

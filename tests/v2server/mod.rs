@@ -223,14 +223,37 @@ impl V2Server {
     }
 }
 
-/// Whether any process of group `pgid` is alive.
-pub fn group_alive(pgid: u32) -> bool {
-    Command::new("kill")
-        .args(["-0", "--", &format!("-{pgid}")])
-        .stderr(Stdio::null())
-        .status()
-        .map(|s| s.success())
-        .unwrap_or(false)
+/// Whether any process of group `pgid` is still running (zombies not counted), waiting up to
+/// `within` for the group to go.
+pub fn group_alive(pgid: u32, within: Duration) -> bool {
+    let t0 = Instant::now();
+    loop {
+        if !group_members(pgid) {
+            return false;
+        }
+        if t0.elapsed() >= within {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Any live (non-zombie) process in group `pgid`, from /proc/<pid>/stat.
+fn group_members(pgid: u32) -> bool {
+    let Ok(dir) = std::fs::read_dir("/proc") else {
+        return false;
+    };
+    dir.flatten().any(|e| {
+        let Ok(stat) = std::fs::read_to_string(e.path().join("stat")) else {
+            return false;
+        };
+        // pid (comm) state ppid pgrp ...: comm may hold spaces, so split after the last ')'.
+        let Some(rest) = stat.rfind(')').map(|i| &stat[i + 1..]) else {
+            return false;
+        };
+        let f: Vec<&str> = rest.split_whitespace().collect();
+        f.len() > 2 && f[2] == pgid.to_string() && f[0] != "Z" && f[0] != "X"
+    })
 }
 
 fn signal_group(pgid: u32, sig: &str) {
