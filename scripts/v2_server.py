@@ -103,6 +103,7 @@ def main():
     p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
     p.add_argument("--counts", help="write the rows served per model here (JSON), for tests")
     p.add_argument("--delay-file", help="a file holding a delay per call in ms, for tests")
+    p.add_argument("--workspace", help="PyTriton's workspace (sockets, model store); default: a temporary one")
     args = p.parse_args()
 
     config = TritonConfig(
@@ -124,7 +125,7 @@ def main():
     so = ort.SessionOptions()
     so.intra_op_num_threads = args.threads
     so.inter_op_num_threads = 1
-    with Triton(config=config) as triton:
+    with Triton(config=config, workspace=args.workspace) as triton:
         for spec in args.models:
             name, _, path = spec.rpartition("=")
             if not name:

@@ -38,12 +38,12 @@ pub use policy::{Decision, Gate, GateConfig, Reason, Score};
 pub use preprocess::{
     PixelFormat, PreprocessError, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix,
 };
+pub use remote::{Backend, RemoteError, RemoteOptions, RemoteScorer};
 pub use runtime::RuntimeError;
 pub use scorer::{
     ExecutionProvider, ModelInfo, ModelSource, Scorer, ScorerError, ScorerOptions, MAX_INPUT_SIDE,
     MAX_TENSOR_BYTES,
 };
-pub use remote::{Backend, RemoteError, RemoteOptions, RemoteScorer};
 pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};
 
 fn plugin_init(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {

@@ -15,7 +15,6 @@
 mod common;
 mod v2server;
 
-use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use common::*;
@@ -25,16 +24,6 @@ use v2server::V2Server;
 
 const W: u32 = 320;
 const H: u32 = 240;
-
-/// One server shared by the tests that need the student served (CPU is scarce); the tests that
-/// use it run one at a time so that the server-side request counts are theirs.
-fn shared() -> Option<(MutexGuard<'static, ()>, &'static V2Server)> {
-    static LOCK: Mutex<()> = Mutex::new(());
-    static SERVER: std::sync::OnceLock<Option<V2Server>> = std::sync::OnceLock::new();
-    let guard = LOCK.lock().unwrap_or_else(|e| e.into_inner());
-    let server = SERVER.get_or_init(|| v2server::start_or_skip(&v2server::student_models()));
-    server.as_ref().map(|s| (guard, s))
-}
 
 /// A pan over a textured strip at varying speed (pauses, slow and fast stretches): frames that
 /// add nothing and frames that add a lot.
@@ -118,7 +107,12 @@ fn compare(local: &[gstleangate::GateMeta], remote: &[gstleangate::GateMeta]) {
         } else {
             let d = (l.utility - r.utility).abs();
             worst = worst.max(d);
-            assert!(d <= 1e-5, "frame {i}: local {} remote {}", l.utility, r.utility);
+            assert!(
+                d <= 1e-5,
+                "frame {i}: local {} remote {}",
+                l.utility,
+                r.utility
+            );
         }
     }
     let kept = remote.iter().filter(|m| m.keep).count();
@@ -126,12 +120,35 @@ fn compare(local: &[gstleangate::GateMeta], remote: &[gstleangate::GateMeta]) {
         "{} frames, {kept} kept; largest |local - remote| utility difference {worst:.2e}",
         remote.len()
     );
-    assert!(kept > 2 && kept < remote.len() - 2, "the clip must keep some and drop some");
+    assert!(
+        kept > 2 && kept < remote.len() - 2,
+        "the clip must keep some and drop some"
+    );
 }
 
+/// The scenarios that share one server (CPU is scarce: one server start, and one scenario at a
+/// time so that the server-side request counts are theirs). The server is dropped, and so
+/// stopped, at the end of the test, whatever happens.
 #[test]
-fn split_model_remote_matches_local_with_one_encoder_request_per_frame() {
-    let Some((_g, server)) = shared() else { return };
+fn against_the_student_on_a_v2_server() {
+    let Some(server) = v2server::start_or_skip(&v2server::student_models()) else {
+        return;
+    };
+    eprintln!("-- split model");
+    split_model_remote_matches_local_with_one_encoder_request_per_frame(&server);
+    eprintln!("-- pair model");
+    pair_model_remote_matches_local(&server);
+    eprintln!("-- start errors");
+    unknown_model_and_wrong_contract_are_start_errors_naming_them(&server);
+    let pgid = server.pgid().unwrap();
+    drop(server);
+    assert!(
+        !v2server::group_alive(pgid, Duration::from_secs(5)),
+        "the server left processes"
+    );
+}
+
+fn split_model_remote_matches_local_with_one_encoder_request_per_frame(server: &V2Server) {
     let frames = clip(80);
     let (local, _) = gate("", &frames);
     let before = server.count("leangate-s-encoder");
@@ -177,9 +194,7 @@ fn split_model_remote_matches_local_with_one_encoder_request_per_frame() {
     );
 }
 
-#[test]
-fn pair_model_remote_matches_local() {
-    let Some((_g, server)) = shared() else { return };
+fn pair_model_remote_matches_local(server: &V2Server) {
     let model = v2server::repo_root().join("models/leangate-s.onnx");
     let frames = clip(60);
     let (local, _) = gate(&format!("model={}", model.display()), &frames);
@@ -212,14 +227,15 @@ fn unreachable_server_is_a_start_error_naming_it() {
     let e = error_of(&format!("server={url} server-timeout=2000"));
     assert!(e.contains(&url) && e.contains("unreachable"), "{e}");
     let e = error_of("server=grpc://127.0.0.1:8001");
-    assert!(e.contains("grpc://127.0.0.1:8001") && e.contains("gRPC"), "{e}");
+    assert!(
+        e.contains("grpc://127.0.0.1:8001") && e.contains("gRPC"),
+        "{e}"
+    );
     let e = error_of("server=ftp://x");
     assert!(e.contains("ftp://x") && e.contains("http://"), "{e}");
 }
 
-#[test]
-fn unknown_model_and_wrong_contract_are_start_errors_naming_them() {
-    let Some((_g, server)) = shared() else { return };
+fn unknown_model_and_wrong_contract_are_start_errors_naming_them(server: &V2Server) {
     let url = server.url();
     let e = error_of(&format!("server={url} server-model=no-such-model"));
     assert!(
@@ -275,18 +291,27 @@ fn server_killed_mid_stream_fails_open_and_scoring_resumes() {
     // Killed (as a crash): frames keep flowing, kept with reason `error`, none waits long.
     let pgid = server.pgid().unwrap();
     server.kill();
-    assert!(!v2server::group_alive(pgid, Duration::from_secs(5)), "the killed server left processes");
+    assert!(
+        !v2server::group_alive(pgid, Duration::from_secs(5)),
+        "the killed server left processes"
+    );
     let t_down = Instant::now();
     let mut failed = 0;
     while t_down.elapsed() < Duration::from_secs(2) {
         let (m, took) = push(&mut h, &frames[20 + failed % 20]);
         assert!(m.keep, "fail open");
         assert_eq!(m.reason, Reason::Error);
-        assert!(took < Duration::from_millis(1500), "a frame waited {took:?}");
+        assert!(
+            took < Duration::from_millis(1500),
+            "a frame waited {took:?}"
+        );
         failed += 1;
         std::thread::sleep(Duration::from_millis(33));
     }
-    assert!(failed > 10, "frames flowed while the server was down: {failed}");
+    assert!(
+        failed > 10,
+        "frames flowed while the server was down: {failed}"
+    );
     // A warning on the bus names the server (rate-limited: one or two, not one per frame).
     let warnings: Vec<String> = std::iter::from_fn(|| bus.pop())
         .filter_map(|m| match m.view() {
@@ -331,7 +356,10 @@ fn server_killed_mid_stream_fails_open_and_scoring_resumes() {
     while t_slow.elapsed() < Duration::from_secs(2) {
         let (m, took) = push(&mut h, &frames[slow_failed % 40]);
         assert!(m.keep && m.reason == Reason::Error, "{m:?}");
-        assert!(took < Duration::from_millis(1500), "a frame waited {took:?}");
+        assert!(
+            took < Duration::from_millis(1500),
+            "a frame waited {took:?}"
+        );
         slow_failed += 1;
     }
     server.set_delay_ms(0);
@@ -357,5 +385,8 @@ fn server_killed_mid_stream_fails_open_and_scoring_resumes() {
     drop(h);
     let pgid = server.pgid().unwrap();
     drop(server);
-    assert!(!v2server::group_alive(pgid, Duration::from_secs(5)), "the server left processes");
+    assert!(
+        !v2server::group_alive(pgid, Duration::from_secs(5)),
+        "the server left processes"
+    );
 }

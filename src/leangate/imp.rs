@@ -520,8 +520,14 @@ impl ObjectImpl for LeanGate {
         let refused = {
             let mut settings = lock(&self.settings);
             match name {
-                "model" | "execution-provider" | "device-id" | "threads" | "server" | "server-model"
-                | "server-timeout" | "server-max-in-flight"
+                "model"
+                | "execution-provider"
+                | "device-id"
+                | "threads"
+                | "server"
+                | "server-model"
+                | "server-timeout"
+                | "server-max-in-flight"
                     if settings.in_use =>
                 {
                     Some(format!(

@@ -205,11 +205,10 @@ fn parse_tensors(v: &Value, key: &str) -> Result<Vec<TensorMeta>, ClientError> {
         .map(|t| {
             let name = t.get("name").and_then(Value::as_str);
             let datatype = t.get("datatype").and_then(Value::as_str);
-            let shape = t.get("shape").and_then(Value::as_array).and_then(|s| {
-                s.iter()
-                    .map(Value::as_i64)
-                    .collect::<Option<Vec<i64>>>()
-            });
+            let shape = t
+                .get("shape")
+                .and_then(Value::as_array)
+                .and_then(|s| s.iter().map(Value::as_i64).collect::<Option<Vec<i64>>>());
             match (name, datatype, shape) {
                 (Some(n), Some(d), Some(s)) => Ok(TensorMeta {
                     name: n.to_string(),
@@ -303,11 +302,7 @@ pub(crate) fn decode_response(
         let shape: Vec<usize> = out
             .get("shape")
             .and_then(Value::as_array)
-            .and_then(|s| {
-                s.iter()
-                    .map(|d| d.as_u64().map(|d| d as usize))
-                    .collect()
-            })
+            .and_then(|s| s.iter().map(|d| d.as_u64().map(|d| d as usize)).collect())
             .ok_or_else(|| ClientError::Protocol(format!("output `{name}` has no shape")))?;
         let size = out
             .get("parameters")

@@ -284,7 +284,12 @@ impl RemoteScorer {
         } else {
             RemoteKind::Pair
         };
-        let model = match opts.model.as_deref().map(str::trim).filter(|m| !m.is_empty()) {
+        let model = match opts
+            .model
+            .as_deref()
+            .map(str::trim)
+            .filter(|m| !m.is_empty())
+        {
             Some(m) => m.to_string(),
             None if kind == RemoteKind::Encoder => format!("{}-encoder", local.info().name),
             None => local.info().name.clone(),
@@ -395,7 +400,9 @@ impl RemoteScorer {
                 find(&meta.inputs, "current", "input", &image)?;
                 find(&meta.outputs, "utility", "output", &[])?;
                 let u = meta.outputs.iter().find(|t| t.name == "utility");
-                if let Some(u) = u.filter(|u| !dims_fit(&u.shape, &[-1]) && !dims_fit(&u.shape, &[-1, 1])) {
+                if let Some(u) =
+                    u.filter(|u| !dims_fit(&u.shape, &[-1]) && !dims_fit(&u.shape, &[-1, 1]))
+                {
                     return Err(fail(format!(
                         "output `utility` has shape {:?}, expected [N] or [N,1]",
                         u.shape

@@ -124,6 +124,8 @@ impl V2Server {
             .open(self.log())
             .map_err(|e| e.to_string())?;
         let _ = std::fs::remove_file(self.counts_path());
+        // PyTriton creates its workspace; a killed server's is still there.
+        let _ = std::fs::remove_dir_all(self.dir.path().join("workspace"));
         let child = Command::new(py)
             .arg(repo_root().join("scripts/v2_server.py"))
             .args(&self.models)
@@ -134,6 +136,9 @@ impl V2Server {
             .arg(self.counts_path())
             .arg("--delay-file")
             .arg(self.delay_path())
+            // Inside the temporary directory: nothing is left behind even after a SIGKILL.
+            .arg("--workspace")
+            .arg(self.dir.path().join("workspace"))
             .stdin(Stdio::null())
             .stdout(log.try_clone().map_err(|e| e.to_string())?)
             .stderr(log)
@@ -212,6 +217,7 @@ impl V2Server {
         signal_group(pgid, "KILL");
         let _ = child.kill();
         let _ = child.wait();
+        remove_shm(pgid);
     }
 
     /// Kill the server abruptly (SIGKILL to the whole group), as a crash would.
@@ -219,6 +225,7 @@ impl V2Server {
         if let Some(mut child) = self.child.take() {
             signal_group(child.id(), "KILL");
             let _ = child.wait();
+            remove_shm(child.id());
         }
     }
 }
@@ -254,6 +261,19 @@ fn group_members(pgid: u32) -> bool {
         let f: Vec<&str> = rest.split_whitespace().collect();
         f.len() > 2 && f[2] == pgid.to_string() && f[0] != "Z" && f[0] != "X"
     })
+}
+
+/// The Python backend's shared-memory regions of the server whose script ran as `pid` (a clean
+/// stop removes them; a SIGKILL leaves them).
+fn remove_shm(pid: u32) {
+    let prefix = format!("pytrtion{pid}-");
+    if let Ok(dir) = std::fs::read_dir("/dev/shm") {
+        for e in dir.flatten() {
+            if e.file_name().to_string_lossy().starts_with(&prefix) {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
 }
 
 fn signal_group(pgid: u32, sig: &str) {
