@@ -390,3 +390,22 @@ fn server_killed_mid_stream_fails_open_and_scoring_resumes() {
         "the server left processes"
     );
 }
+
+#[test]
+fn triton_repository_matches_the_models() {
+    let py = v2server::repo_root().join(".venv/bin/python");
+    if !py.exists() {
+        eprintln!("SKIPPED: {} is absent (scripts/setup.sh)", py.display());
+        return;
+    }
+    let out = std::process::Command::new(py)
+        .arg(v2server::repo_root().join("models/triton/make_repo.py"))
+        .arg("--check")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "models/triton is stale: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
