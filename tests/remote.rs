@@ -409,3 +409,31 @@ fn triton_repository_matches_the_models() {
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+#[test]
+fn server_properties_are_documented_and_refused_while_running() {
+    init();
+    let e = gst::ElementFactory::make("leangate").build().unwrap();
+    for name in [
+        "server",
+        "server-model",
+        "server-timeout",
+        "server-max-in-flight",
+    ] {
+        let p = e
+            .find_property(name)
+            .unwrap_or_else(|| panic!("property {name} missing"));
+        assert!(p.blurb().is_some_and(|b| b.len() > 20), "{name}");
+    }
+    assert_eq!(e.property::<Option<String>>("server"), None);
+    assert_eq!(e.property::<u32>("server-timeout"), 1000);
+    assert_eq!(e.property::<u32>("server-max-in-flight"), 16);
+    // Local scoring (server unset): a running element refuses a new server.
+    let mut h = harness("", &rgb_caps(W, H));
+    h.push(buffer(texture(W, H, 1), 0)).unwrap();
+    let el = h.element().unwrap();
+    el.set_property("server", "http://127.0.0.1:1");
+    assert_eq!(el.property::<Option<String>>("server"), None);
+    let stats = el.property::<u64>("frames-in");
+    assert_eq!(stats, 1);
+}
