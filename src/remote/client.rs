@@ -324,7 +324,7 @@ pub(crate) fn decode_response(
                         "output `{name}` is {datatype}, expected FP32"
                     )));
                 }
-                if size % 4 != 0 {
+                if !size.is_multiple_of(4) {
                     return Err(ClientError::Protocol(format!(
                         "output `{name}`: {size} bytes is not a whole number of FP32"
                     )));

@@ -125,8 +125,8 @@ impl Drop for Permit {
 
 impl Limiter {
     fn shared(url: &str, max: u32) -> Option<Arc<Limiter>> {
-        static ALL: LazyLock<Mutex<HashMap<(String, u32), Arc<Limiter>>>> =
-            LazyLock::new(Default::default);
+        type ByServer = HashMap<(String, u32), Arc<Limiter>>;
+        static ALL: LazyLock<Mutex<ByServer>> = LazyLock::new(Default::default);
         if max == 0 {
             return None;
         }
