@@ -20,6 +20,7 @@ use crate::preprocess::{try_zeroed, TensorSpec};
 use crate::runtime;
 
 mod contract;
+mod head;
 mod session;
 
 pub use contract::{CONTRACT, MAX_INPUT_SIDE, MAX_TENSOR_BYTES};
