@@ -1035,7 +1035,8 @@ s = Gst.Structure.new_from_string(
     "leangate-stats, frames-in=(guint64)30, frames-kept=(guint64)4, keep-ratio=(double)0.125,"
     " inference-mean-us=(double)812.5, inference-p99-us=(guint64)2000,"
     " execution-provider=(string)cpu, model=(string)leangate-s, threshold=(double)0.63,"
-    " inference-p50-us=(guint64)700, future-field=(guint64)7")
+    " inference-p50-us=(guint64)700, future-field=(guint64)7,"
+    " server=(string)http://127.0.0.1:8000, server-requests=(guint64)5")
 st = LeanGateStats.from_structure(s)
 back = LeanGateStats.from_structure(st.to_structure())
 old = LeanGateStats.from_structure(Gst.Structure.new_from_string(
@@ -1048,7 +1049,7 @@ except ValueError:
 print(json.dumps({
     "typed": [st.frames_in, st.frames_kept, st.keep_ratio, st.inference_mean_us,
               st.inference_p99_us, st.execution_provider, st.model, st.threshold,
-              st.inference_p50_us],
+              st.inference_p50_us, st.server, st.server_requests],
     "extra": st.extra, "p50": st["inference-p50-us"], "get": st.get("model"),
     "len": len(st), "round_trip": back == st,
     "wire": st.to_structure().to_string(),
@@ -1063,12 +1064,24 @@ print(json.dumps({
     let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
     assert_eq!(
         v["typed"],
-        serde_json::json!([30, 4, 0.125, 812.5, 2000, "cpu", "leangate-s", 0.63, 700])
+        serde_json::json!([
+            30,
+            4,
+            0.125,
+            812.5,
+            2000,
+            "cpu",
+            "leangate-s",
+            0.63,
+            700,
+            "http://127.0.0.1:8000",
+            5
+        ])
     );
     assert_eq!(v["extra"], serde_json::json!({"future-field": 7}));
     assert_eq!(v["p50"], 700);
     assert_eq!(v["get"], "leangate-s");
-    assert_eq!(v["len"], 10);
+    assert_eq!(v["len"], 12);
     assert_eq!(v["round_trip"], true);
     let wire = v["wire"].as_str().unwrap();
     for f in [
