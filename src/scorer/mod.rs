@@ -121,6 +121,9 @@ pub struct ModelInfo {
     pub spec: TensorSpec,
     /// `leangate.threshold`, if the model carries one (in [0, 1]).
     pub threshold: Option<f64>,
+    /// `leangate.calibration`: how the model's utility was calibrated to the teacher's units
+    /// (informational; the calibration itself is part of the graph).
+    pub calibration: Option<String>,
 }
 
 /// The two model forms.
