@@ -7,7 +7,12 @@
 #      numpy and pillow (the training package's preprocessing, checked against the element's);
 #   4. .venv-sfm: Debian's python3 in a venv that sees the system's PyGObject and numpy
 #      (--system-site-packages), with pycolmap (COLMAP's bindings, a manylinux wheel) for the
-#      reconstruction consumer (pipelines/reconstruct.py, `leangate eval --reconstruct`).
+#      reconstruction consumer (pipelines/reconstruct.py, `leangate eval --reconstruct`);
+#   5. .venv-triton: Debian's /usr/bin/python3 in a venv with nvidia-pytriton (NVIDIA Triton
+#      Inference Server, CPU) and onnxruntime, the KServe V2 server the remote-scoring tests and
+#      benchmark start on loopback (scripts/v2_server.py). Debian's python, not pyenv's: the
+#      Python backend bundled in PyTriton loads the interpreter's libpython. If it cannot be
+#      installed, setup goes on and those tests skip, saying why.
 # Safe to run again: each step is skipped when already done.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -71,5 +76,17 @@ if [ ! -x .venv-sfm/bin/python ] || ! .venv-sfm/bin/python -c 'import pycolmap' 
   [ -x .venv-sfm/bin/python ] || /usr/bin/python3 -m venv --system-site-packages .venv-sfm
   .venv-sfm/bin/pip install -q --disable-pip-version-check --only-binary=:all: \
     "pycolmap==$PYCOLMAP_VERSION"
+fi
+PYTRITON_VERSION=0.7.0
+if [ ! -x .venv-triton/bin/python ] || ! .venv-triton/bin/python -c 'import pytriton, onnxruntime' 2>/dev/null; then
+  echo "setup: creating .venv-triton (nvidia-pytriton==$PYTRITON_VERSION, onnxruntime==$ORT_VERSION)"
+  if { [ -x .venv-triton/bin/python ] || /usr/bin/python3 -m venv .venv-triton; } &&
+    .venv-triton/bin/pip install -q --disable-pip-version-check --only-binary=:all: \
+      "nvidia-pytriton==$PYTRITON_VERSION" "onnxruntime==$ORT_VERSION" "numpy<2"; then
+    :
+  else
+    echo "setup: WARNING: could not install PyTriton into .venv-triton; the remote-scoring" \
+      "tests (tests/remote.rs) and benches/remote.rs will skip" >&2
+  fi
 fi
 echo "setup: done"

@@ -13,6 +13,8 @@
 //!   [`ResizeMode`], [`TensorSpec`], [`YuvMatrix`], [`PreprocessError`];
 //! - what leaves the element: [`GateMeta`] (`LeanGateMeta` on every buffer), [`StatsMessage`]
 //!   (the `leangate-stats` bus message), the custom event names;
+//! - remote scoring on a KServe V2 server: [`RemoteScorer`], [`RemoteOptions`], [`Backend`]
+//!   (module [`remote`], its HTTP client in [`remote::client`]);
 //! - the element type [`LeanGate`] and its property enums.
 
 use gst::glib;
@@ -22,6 +24,7 @@ mod leangate;
 mod meta;
 mod policy;
 mod preprocess;
+pub mod remote;
 mod runtime;
 mod scorer;
 mod stats;
@@ -35,12 +38,13 @@ pub use policy::{Decision, Gate, GateConfig, Reason, Score};
 pub use preprocess::{
     PixelFormat, PreprocessError, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix,
 };
+pub use remote::{Backend, RemoteError, RemoteOptions, RemoteScorer};
 pub use runtime::RuntimeError;
 pub use scorer::{
     ExecutionProvider, ModelInfo, ModelSource, Scorer, ScorerError, ScorerOptions, MAX_INPUT_SIDE,
     MAX_TENSOR_BYTES,
 };
-pub use stats::{StatsMessage, StatsParseError, STATS_MESSAGE};
+pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};
 
 fn plugin_init(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     meta::register();

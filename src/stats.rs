@@ -35,6 +35,25 @@ pub struct StatsMessage {
     pub model: String,
     /// The threshold in force.
     pub threshold: f64,
+    /// Remote scoring only (the `server` property set): the `server-*` fields.
+    pub server: Option<ServerStats>,
+}
+
+/// The `server-*` fields of `leangate-stats`, present when frames are scored on a server.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct ServerStats {
+    /// `server`: the server's URL.
+    pub server: String,
+    /// `server-model`: the model's name on the server.
+    pub server_model: String,
+    /// `server-requests`: inference requests sent since start.
+    pub requests: u64,
+    /// `server-failed-requests`: those that failed (unreachable, timeout, error status).
+    pub failed_requests: u64,
+    /// `server-latency-p50-us`: median round trip of the successful requests, microseconds.
+    pub latency_p50_us: u64,
+    /// `server-latency-p99-us`: 99th percentile of that round trip, microseconds.
+    pub latency_p99_us: u64,
 }
 
 /// A `leangate-stats` structure that lacks a field or has one of the wrong type.
@@ -62,6 +81,24 @@ impl StatsMessage {
             .field("execution-provider", self.execution_provider.as_str())
             .field("model", self.model.as_str())
             .field("threshold", self.threshold)
+            .field_if_some("server", self.server.as_ref().map(|v| v.server.as_str()))
+            .field_if_some(
+                "server-model",
+                self.server.as_ref().map(|v| v.server_model.as_str()),
+            )
+            .field_if_some("server-requests", self.server.as_ref().map(|v| v.requests))
+            .field_if_some(
+                "server-failed-requests",
+                self.server.as_ref().map(|v| v.failed_requests),
+            )
+            .field_if_some(
+                "server-latency-p50-us",
+                self.server.as_ref().map(|v| v.latency_p50_us),
+            )
+            .field_if_some(
+                "server-latency-p99-us",
+                self.server.as_ref().map(|v| v.latency_p99_us),
+            )
             .build()
     }
 
@@ -91,6 +128,18 @@ impl StatsMessage {
             execution_provider: get(s, "execution-provider")?,
             model: get(s, "model")?,
             threshold: get(s, "threshold")?,
+            server: if s.has_field("server") {
+                Some(ServerStats {
+                    server: get(s, "server")?,
+                    server_model: get(s, "server-model")?,
+                    requests: get(s, "server-requests")?,
+                    failed_requests: get(s, "server-failed-requests")?,
+                    latency_p50_us: get(s, "server-latency-p50-us")?,
+                    latency_p99_us: get(s, "server-latency-p99-us")?,
+                })
+            } else {
+                None
+            },
         })
     }
 }
@@ -334,6 +383,7 @@ mod tests {
             execution_provider: "cpu".into(),
             model: "leangate-s".into(),
             threshold: 0.5,
+            server: None,
         };
         let s = m.to_structure();
         assert_eq!(s.name(), STATS_MESSAGE);
@@ -343,6 +393,21 @@ mod tests {
         broken.remove_field("threshold");
         let e = StatsMessage::from_structure(&broken).unwrap_err();
         assert!(e.to_string().contains("threshold"), "{e}");
+        let remote = StatsMessage {
+            server: Some(ServerStats {
+                server: "http://127.0.0.1:8000".into(),
+                server_model: "leangate-s-encoder".into(),
+                requests: 9,
+                failed_requests: 2,
+                latency_p50_us: 1500,
+                latency_p99_us: 4000,
+            }),
+            ..m.clone()
+        };
+        let rs = remote.to_structure();
+        assert_eq!(rs.get::<u64>("server-failed-requests").unwrap(), 2);
+        assert_eq!(StatsMessage::from_structure(&rs).unwrap(), remote);
+        assert!(!s.has_field("server-requests"));
         let other = gst::Structure::new_empty("something-else");
         assert!(StatsMessage::from_structure(&other).is_err());
     }

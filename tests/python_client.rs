@@ -278,7 +278,8 @@ print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.recei
                   "stats_model": (src.stats or {}).get("model"),
                   "stats_typed": isinstance(st, LeanGateStats),
                   "stats": [st.frames_in, st.frames_kept, st.keep_ratio, st.execution_provider,
-                            st.model, st.threshold, st.extra],
+                            st.model, st.threshold, st.extra,
+                            st.inference_p50_us is not None, st.interval_frames_in],
                   "stats_timings": [type(st.inference_mean_us).__name__,
                                     type(st.inference_p99_us).__name__],
                   "stats_dict": st.to_dict(),
@@ -308,7 +309,7 @@ print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.recei
     assert_eq!(end["stats_typed"], true);
     assert_eq!(
         end["stats"],
-        serde_json::json!([12, 1, 1.0 / 12.0, "cpu", "fixture-mad", 0.5, {}])
+        serde_json::json!([12, 1, 1.0 / 12.0, "cpu", "fixture-mad", 0.5, {}, true, 12])
     );
     assert_eq!(end["stats_timings"], serde_json::json!(["float", "int"]));
     let keys: Vec<&str> = end["stats_dict"]
@@ -1034,7 +1035,8 @@ s = Gst.Structure.new_from_string(
     "leangate-stats, frames-in=(guint64)30, frames-kept=(guint64)4, keep-ratio=(double)0.125,"
     " inference-mean-us=(double)812.5, inference-p99-us=(guint64)2000,"
     " execution-provider=(string)cpu, model=(string)leangate-s, threshold=(double)0.63,"
-    " inference-p50-us=(guint64)700")
+    " inference-p50-us=(guint64)700, future-field=(guint64)7,"
+    " server=(string)http://127.0.0.1:8000, server-requests=(guint64)5")
 st = LeanGateStats.from_structure(s)
 back = LeanGateStats.from_structure(st.to_structure())
 old = LeanGateStats.from_structure(Gst.Structure.new_from_string(
@@ -1046,7 +1048,8 @@ except ValueError:
     wrong = "rejected"
 print(json.dumps({
     "typed": [st.frames_in, st.frames_kept, st.keep_ratio, st.inference_mean_us,
-              st.inference_p99_us, st.execution_provider, st.model, st.threshold],
+              st.inference_p99_us, st.execution_provider, st.model, st.threshold,
+              st.inference_p50_us, st.server, st.server_requests],
     "extra": st.extra, "p50": st["inference-p50-us"], "get": st.get("model"),
     "len": len(st), "round_trip": back == st,
     "wire": st.to_structure().to_string(),
@@ -1061,12 +1064,24 @@ print(json.dumps({
     let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
     assert_eq!(
         v["typed"],
-        serde_json::json!([30, 4, 0.125, 812.5, 2000, "cpu", "leangate-s", 0.63])
+        serde_json::json!([
+            30,
+            4,
+            0.125,
+            812.5,
+            2000,
+            "cpu",
+            "leangate-s",
+            0.63,
+            700,
+            "http://127.0.0.1:8000",
+            5
+        ])
     );
-    assert_eq!(v["extra"], serde_json::json!({"inference-p50-us": 700}));
+    assert_eq!(v["extra"], serde_json::json!({"future-field": 7}));
     assert_eq!(v["p50"], 700);
     assert_eq!(v["get"], "leangate-s");
-    assert_eq!(v["len"], 9);
+    assert_eq!(v["len"], 12);
     assert_eq!(v["round_trip"], true);
     let wire = v["wire"].as_str().unwrap();
     for f in [

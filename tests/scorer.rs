@@ -148,11 +148,29 @@ fn embedded_default_is_a_split_model_with_its_metadata() {
     .unwrap();
     assert!(s.is_split());
     assert_eq!(s.info().name, gstleangate::DEFAULT_MODEL_NAME);
-    let t = s
+    // Calibrated to the teacher's units: the default threshold is the paper's tau_keep 0.5, and
+    // the model says how and on what the calibration was fitted.
+    assert_eq!(s.info().threshold, Some(0.5));
+    let cal = s
         .info()
-        .threshold
-        .expect("the default student carries its threshold");
-    assert!((0.0..=1.0).contains(&t));
+        .calibration
+        .clone()
+        .expect("the default student carries leangate.calibration");
+    assert!(cal.contains("tum_fr1_rpy"), "{cal}");
+    // The pair form of the same network carries the same calibration.
+    let pair = Scorer::load(
+        &ModelSource::File(
+            std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/leangate-s.onnx"),
+        ),
+        &ScorerOptions {
+            execution_provider: ExecutionProvider::Cpu,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(pair.info().threshold, Some(0.5));
+    assert_eq!(pair.info().calibration.as_deref(), Some(cal.as_str()));
+    let t = 0.5;
     // On real pictures: a frame against itself is not novel; two unrelated places are.
     let (Some(kitchen), Some(classroom)) = (
         common::shared_data("7scenes_redkitchen_dev/rgb/000000.jpg"),

@@ -51,9 +51,11 @@ def score_pairs(head, F, cur, ref, G=None):
     return np.concatenate(out).reshape(-1)
 
 
-def raw_on_cache(enc, head, path, n=None, seed=0):
+def raw_on_cache(enc, head, path, n=None, seed=0, max_gap=None):
     d = np.load(path)
     P = d["pairs"]
+    if max_gap is not None:
+        P = P[np.abs(P[:, 0] - P[:, 1]) <= max_gap]
     if n is not None and n < len(P):
         P = P[np.random.default_rng(seed).choice(len(P), n, replace=False)]
     F = encode(enc, d["frames"])
@@ -154,7 +156,10 @@ def main():
     ap.add_argument("--out-dir", default=None, help="write the calibrated models here (default: in place)")
     ap.add_argument("--data", default=os.path.join(DATA_ROOT, "cache"))
     ap.add_argument("--knots", default=DEFAULT_KNOTS)
-    ap.add_argument("--synth", type=int, default=0, help="also fit on N held-out synthetic validation pairs")
+    ap.add_argument("--max-gap", type=int, default=24,
+                    help="use the cal part's pairs up to this frame gap (the oracle keeps every ~12-15 frames)")
+    ap.add_argument("--synth", type=int, default=3000, help="also fit on N held-out synthetic validation pairs (0: real only)")
+    ap.add_argument("--synth-weight", type=float, default=0.5, help="weight of each synthetic pair in the fit")
     ap.add_argument("--json", default="", help="write the fit and its diagnostics here")
     a = ap.parse_args()
     out_dir = a.out_dir or a.models
@@ -165,8 +170,9 @@ def main():
     knots = [float(x) for x in a.knots.split(",")]
     enc, head, pair = sessions(a.models)
 
-    u, t = raw_on_cache(enc, head, os.path.join(a.data, "tum_cal.npz"))
-    fitted_on = f"{TUM_SEQ} frames {TUM_SPLIT['cal'][0]}-{TUM_SPLIT['cal'][1]} ({len(u)} gate-like pairs)"
+    u, t = raw_on_cache(enc, head, os.path.join(a.data, "tum_cal.npz"), max_gap=a.max_gap)
+    fitted_on = (f"{TUM_SEQ} frames {TUM_SPLIT['cal'][0]}-{TUM_SPLIT['cal'][1]} ({len(u)} gate-like pairs: each frame "
+                 f"vs its next {a.max_gap})")
     w = np.ones(len(u))
     if a.synth:
         import glob
@@ -178,13 +184,16 @@ def main():
             ts.append(y)
         us, ts = np.concatenate(us), np.concatenate(ts)
         u, t = np.concatenate([u, us]), np.concatenate([t, ts])
-        w = np.concatenate([w, np.ones(len(us))])
-        fitted_on += f" + {len(us)} held-out synthetic validation pairs"
+        w = np.concatenate([w, np.full(len(us), a.synth_weight)])
+        fitted_on += f" + {len(us)} held-out synthetic validation pairs (weight {a.synth_weight:g})"
     v0, s = nnls_fit(u, t, knots, w)
     vals = knot_values(np.asarray(knots), v0, s)
     cal_u = apply(u, knots, v0, s)
     print(f"fit on {fitted_on}")
-    print(f"  raw RMSE {np.sqrt(np.mean((u - t) ** 2)):.4f} -> calibrated {np.sqrt(np.mean((cal_u - t) ** 2)):.4f}")
+    n_real = int(w.size if not a.synth else len(w) - len(us))
+    rm = lambda x, y: float(np.sqrt(np.mean((x - y) ** 2)))
+    print(f"  RMSE raw -> calibrated: cal part {rm(u[:n_real], t[:n_real]):.4f} -> {rm(cal_u[:n_real], t[:n_real]):.4f}"
+          + (f", synthetic {rm(u[n_real:], t[n_real:]):.4f} -> {rm(cal_u[n_real:], t[n_real:]):.4f}" if a.synth else ""))
     print("  knots (raw -> calibrated): " + ", ".join(f"{k:g}->{v:.3f}" for k, v in zip(knots, vals)))
 
     desc = ("monotone piecewise-linear map of the sigmoid output, knots raw->calibrated "

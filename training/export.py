@@ -5,10 +5,11 @@ Writes three files into --out-dir (default: models/ of the repository):
   leangate-s-encoder.onnx  image [N,3,120,160] -> features [N,96,8,10]
   leangate-s-head.onnx     reference_features, current_features -> utility [N]
 and checks with ONNX Runtime that head(encoder(ref), encoder(cur)) == pair(ref, cur) (1e-5) and
-that the pair model matches PyTorch.
+that the pair model matches PyTorch. The exported utility is the raw (uncalibrated) sigmoid;
+`python -m training.calibrate` then bakes the calibration in and sets leangate.threshold = 0.5.
+Export to a scratch directory, not straight over the shipped models/.
 
-Usage: python training/export.py --ckpt /work/train-data/runs/s/best.pt [--threshold 0.5]
-       (choose_threshold.py later rewrites leangate.threshold in all three files)
+Usage: python -m training.export --ckpt out/train-data/runs/s/best.pt --out-dir out/train-data/export
 """
 import argparse
 import os

@@ -332,7 +332,7 @@ def decode_video_frames(path: str, wanted: Iterable[int], image_dir: str) -> Lis
     wanted = sorted(set(wanted))
     if not wanted:
         return []
-    _gst.require_bindings()
+    _gst._init()  # bindings present, Gst initialised
     os.makedirs(image_dir, exist_ok=True)
     pipeline = Gst.Pipeline.new("decode")
     src, dec = _make("filesrc"), _make("decodebin")

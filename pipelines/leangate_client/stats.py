@@ -14,8 +14,20 @@ _FIELDS = {
     "frames-kept": ("frames_kept", int, "guint64"),
     "keep-ratio": ("keep_ratio", float, "gdouble"),
     "inference-mean-us": ("inference_mean_us", float, "gdouble"),
+    "inference-p50-us": ("inference_p50_us", int, "guint64"),
     "inference-p99-us": ("inference_p99_us", int, "guint64"),
+    "interval-frames-in": ("interval_frames_in", int, "guint64"),
+    "interval-frames-kept": ("interval_frames_kept", int, "guint64"),
+    "interval-inference-mean-us": ("interval_inference_mean_us", float, "gdouble"),
+    "interval-inference-p50-us": ("interval_inference_p50_us", int, "guint64"),
+    "interval-inference-p99-us": ("interval_inference_p99_us", int, "guint64"),
     "execution-provider": ("execution_provider", str, "gchararray"),
+    "server": ("server", str, "gchararray"),
+    "server-model": ("server_model", str, "gchararray"),
+    "server-requests": ("server_requests", int, "guint64"),
+    "server-failed-requests": ("server_failed_requests", int, "guint64"),
+    "server-latency-p50-us": ("server_latency_p50_us", int, "guint64"),
+    "server-latency-p99-us": ("server_latency_p99_us", int, "guint64"),
     "model": ("model", str, "gchararray"),
     "threshold": ("threshold", float, "gdouble"),
 }
@@ -27,7 +39,7 @@ class LeanGateStats(Mapping):
     """One `leangate-stats` message (posted at EOS and every ``stats-interval``).
 
     The known fields are typed attributes (None when the message lacks one); fields this
-    version does not know (say ``inference-p50-us``, added later) are kept, unconverted, in
+    version does not know (fields added by later versions) are kept, unconverted, in
     ``extra`` under their wire names. The value is also a read-only mapping keyed by the wire
     names, known and extra alike, so code written against the earlier plain-dict ``stats``
     (``stats["frames-in"]``, ``stats.get("model")``) keeps working.
@@ -37,8 +49,22 @@ class LeanGateStats(Mapping):
     frames_kept: Optional[int] = None
     keep_ratio: Optional[float] = None
     inference_mean_us: Optional[float] = None
+    inference_p50_us: Optional[int] = None
     inference_p99_us: Optional[int] = None
+    #: since the previous message (the whole run for the first one)
+    interval_frames_in: Optional[int] = None
+    interval_frames_kept: Optional[int] = None
+    interval_inference_mean_us: Optional[float] = None
+    interval_inference_p50_us: Optional[int] = None
+    interval_inference_p99_us: Optional[int] = None
     execution_provider: Optional[str] = None
+    #: remote scoring only (the element's ``server`` property set)
+    server: Optional[str] = None
+    server_model: Optional[str] = None
+    server_requests: Optional[int] = None
+    server_failed_requests: Optional[int] = None
+    server_latency_p50_us: Optional[int] = None
+    server_latency_p99_us: Optional[int] = None
     model: Optional[str] = None
     threshold: Optional[float] = None
     extra: Dict[str, Any] = dataclasses.field(default_factory=dict, hash=False)

@@ -12,6 +12,7 @@ use super::{ExecutionProviderChoice, GateMode, FORCE_KEYFRAME_EVENT, RESET_EVENT
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
 use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
+use crate::remote::{Backend, RemoteOptions, RemoteScorer};
 use crate::scorer::{ModelSource, Scorer, ScorerError, ScorerOptions};
 use crate::stats::{InferenceStats, StatsMessage};
 
@@ -41,6 +42,8 @@ const DEFAULT_SHARED_SESSION: bool = true;
 const DEFAULT_BATCH_SIZE: u32 = 1;
 const DEFAULT_BATCH_TIMEOUT_US: u64 = 2000;
 const DEFAULT_STATS_INTERVAL: u64 = 0;
+const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
+const DEFAULT_SERVER_MAX_IN_FLIGHT: u32 = 16;
 
 /// Minimum time between two run-time warnings posted on the bus.
 const WARN_EVERY: std::time::Duration = std::time::Duration::from_secs(5);
@@ -62,6 +65,11 @@ struct Settings {
     batch_size: u32,
     batch_timeout_us: u64,
     stats_interval: u64,
+    /// Remote scoring (crate::remote): the V2 server's URL; None = local ONNX Runtime.
+    server: Option<String>,
+    server_model: Option<String>,
+    server_timeout_ms: u32,
+    server_max_in_flight: u32,
     /// Between `start` and `stop`: the model and session settings are in use, and changing them
     /// is refused (the properties keep reporting what is in use).
     in_use: bool,
@@ -83,6 +91,10 @@ impl Default for Settings {
             batch_size: DEFAULT_BATCH_SIZE,
             batch_timeout_us: DEFAULT_BATCH_TIMEOUT_US,
             stats_interval: DEFAULT_STATS_INTERVAL,
+            server: None,
+            server_model: None,
+            server_timeout_ms: DEFAULT_SERVER_TIMEOUT_MS,
+            server_max_in_flight: DEFAULT_SERVER_MAX_IN_FLIGHT,
             in_use: false,
         }
     }
@@ -111,7 +123,7 @@ impl From<&Settings> for FrameSettings {
 }
 
 struct State {
-    scorer: Scorer,
+    scorer: Backend,
     model_threshold: Option<f64>,
     pre: Option<(gst_video::VideoInfo, Preprocessor)>,
     gate: Gate,
@@ -223,6 +235,7 @@ impl LeanGate {
             execution_provider: state.scorer.provider().to_string(),
             model: state.scorer.info().name.clone(),
             threshold: state.gate.config().threshold,
+            server: state.scorer.server_stats(),
         }
         .to_structure();
         state.interval_start = (frames_in, frames_kept);
@@ -504,6 +517,46 @@ impl ObjectImpl for LeanGate {
                     .default_value(DEFAULT_STATS_INTERVAL)
                     .mutable_playing()
                     .build(),
+                glib::ParamSpecString::builder("server")
+                    .nick("Inference server")
+                    .blurb(
+                        "Score on a KServe V2 / Open Inference Protocol server (Triton, KServe, \
+                         MLServer) at http://host:port or https://host:port instead of locally; \
+                         unset = local ONNX Runtime. The local model still fixes the \
+                         preprocessing and the contract; a split model's head runs locally. \
+                         Set it before the element starts",
+                    )
+                    .mutable_ready()
+                    .build(),
+                glib::ParamSpecString::builder("server-model")
+                    .nick("Model on the server")
+                    .blurb(
+                        "The model's name on the server; unset = the local model's name for a \
+                         pair model, <name>-encoder for a split model (its encoder runs on the \
+                         server)",
+                    )
+                    .mutable_ready()
+                    .build(),
+                glib::ParamSpecUInt::builder("server-timeout")
+                    .nick("Server timeout")
+                    .blurb(
+                        "Timeout of each request to the server, milliseconds; a frame whose \
+                         request fails or times out is kept (fail open)",
+                    )
+                    .minimum(1)
+                    .default_value(DEFAULT_SERVER_TIMEOUT_MS)
+                    .mutable_ready()
+                    .build(),
+                glib::ParamSpecUInt::builder("server-max-in-flight")
+                    .nick("Server requests in flight")
+                    .blurb(
+                        "Most requests in flight to the server from this process, all elements \
+                         together (0 = no bound); a frame that waits longer than server-timeout \
+                         for a slot is kept (fail open)",
+                    )
+                    .default_value(DEFAULT_SERVER_MAX_IN_FLIGHT)
+                    .mutable_ready()
+                    .build(),
                 glib::ParamSpecUInt64::builder("frames-in")
                     .nick("Frames in")
                     .blurb("Frames received since start (read-only)")
@@ -524,8 +577,18 @@ impl ObjectImpl for LeanGate {
         let refused = {
             let mut settings = lock(&self.settings);
             match name {
-                "model" | "execution-provider" | "device-id" | "threads" | "ort-spinning"
-                | "shared-session" | "batch-size" | "batch-timeout"
+                "model"
+                | "execution-provider"
+                | "device-id"
+                | "threads"
+                | "ort-spinning"
+                | "shared-session"
+                | "batch-size"
+                | "batch-timeout"
+                | "server"
+                | "server-model"
+                | "server-timeout"
+                | "server-max-in-flight"
                     if settings.in_use =>
                 {
                     Some(format!(
@@ -595,6 +658,22 @@ impl ObjectImpl for LeanGate {
                     settings.stats_interval = value.get().expect("type checked upstream");
                     None
                 }
+                "server" => {
+                    settings.server = value.get().expect("type checked upstream");
+                    None
+                }
+                "server-model" => {
+                    settings.server_model = value.get().expect("type checked upstream");
+                    None
+                }
+                "server-timeout" => {
+                    settings.server_timeout_ms = value.get().expect("type checked upstream");
+                    None
+                }
+                "server-max-in-flight" => {
+                    settings.server_max_in_flight = value.get().expect("type checked upstream");
+                    None
+                }
                 other => unreachable!("unknown property {other}"),
             }
         };
@@ -631,6 +710,10 @@ impl LeanGate {
             "batch-size" => settings.batch_size.to_value(),
             "batch-timeout" => settings.batch_timeout_us.to_value(),
             "stats-interval" => settings.stats_interval.to_value(),
+            "server" => settings.server.to_value(),
+            "server-model" => settings.server_model.to_value(),
+            "server-timeout" => settings.server_timeout_ms.to_value(),
+            "server-max-in-flight" => settings.server_max_in_flight.to_value(),
             "frames-in" => self.frames_in.load(Ordering::Relaxed).to_value(),
             "frames-kept" => self.frames_kept.load(Ordering::Relaxed).to_value(),
             other => unreachable!("unknown property {other}"),
@@ -721,6 +804,22 @@ impl BaseTransformImpl for LeanGate {
         for w in &scorer.warnings {
             gst::warning!(CAT, imp = self, "{w}");
         }
+        let scorer = match settings.server.clone().filter(|s| !s.trim().is_empty()) {
+            None => Backend::Local(scorer),
+            Some(url) => {
+                let opts = RemoteOptions {
+                    url,
+                    model: settings.server_model.clone(),
+                    timeout: std::time::Duration::from_millis(settings.server_timeout_ms as u64),
+                    max_in_flight: settings.server_max_in_flight,
+                };
+                let remote = RemoteScorer::connect(scorer, &opts).map_err(|e| {
+                    release();
+                    gst::error_msg!(gst::ResourceError::OpenRead, ("{}", e))
+                })?;
+                Backend::Remote(Box::new(remote))
+            }
+        };
         let info = scorer.info().clone();
         gst::info!(
             CAT,

@@ -398,6 +398,7 @@ pub(super) fn read_metadata(
             std,
         },
         threshold,
+        calibration: get("leangate.calibration"),
     })
 }
 

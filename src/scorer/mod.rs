@@ -24,6 +24,7 @@ use crate::preprocess::{try_zeroed, TensorSpec};
 use crate::runtime;
 
 mod contract;
+mod head;
 mod session;
 
 pub use contract::{CONTRACT, MAX_INPUT_SIDE, MAX_TENSOR_BYTES};
@@ -158,6 +159,9 @@ pub struct ModelInfo {
     pub spec: TensorSpec,
     /// `leangate.threshold`, if the model carries one (in [0, 1]).
     pub threshold: Option<f64>,
+    /// `leangate.calibration`: how the model's utility was calibrated to the teacher's units
+    /// (informational; the calibration itself is part of the graph).
+    pub calibration: Option<String>,
 }
 
 /// The two model forms, sessions only (shareable between streams).

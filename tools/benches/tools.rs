@@ -4,7 +4,7 @@
 
 use std::time::Instant;
 
-use leangate_tools::synth::{self, MotionProfile, Scene, SynthConfig};
+use leangate_tools::synth::{self, MotionProfile, Scene, SensorConfig, SynthConfig};
 use leangate_tools::teacher::{self, DepthView, Teacher, TeacherConfig};
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -50,6 +50,24 @@ fn main() {
         summary.frames,
         t.elapsed().as_secs_f64()
     );
+
+    for (name, sensor) in [
+        ("rolling", "rolling"),
+        ("blur", "blur"),
+        ("realistic (all, JPEG)", "realistic"),
+    ] {
+        let real = SynthConfig {
+            sensor: sensor.parse::<SensorConfig>().expect("sensor names"),
+            ..cfg.clone()
+        };
+        let d = dir.join(sensor);
+        let s = synth::render_sequence(&real, &d).expect("render_sequence");
+        println!(
+            "  --sensor {name:<22} {:6.1} frames/s render, {:.1} with writing",
+            s.render_fps(),
+            s.total_fps()
+        );
+    }
 
     let tcfg = TeacherConfig::default();
     let views: Vec<DepthView> = last

@@ -790,11 +790,11 @@ mod tests {
 
     const REDKITCHEN: &str = concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/../shared/data/7scenes_redkitchen_dev"
+        "/../../shared/data/7scenes_redkitchen_dev"
     );
     const EUROC: &str = concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/../shared/data/euroc_v101_static"
+        "/../../shared/data/euroc_v101_static"
     );
 
     fn present(p: &str) -> bool {
@@ -874,7 +874,7 @@ mod tests {
 
         let webcam = concat!(
             env!("CARGO_MANIFEST_DIR"),
-            "/../shared/data/webcam_classroom"
+            "/../../shared/data/webcam_classroom"
         );
         if present(webcam) {
             assert_eq!(Sequence::open(Path::new(webcam)).unwrap().len(), 220);

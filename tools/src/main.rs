@@ -13,7 +13,7 @@ use clap::{Parser, Subcommand};
 use gstleangate::GateConfig;
 use leangate_tools::dataset::{RgbFormat, Sequence};
 use leangate_tools::eval;
-use leangate_tools::synth::{self, MotionProfile, SynthConfig};
+use leangate_tools::synth::{self, MotionSpec, Replay, ReplayEnd, SensorConfig, SynthConfig};
 use leangate_tools::teacher::{self, Teacher, TeacherConfig};
 
 #[derive(Parser)]
@@ -41,9 +41,17 @@ enum Command {
         /// Number of frames.
         #[arg(long, default_value_t = 300)]
         frames: usize,
-        /// Camera path: static, pan, shaky, walk, rotate, bursts, mixed.
+        /// Camera path: static, pan, shaky, walk, rotate, bursts, mixed, or replay:FILE (a TUM
+        /// trajectory `t tx ty tz qx qy qz qw`, or a NeRF transforms.json), placed in the room and
+        /// resampled to --fps.
         #[arg(long, default_value = "mixed")]
-        motion: MotionProfile,
+        motion: MotionSpec,
+        /// With replay:FILE: seconds into the file at which the sequence starts.
+        #[arg(long, default_value_t = 0.0)]
+        replay_start: f64,
+        /// With replay:FILE, when --frames outlasts the file: stop (fewer frames), loop, bounce.
+        #[arg(long, default_value = "stop")]
+        replay_end: ReplayEnd,
         /// Folder of jpg/png images tiled on some surfaces.
         #[arg(long)]
         textures: Option<PathBuf>,
@@ -65,6 +73,10 @@ enum Command {
         /// Write colour frames as JPEG (quality 90) instead of PNG.
         #[arg(long)]
         jpeg: bool,
+        /// Sensor realism (opt-in): none, realistic (all), or a comma-separated list of
+        /// exposure, wb, blur, rolling, depth-noise, holes, vignette, jpeg.
+        #[arg(long, default_value = "none")]
+        sensor: SensorConfig,
     },
     /// Label pairs with the exact geometric teacher (needs depth, poses and intrinsics).
     /// Without --pairs/--within/--random: every frame against the oracle gate's reference.
@@ -190,7 +202,21 @@ fn run(cli: Cli) -> Res {
             blur,
             lighting,
             jpeg,
+            replay_start,
+            replay_end,
+            sensor,
         } => {
+            let (motion, replay) = match motion {
+                MotionSpec::Profile(p) => (p, None),
+                MotionSpec::Replay(path) => (
+                    Default::default(),
+                    Some(Replay {
+                        path,
+                        start: replay_start,
+                        end: replay_end,
+                    }),
+                ),
+            };
             let cfg = SynthConfig {
                 seed,
                 frames,
@@ -198,6 +224,8 @@ fn run(cli: Cli) -> Res {
                 height,
                 fps,
                 motion,
+                replay,
+                sensor,
                 textures,
                 noise,
                 blur,
@@ -424,8 +452,8 @@ fn eval_cmd(
 
 fn print_summary(r: &eval::EvalReport) {
     println!(
-        "{}: {} frames, threshold {:.3}",
-        r.sequence, r.frames, r.threshold
+        "{}: {} frames, model {} ({}), threshold {:.3}",
+        r.sequence, r.frames, r.model, r.execution_provider, r.threshold
     );
     println!(
         "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7}",

@@ -776,7 +776,7 @@ mod tests {
 
     const REDKITCHEN: &str = concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/../shared/data/7scenes_redkitchen_dev"
+        "/../../shared/data/7scenes_redkitchen_dev"
     );
 
     #[test]

@@ -119,6 +119,8 @@ fn synth_label_eval_end_to_end() {
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(v["frames"], 40);
     assert_eq!(v["threshold"], 0.05);
+    assert_eq!(v["model"], "fixture-mad", "the model the element ran");
+    assert_eq!(v["execution_provider"], "cpu");
     let oracle = &v["policies"]["oracle"];
     assert_eq!(oracle["overdue_drops"], 0);
     assert_eq!(oracle["utility_mae"], 0.0);
@@ -277,4 +279,63 @@ fn embedded_student_drops_a_static_camera() {
         ratio <= 0.05,
         "a static camera must lose at least 95% of its frames: kept {ratio}"
     );
+}
+
+#[test]
+fn synth_replays_a_real_trajectory_with_sensor_realism() {
+    let Some(gt) = shared_data("tum_fr1_rpy/groundtruth.txt") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("rpy");
+    let out = leangate()
+        .args(["synth", "--out"])
+        .arg(&seq)
+        .args([
+            "--seed", "3", "--frames", "12", "--width", "160", "--height", "120",
+        ])
+        .arg("--motion")
+        .arg(format!("replay:{}", gt.display()))
+        .args(["--sensor", "realistic"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let poses: Vec<String> = std::fs::read_to_string(seq.join("groundtruth.txt"))
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(String::from)
+        .collect();
+    assert_eq!(poses.len(), 12, "one replayed pose per frame");
+    // The replayed sequence is labelled by the teacher like any other (holes are invalid depth).
+    let out = leangate()
+        .args(["label", "--sequence"])
+        .arg(&seq)
+        .args(["--threshold", "0.5"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // A bad replay file is a clear error naming it.
+    let out = leangate()
+        .args(["synth", "--out"])
+        .arg(dir.path().join("bad"))
+        .args([
+            "--frames",
+            "3",
+            "--motion",
+            "replay:/no/such/trajectory.txt",
+        ])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("/no/such/trajectory.txt"), "{err}");
 }

@@ -206,6 +206,33 @@ fn consumer_reconstructs_what_the_gate_keeps_of_a_real_clip() {
     let reg = v["registered"].as_u64().unwrap();
     assert!(reg >= 5, "{reg} of 8 registered");
     assert_eq!(v["models"], 1);
+
+    // Explicit frames of a video (what eval --reconstruct asks for): decoded, no gate.
+    let json2 = dir.path().join("frames.json");
+    let out = consumer(
+        &py,
+        &["--frames", "0,6,12,18", "--out"],
+        &[&dir.path().join("rec2"), Path::new("--json"), &json2, &clip],
+    );
+    assert!(out.status.success());
+    let v = read_json(&json2);
+    assert!(v.get("gate").is_none());
+    let names: Vec<&str> = v["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        names,
+        [
+            "images/frame_000000.png",
+            "images/frame_000006.png",
+            "images/frame_000012.png",
+            "images/frame_000018.png"
+        ]
+    );
+    assert!(v["registered"].as_u64().unwrap() >= 3, "{v}");
 }
 
 #[test]

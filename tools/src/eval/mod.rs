@@ -142,6 +142,10 @@ pub struct EvalReport {
     pub sequence: String,
     pub frames: usize,
     pub threshold: f64,
+    /// The model the element ran (its `leangate.name`) and the execution provider, from the
+    /// element's `leangate-stats` message.
+    pub model: String,
+    pub execution_provider: String,
     pub policies: serde_json::Map<String, serde_json::Value>,
     /// Equal-budget curves (`--sweep`).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -255,6 +259,8 @@ pub fn evaluate(
             sequence: path.display().to_string(),
             frames: n,
             threshold: t,
+            model: run.model_name.clone(),
+            execution_provider: run.provider.clone(),
             policies,
             sweep: None,
             reconstruction: None,

@@ -1,0 +1,681 @@
+//! Remote scoring: the model runs on a shared inference server that speaks the KServe V2 / Open
+//! Inference Protocol over HTTP(S) (NVIDIA Triton, KServe, Seldon MLServer), with the binary
+//! tensor extension.
+//!
+//! The element still loads the model locally (the `model` property, or the embedded default):
+//! its `leangate.*` metadata fixes the preprocessing and the threshold, its graph is the contract
+//! the server's model metadata must match, and for a **split** model its small head runs here.
+//!
+//! - **Pair model**: one request per scored frame to `server-model` (default: the model's name)
+//!   with `reference` and `current`; the server answers `utility`.
+//! - **Split model**: the encoder runs on the server (`server-model`, default `<name>-encoder`),
+//!   the reference keyframe's features are cached in the element until the next keep, and the
+//!   head runs locally on ONNX Runtime. A scored frame costs **one** encoder request (plus one
+//!   for the reference after a start, reset, flush or failure, when its features are unknown).
+//!
+//! Faults: every request has a timeout; a failed request fails open (the element keeps the frame
+//! and posts a rate-limited warning naming the server and the error), and further requests wait
+//! for an exponential backoff (100 ms doubling to 2 s) so that frames keep flowing without each
+//! one waiting for a timeout while the server is away; the first request that succeeds resets it.
+//! Requests in flight to one server are bounded process-wide (`server-max-in-flight`).
+
+use std::collections::HashMap;
+use std::sync::{Arc, Condvar, LazyLock, Mutex};
+use std::time::{Duration, Instant};
+
+use crate::scorer::{ModelInfo, Scorer, ScorerError};
+use crate::stats::{Histogram, ServerStats};
+
+mod backend;
+pub mod client;
+
+pub use backend::Backend;
+use client::{ClientError, InputTensor, ModelMetadata, TensorMeta, V2Client};
+
+static CAT: LazyLock<gst::DebugCategory> = LazyLock::new(|| {
+    gst::DebugCategory::new(
+        "leangate-remote",
+        gst::DebugColorFlags::empty(),
+        Some("LeanGate remote scoring (KServe V2)"),
+    )
+});
+
+/// First retry delay after a failed request; it doubles up to [`BACKOFF_MAX`].
+pub const BACKOFF_MIN: Duration = Duration::from_millis(100);
+/// Longest delay between two attempts while the server is away.
+pub const BACKOFF_MAX: Duration = Duration::from_secs(2);
+
+/// Where and how to reach the server.
+#[derive(Debug, Clone)]
+pub struct RemoteOptions {
+    /// `http://host:port` or `https://host:port` (a path prefix is allowed).
+    pub url: String,
+    /// The model's name on the server; `None`: derived from the local model (see the module
+    /// documentation).
+    pub model: Option<String>,
+    /// Timeout of each request (and of the start checks).
+    pub timeout: Duration,
+    /// Most requests in flight to this server from this process (0 = no bound).
+    pub max_in_flight: u32,
+}
+
+/// A start failure, naming the server and what failed.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum RemoteError {
+    #[error("server `{url}`: unsupported URL: {reason}")]
+    Url { url: String, reason: String },
+    #[error("server `{url}` is unreachable: {reason}")]
+    Unreachable { url: String, reason: String },
+    #[error("server `{url}` has no model `{model}` ({reason})")]
+    UnknownModel {
+        url: String,
+        model: String,
+        reason: String,
+    },
+    #[error("model `{model}` on server `{url}` is not ready")]
+    NotReady { url: String, model: String },
+    #[error(
+        "model `{model}` on server `{url}` does not follow the tensor contract: {reason} \
+         (its metadata: {metadata})"
+    )]
+    Contract {
+        url: String,
+        model: String,
+        reason: String,
+        metadata: String,
+    },
+    #[error("model `{model}` on server `{url}` failed a dry run on a blank frame: {reason}")]
+    DryRun {
+        url: String,
+        model: String,
+        reason: String,
+    },
+    /// The local model (metadata, head) could not be loaded.
+    #[error(transparent)]
+    Local(#[from] ScorerError),
+}
+
+impl RemoteError {
+    /// An error about the local model rather than the server.
+    pub fn local(&self) -> Option<&ScorerError> {
+        match self {
+            RemoteError::Local(e) => Some(e),
+            _ => None,
+        }
+    }
+}
+
+/// A process-wide bound on requests in flight to one server.
+#[derive(Debug)]
+struct Limiter {
+    max: usize,
+    in_flight: Mutex<usize>,
+    freed: Condvar,
+}
+
+struct Permit(Arc<Limiter>);
+
+impl Drop for Permit {
+    fn drop(&mut self) {
+        let mut n = self.0.in_flight.lock().unwrap_or_else(|e| e.into_inner());
+        *n = n.saturating_sub(1);
+        self.0.freed.notify_one();
+    }
+}
+
+impl Limiter {
+    fn shared(url: &str, max: u32) -> Option<Arc<Limiter>> {
+        type ByServer = HashMap<(String, u32), Arc<Limiter>>;
+        static ALL: LazyLock<Mutex<ByServer>> = LazyLock::new(Default::default);
+        if max == 0 {
+            return None;
+        }
+        let mut all = ALL.lock().unwrap_or_else(|e| e.into_inner());
+        Some(
+            all.entry((url.to_string(), max))
+                .or_insert_with(|| {
+                    Arc::new(Limiter {
+                        max: max as usize,
+                        in_flight: Mutex::new(0),
+                        freed: Condvar::new(),
+                    })
+                })
+                .clone(),
+        )
+    }
+
+    /// Wait up to `timeout` for a slot.
+    fn acquire(self: &Arc<Self>, timeout: Duration) -> Option<Permit> {
+        let deadline = Instant::now() + timeout;
+        let mut n = self.in_flight.lock().unwrap_or_else(|e| e.into_inner());
+        while *n >= self.max {
+            let now = Instant::now();
+            if now >= deadline {
+                return None;
+            }
+            n = self
+                .freed
+                .wait_timeout(n, deadline - now)
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
+        *n += 1;
+        Some(Permit(self.clone()))
+    }
+}
+
+/// Exponential backoff between attempts while the server fails.
+#[derive(Debug, Default)]
+struct Backoff {
+    failures: u32,
+    retry_at: Option<Instant>,
+    last_error: String,
+}
+
+impl Backoff {
+    fn delay(failures: u32) -> Duration {
+        let f = failures.saturating_sub(1).min(16);
+        (BACKOFF_MIN * 2u32.pow(f)).min(BACKOFF_MAX)
+    }
+
+    fn fail(&mut self, error: String) {
+        self.failures = self.failures.saturating_add(1);
+        self.retry_at = Some(Instant::now() + Self::delay(self.failures));
+        self.last_error = error;
+    }
+
+    /// Whether a request may go now; otherwise the time left and the last error.
+    fn wait_left(&self) -> Option<Duration> {
+        let at = self.retry_at?;
+        let now = Instant::now();
+        (now < at).then(|| at - now)
+    }
+}
+
+#[derive(Debug, Clone)]
+struct Features {
+    shape: Vec<usize>,
+    data: Vec<f32>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum RemoteKind {
+    /// The server runs the pair model.
+    Pair,
+    /// The server runs the encoder; the head runs locally.
+    Encoder,
+}
+
+/// Scores frames on a V2 server (see the module documentation).
+pub struct RemoteScorer {
+    local: Scorer,
+    client: V2Client,
+    url: String,
+    model: String,
+    kind: RemoteKind,
+    limiter: Option<Arc<Limiter>>,
+    timeout: Duration,
+    reference: Option<Features>,
+    current: Option<Features>,
+    backoff: Backoff,
+    latency: Histogram,
+    requests: u64,
+    failed: u64,
+}
+
+impl std::fmt::Debug for RemoteScorer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RemoteScorer")
+            .field("url", &self.url)
+            .field("model", &self.model)
+            .field("kind", &self.kind)
+            .finish()
+    }
+}
+
+fn describe_meta(m: &ModelMetadata) -> String {
+    let t = |v: &[TensorMeta]| {
+        v.iter()
+            .map(|t| format!("{} {} {:?}", t.name, t.datatype, t.shape))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    format!("inputs [{}], outputs [{}]", t(&m.inputs), t(&m.outputs))
+}
+
+/// `shape` (from the server, -1 = variable) fits `want` (-1 = anything) when the ranks agree
+/// and every fixed dimension matches; the batch dimension may be -1 or 1.
+fn dims_fit(shape: &[i64], want: &[i64]) -> bool {
+    shape.len() == want.len()
+        && shape.first().is_none_or(|&b| b == -1 || b == 1)
+        && shape
+            .iter()
+            .zip(want)
+            .skip(1)
+            .all(|(&s, &w)| s < 0 || w < 0 || s == w)
+}
+
+impl RemoteScorer {
+    /// Check the server and its model against the local model's contract, and prove it with a
+    /// dry run on a blank frame. `local` is the loaded local model (pair or split).
+    pub fn connect(local: Scorer, opts: &RemoteOptions) -> Result<RemoteScorer, RemoteError> {
+        let url = opts.url.trim().trim_end_matches('/').to_string();
+        let bad_url = |reason: &str| RemoteError::Url {
+            url: url.clone(),
+            reason: reason.to_string(),
+        };
+        let rest = if let Some(r) = url.strip_prefix("http://") {
+            r
+        } else if let Some(r) = url.strip_prefix("https://") {
+            r
+        } else if url.starts_with("grpc://") || url.starts_with("grpcs://") {
+            return Err(bad_url(
+                "gRPC is not supported yet; use the server's HTTP endpoint (Triton: \
+                 http://host:8000)",
+            ));
+        } else {
+            return Err(bad_url("expected http://host:port or https://host:port"));
+        };
+        if rest.is_empty() || rest.starts_with('/') {
+            return Err(bad_url("no host"));
+        }
+        let kind = if local.head_feature_dims().is_some() {
+            RemoteKind::Encoder
+        } else {
+            RemoteKind::Pair
+        };
+        let model = match opts
+            .model
+            .as_deref()
+            .map(str::trim)
+            .filter(|m| !m.is_empty())
+        {
+            Some(m) => m.to_string(),
+            None if kind == RemoteKind::Encoder => format!("{}-encoder", local.info().name),
+            None => local.info().name.clone(),
+        };
+        if model.contains(['/', '?', '#', ' ']) {
+            return Err(RemoteError::UnknownModel {
+                url,
+                model,
+                reason: "not a valid model name".into(),
+            });
+        }
+        let timeout = opts.timeout.max(Duration::from_millis(1));
+        let client = V2Client::new(&url, timeout);
+        let meta = match client.model_metadata(&model) {
+            Ok(m) => m,
+            Err(ClientError::Transport(reason)) => {
+                return Err(RemoteError::Unreachable { url, reason })
+            }
+            Err(ClientError::Status { code, message }) if (400..500).contains(&code) => {
+                return Err(RemoteError::UnknownModel {
+                    url,
+                    model,
+                    reason: if message.is_empty() {
+                        format!("HTTP status {code}")
+                    } else {
+                        message
+                    },
+                })
+            }
+            Err(e) => {
+                return Err(RemoteError::Unreachable {
+                    url,
+                    reason: format!("model metadata: {e}"),
+                })
+            }
+        };
+        match client.model_ready(&model) {
+            Ok(true) => {}
+            Ok(false) => return Err(RemoteError::NotReady { url, model }),
+            Err(e) => {
+                return Err(RemoteError::Unreachable {
+                    url,
+                    reason: e.to_string(),
+                })
+            }
+        }
+        let mut scorer = RemoteScorer {
+            limiter: Limiter::shared(&url, opts.max_in_flight),
+            local,
+            client,
+            url,
+            model,
+            kind,
+            timeout,
+            reference: None,
+            current: None,
+            backoff: Backoff::default(),
+            latency: Histogram::default(),
+            requests: 0,
+            failed: 0,
+        };
+        scorer.check_contract(&meta)?;
+        scorer.dry_run()?;
+        gst::info!(
+            CAT,
+            "scoring on server {} with model {} ({})",
+            scorer.url,
+            scorer.model,
+            match scorer.kind {
+                RemoteKind::Pair => "pair model",
+                RemoteKind::Encoder => "encoder remote, head local",
+            }
+        );
+        Ok(scorer)
+    }
+
+    fn check_contract(&self, meta: &ModelMetadata) -> Result<(), RemoteError> {
+        let spec = &self.local.info().spec;
+        let image = [-1, 3, spec.height as i64, spec.width as i64];
+        let fail = |reason: String| RemoteError::Contract {
+            url: self.url.clone(),
+            model: self.model.clone(),
+            reason,
+            metadata: describe_meta(meta),
+        };
+        let find = |list: &[TensorMeta], name: &str, what: &str, want: &[i64]| {
+            let t = list
+                .iter()
+                .find(|t| t.name == name)
+                .ok_or_else(|| fail(format!("no {what} `{name}`")))?;
+            if t.datatype != "FP32" {
+                return Err(fail(format!(
+                    "{what} `{name}` is {}, expected FP32",
+                    t.datatype
+                )));
+            }
+            if !want.is_empty() && !dims_fit(&t.shape, want) {
+                return Err(fail(format!(
+                    "{what} `{name}` has shape {:?}, expected {want:?} (batch -1 or 1)",
+                    t.shape
+                )));
+            }
+            Ok(())
+        };
+        match self.kind {
+            RemoteKind::Pair => {
+                find(&meta.inputs, "reference", "input", &image)?;
+                find(&meta.inputs, "current", "input", &image)?;
+                find(&meta.outputs, "utility", "output", &[])?;
+                let u = meta.outputs.iter().find(|t| t.name == "utility");
+                if let Some(u) =
+                    u.filter(|u| !dims_fit(&u.shape, &[-1]) && !dims_fit(&u.shape, &[-1, 1]))
+                {
+                    return Err(fail(format!(
+                        "output `utility` has shape {:?}, expected [N] or [N,1]",
+                        u.shape
+                    )));
+                }
+            }
+            RemoteKind::Encoder => {
+                find(&meta.inputs, "image", "input", &image)?;
+                let feat = self.local.head_feature_dims().unwrap_or_default();
+                find(&meta.outputs, "features", "output", &feat).map_err(|e| match e {
+                    RemoteError::Contract {
+                        url,
+                        model,
+                        reason,
+                        metadata,
+                    } => RemoteError::Contract {
+                        url,
+                        model,
+                        reason: format!(
+                            "{reason}; it must be the encoder of the local split model \
+                             `{}` (whose head runs here)",
+                            self.local.info().name
+                        ),
+                        metadata,
+                    },
+                    e => e,
+                })?;
+            }
+        }
+        Ok(())
+    }
+
+    fn dry_run(&mut self) -> Result<(), RemoteError> {
+        let spec = self.local.info().spec.clone();
+        let plane = spec.len() / 3;
+        let mut blank = vec![0f32; spec.len()];
+        for (c, chunk) in blank.chunks_mut(plane.max(1)).enumerate().take(3) {
+            chunk.fill(-spec.mean[c] / spec.std[c]);
+        }
+        let r = self.score_inner(&blank, &blank);
+        self.reset_reference();
+        // The dry run does not count in the stream's figures.
+        self.latency.clear();
+        self.requests = 0;
+        self.failed = 0;
+        r.map(|_| ()).map_err(|reason| RemoteError::DryRun {
+            url: self.url.clone(),
+            model: self.model.clone(),
+            reason,
+        })
+    }
+
+    /// One request, bounded in flight and timed.
+    fn request(
+        &mut self,
+        inputs: &[InputTensor<'_>],
+        outputs: &[&str],
+    ) -> Result<Vec<client::OutputTensor>, String> {
+        let _permit = match &self.limiter {
+            Some(l) => Some(l.acquire(self.timeout).ok_or_else(|| {
+                format!(
+                    "{} requests already in flight to the server for {} ms",
+                    l.max,
+                    self.timeout.as_millis()
+                )
+            })?),
+            None => None,
+        };
+        let t0 = Instant::now();
+        self.requests += 1;
+        let r = self.client.infer(&self.model, inputs, outputs);
+        match r {
+            Ok(o) => {
+                self.latency
+                    .record(t0.elapsed().as_micros().min(u64::MAX as u128) as u64);
+                Ok(o)
+            }
+            Err(e) => {
+                self.failed += 1;
+                Err(e.to_string())
+            }
+        }
+    }
+
+    fn encode(&mut self, shape: &[usize], image: &[f32]) -> Result<Features, String> {
+        let mut out = self.request(
+            &[InputTensor {
+                name: "image",
+                shape,
+                data: image,
+            }],
+            &["features"],
+        )?;
+        let f = out.pop().ok_or("no `features` output")?;
+        Ok(Features {
+            shape: f.shape,
+            data: f.data,
+        })
+    }
+
+    fn score_inner(&mut self, reference: &[f32], current: &[f32]) -> Result<f32, String> {
+        let spec = &self.local.info().spec;
+        let shape = [1usize, 3, spec.height as usize, spec.width as usize];
+        if reference.len() != spec.len() || current.len() != spec.len() {
+            return Err(format!(
+                "tensor length {} / {} does not match {shape:?}",
+                reference.len(),
+                current.len()
+            ));
+        }
+        let u = match self.kind {
+            RemoteKind::Pair => {
+                let out = self.request(
+                    &[
+                        InputTensor {
+                            name: "reference",
+                            shape: &shape,
+                            data: reference,
+                        },
+                        InputTensor {
+                            name: "current",
+                            shape: &shape,
+                            data: current,
+                        },
+                    ],
+                    &["utility"],
+                )?;
+                match out.first().map(|o| &o.data[..]) {
+                    Some([u]) => *u,
+                    Some(d) => {
+                        return Err(format!(
+                            "`utility` has {} values for a batch of one frame",
+                            d.len()
+                        ))
+                    }
+                    None => return Err("no `utility` output".into()),
+                }
+            }
+            RemoteKind::Encoder => {
+                if self.reference.is_none() {
+                    self.reference = Some(self.encode(&shape, reference)?);
+                }
+                let cf = self.encode(&shape, current)?;
+                let rf = self.reference.as_ref().expect("encoded above");
+                let u = self
+                    .local
+                    .run_head((&rf.shape, &rf.data), (&cf.shape, &cf.data))
+                    .map_err(|e| format!("local head: {e}"))?;
+                self.current = Some(cf);
+                u
+            }
+        };
+        if !u.is_finite() {
+            return Err(format!("`utility` is not finite ({u})"));
+        }
+        Ok(u)
+    }
+
+    /// Score one pair of preprocessed tensors. While the server is in backoff after a failure,
+    /// fails at once (the element keeps the frame) without a request.
+    pub fn score(&mut self, reference: &[f32], current: &[f32]) -> Result<f32, ScorerError> {
+        if let Some(left) = self.backoff.wait_left() {
+            return Err(ScorerError::Inference(format!(
+                "server `{}` (model `{}`) unavailable: {}; next attempt in {} ms",
+                self.url,
+                self.model,
+                self.backoff.last_error,
+                left.as_millis()
+            )));
+        }
+        match self.score_inner(reference, current) {
+            Ok(u) => {
+                if self.backoff.failures > 0 {
+                    gst::info!(
+                        CAT,
+                        "server {} is back after {} failed attempts",
+                        self.url,
+                        self.backoff.failures
+                    );
+                    self.backoff = Backoff::default();
+                }
+                Ok(u)
+            }
+            Err(e) => {
+                self.current = None;
+                self.backoff.fail(e.clone());
+                gst::debug!(CAT, "server {} failed: {e}", self.url);
+                Err(ScorerError::Inference(format!(
+                    "server `{}` (model `{}`): {e}",
+                    self.url, self.model
+                )))
+            }
+        }
+    }
+
+    /// See [`Scorer::on_keep`].
+    pub fn on_keep(&mut self, scored: bool) {
+        self.reference = if scored { self.current.take() } else { None };
+        self.current = None;
+    }
+
+    pub fn reset_reference(&mut self) {
+        self.on_keep(false);
+    }
+
+    pub fn info(&self) -> &ModelInfo {
+        self.local.info()
+    }
+
+    /// The server's URL.
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    /// The model's name on the server.
+    pub fn server_model(&self) -> &str {
+        &self.model
+    }
+
+    /// Whether the encoder runs on the server and the head here.
+    pub fn is_split(&self) -> bool {
+        self.kind == RemoteKind::Encoder
+    }
+
+    /// Requests sent since start (the start's dry run not counted).
+    pub fn requests(&self) -> u64 {
+        self.requests
+    }
+
+    /// Server figures for `leangate-stats`.
+    pub fn stats(&self) -> ServerStats {
+        ServerStats {
+            server: self.url.clone(),
+            server_model: self.model.clone(),
+            requests: self.requests,
+            failed_requests: self.failed,
+            latency_p50_us: self.latency.percentile(50.0),
+            latency_p99_us: self.latency.percentile(99.0),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_doubles_and_caps() {
+        assert_eq!(Backoff::delay(1), BACKOFF_MIN);
+        assert_eq!(Backoff::delay(2), BACKOFF_MIN * 2);
+        assert_eq!(Backoff::delay(40), BACKOFF_MAX);
+        let mut b = Backoff::default();
+        assert!(b.wait_left().is_none());
+        b.fail("x".into());
+        assert!(b.wait_left().is_some());
+    }
+
+    #[test]
+    fn shapes() {
+        assert!(dims_fit(&[-1, 3, 256, 256], &[-1, 3, 256, 256]));
+        assert!(dims_fit(&[1, 3, -1, -1], &[-1, 3, 256, 256]));
+        assert!(!dims_fit(&[2, 3, 256, 256], &[-1, 3, 256, 256]));
+        assert!(!dims_fit(&[-1, 3, 224, 224], &[-1, 3, 256, 256]));
+        assert!(!dims_fit(&[-1, 3, 256], &[-1, 3, 256, 256]));
+    }
+
+    #[test]
+    fn limiter_bounds() {
+        let l = Limiter::shared("http://test-limiter", 1).unwrap();
+        let p = l.acquire(Duration::from_millis(10)).unwrap();
+        assert!(l.acquire(Duration::from_millis(10)).is_none());
+        drop(p);
+        assert!(l.acquire(Duration::from_millis(10)).is_some());
+        assert!(Limiter::shared("http://x", 0).is_none());
+    }
+}

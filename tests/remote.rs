@@ -1,0 +1,439 @@
+//! Remote scoring (issue 10) against a real KServe V2 server on loopback: NVIDIA Triton
+//! Inference Server through PyTriton, started by the tests (tests/v2server, scripts/v2_server.py)
+//! and serving the shipped student `leangate-s` (pair, encoder and head). Skipped, with a
+//! message, when `.venv-triton` is not installed (`scripts/setup.sh` installs it).
+//!
+//! - remote and local scoring give the same decisions on a clip, utilities within 1e-5, for the
+//!   split model (encoder on the server, head here: one encoder request per scored frame,
+//!   counted on the server) and the pair model;
+//! - the server killed mid-stream: frames keep flowing (kept, reason `error`), a rate-limited
+//!   warning names the server, and scoring resumes when it is back; a slow server times out
+//!   and fails open the same way;
+//! - start errors name the URL and what failed: unreachable, unknown model, wrong contract,
+//!   unsupported scheme.
+
+mod common;
+mod v2server;
+
+use std::time::{Duration, Instant};
+
+use common::*;
+use gst::prelude::*;
+use gstleangate::{Reason, StatsMessage};
+use v2server::V2Server;
+
+const W: u32 = 320;
+const H: u32 = 240;
+
+/// A pan over a textured strip at varying speed (pauses, slow and fast stretches): frames that
+/// add nothing and frames that add a lot.
+fn clip(n: usize) -> Vec<Vec<u8>> {
+    let strip_w = 4000u32;
+    let pix = |x: u32, y: u32| -> [u8; 3] {
+        let h = |a: u32, b: u32, s: u32| {
+            let v = (a / s).wrapping_mul(73_856_093) ^ (b / s).wrapping_mul(19_349_663);
+            (v.wrapping_mul(2_654_435_761) >> 24) as u8
+        };
+        let r = h(x, y, 16) / 2 + h(x, y, 5) / 2;
+        let g = h(x + 7, y, 32) / 2 + h(x, y + 3, 9) / 2;
+        let b = ((x as f32 * 0.05).sin() * 60.0 + 128.0) as u8 / 2 + h(x, y, 48) / 2;
+        [r, g, b]
+    };
+    let mut x0 = 0u32;
+    (0..n)
+        .map(|i| {
+            let speed = match (i / 10) % 4 {
+                0 => 0,
+                1 => 3,
+                2 => 12,
+                _ => 40,
+            };
+            x0 = (x0 + speed).min(strip_w - W);
+            let mut f = Vec::with_capacity((W * H * 3) as usize);
+            for y in 0..H {
+                for x in 0..W {
+                    f.extend_from_slice(&pix(x0 + x, y));
+                }
+            }
+            f
+        })
+        .collect()
+}
+
+/// Run `frames` through `leangate` (annotate mode, with `props`); every frame's metadata, and
+/// the element.
+fn gate(props: &str, frames: &[Vec<u8>]) -> (Vec<gstleangate::GateMeta>, gst::Element) {
+    let mut h = harness(&format!("mode=annotate {props}"), &rgb_caps(W, H));
+    let mut metas = Vec::new();
+    for (i, f) in frames.iter().enumerate() {
+        h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
+        metas.extend(drain(&mut h).iter().map(meta));
+    }
+    let e = h.element().unwrap();
+    (metas, e)
+}
+
+fn stats_now(e: &gst::Element, bus: &gst::Bus) -> StatsMessage {
+    // An EOS makes the element post its stats.
+    let sink = e.static_pad("sink").unwrap();
+    let _ = sink.send_event(gst::event::Eos::new());
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while Instant::now() < deadline {
+        if let Some(m) = bus.timed_pop(gst::ClockTime::from_mseconds(100)) {
+            if let gst::MessageView::Element(el) = m.view() {
+                if let Some(s) = el.structure() {
+                    if s.name() == gstleangate::STATS_MESSAGE {
+                        return StatsMessage::from_structure(s).unwrap();
+                    }
+                }
+            }
+        }
+    }
+    panic!("no leangate-stats after EOS");
+}
+
+fn compare(local: &[gstleangate::GateMeta], remote: &[gstleangate::GateMeta]) {
+    assert_eq!(local.len(), remote.len());
+    let mut worst = 0f64;
+    for (i, (l, r)) in local.iter().zip(remote).enumerate() {
+        assert_eq!(
+            (l.keep, l.reason),
+            (r.keep, r.reason),
+            "frame {i}: local {l:?} remote {r:?}"
+        );
+        assert_ne!(r.reason, Reason::Error, "frame {i} failed remotely");
+        if l.utility.is_nan() {
+            assert!(r.utility.is_nan(), "frame {i}");
+        } else {
+            let d = (l.utility - r.utility).abs();
+            worst = worst.max(d);
+            assert!(
+                d <= 1e-5,
+                "frame {i}: local {} remote {}",
+                l.utility,
+                r.utility
+            );
+        }
+    }
+    let kept = remote.iter().filter(|m| m.keep).count();
+    eprintln!(
+        "{} frames, {kept} kept; largest |local - remote| utility difference {worst:.2e}",
+        remote.len()
+    );
+    assert!(
+        kept > 2 && kept < remote.len() - 2,
+        "the clip must keep some and drop some"
+    );
+}
+
+/// The scenarios that share one server (CPU is scarce: one server start, and one scenario at a
+/// time so that the server-side request counts are theirs). The server is dropped, and so
+/// stopped, at the end of the test, whatever happens.
+#[test]
+fn against_the_student_on_a_v2_server() {
+    let Some(server) = v2server::start_or_skip(&v2server::student_models()) else {
+        return;
+    };
+    eprintln!("-- split model");
+    split_model_remote_matches_local_with_one_encoder_request_per_frame(&server);
+    eprintln!("-- pair model");
+    pair_model_remote_matches_local(&server);
+    eprintln!("-- start errors");
+    unknown_model_and_wrong_contract_are_start_errors_naming_them(&server);
+    let pgid = server.pgid().unwrap();
+    drop(server);
+    assert!(
+        !v2server::group_alive(pgid, Duration::from_secs(5)),
+        "the server left processes"
+    );
+}
+
+fn split_model_remote_matches_local_with_one_encoder_request_per_frame(server: &V2Server) {
+    let frames = clip(80);
+    let (local, _) = gate("", &frames);
+    let before = server.count("leangate-s-encoder");
+    let head_before = server.count("leangate-s-head");
+    init();
+    let bus = gst::Bus::new();
+    let e = element(&format!("mode=annotate server={}", server.url()));
+    e.set_bus(Some(&bus));
+    let mut h = gst_check::Harness::with_element(&e, Some("sink"), Some("src"));
+    h.set_src_caps_str(&rgb_caps(W, H));
+    h.play();
+    let mut remote = Vec::new();
+    for (i, f) in frames.iter().enumerate() {
+        h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
+        remote.extend(drain(&mut h).iter().map(meta));
+    }
+    compare(&local, &remote);
+    // The start's dry run encodes a blank reference and a blank current frame; then the first
+    // frame (the reference, not scored) is encoded once when the second is scored, and every
+    // scored frame once: never two encoder runs for one scored frame.
+    let served = server.count("leangate-s-encoder") - before;
+    assert_eq!(
+        served,
+        2 + frames.len() as u64,
+        "encoder requests on the server"
+    );
+    assert_eq!(
+        server.count("leangate-s-head") - head_before,
+        0,
+        "the head runs in the element"
+    );
+    let s = stats_now(&e, &bus);
+    let srv = s.server.expect("server fields in leangate-stats");
+    assert_eq!(srv.server, server.url());
+    assert_eq!(srv.server_model, "leangate-s-encoder");
+    assert_eq!(srv.requests, frames.len() as u64);
+    assert_eq!(srv.failed_requests, 0);
+    assert!(srv.latency_p50_us > 0 && srv.latency_p99_us >= srv.latency_p50_us);
+    assert_eq!(s.execution_provider, "remote");
+    eprintln!(
+        "server latency p50 {} us, p99 {} us",
+        srv.latency_p50_us, srv.latency_p99_us
+    );
+}
+
+fn pair_model_remote_matches_local(server: &V2Server) {
+    let model = v2server::repo_root().join("models/leangate-s.onnx");
+    let frames = clip(60);
+    let (local, _) = gate(&format!("model={}", model.display()), &frames);
+    let before = server.count("leangate-s");
+    let (remote, e) = gate(
+        &format!("model={} server={}", model.display(), server.url()),
+        &frames,
+    );
+    compare(&local, &remote);
+    // One request per scored frame (all but the first), plus the start's dry run.
+    assert_eq!(server.count("leangate-s") - before, frames.len() as u64);
+    assert_eq!(e.property::<Option<String>>("server"), Some(server.url()));
+}
+
+fn error_of(props: &str) -> String {
+    let msgs = run_pipeline(
+        &format!(
+            "videotestsrc num-buffers=3 ! video/x-raw,format=RGB,width=160,height=120 ! \
+             leangate {props} ! fakesink"
+        ),
+        60,
+    );
+    error_text(&msgs).unwrap_or_else(|| panic!("no start error with {props}"))
+}
+
+#[test]
+fn unreachable_server_is_a_start_error_naming_it() {
+    // A port nobody listens on (no server needed).
+    let url = format!("http://127.0.0.1:{}", v2server::free_port());
+    let e = error_of(&format!("server={url} server-timeout=2000"));
+    assert!(e.contains(&url) && e.contains("unreachable"), "{e}");
+    let e = error_of("server=grpc://127.0.0.1:8001");
+    assert!(
+        e.contains("grpc://127.0.0.1:8001") && e.contains("gRPC"),
+        "{e}"
+    );
+    let e = error_of("server=ftp://x");
+    assert!(e.contains("ftp://x") && e.contains("http://"), "{e}");
+}
+
+fn unknown_model_and_wrong_contract_are_start_errors_naming_them(server: &V2Server) {
+    let url = server.url();
+    let e = error_of(&format!("server={url} server-model=no-such-model"));
+    assert!(
+        e.contains(&url) && e.contains("no-such-model") && e.contains("has no model"),
+        "{e}"
+    );
+    // The default (split) student against the head: no `image` input.
+    let e = error_of(&format!("server={url} server-model=leangate-s-head"));
+    assert!(
+        e.contains(&url) && e.contains("leangate-s-head") && e.contains("tensor contract"),
+        "{e}"
+    );
+    assert!(e.contains("no input `image`"), "{e}");
+    // The pair model against the encoder.
+    let pair = v2server::repo_root().join("models/leangate-s.onnx");
+    let e = error_of(&format!(
+        "model={} server={url} server-model=leangate-s-encoder",
+        pair.display()
+    ));
+    assert!(e.contains("no input `reference`"), "{e}");
+}
+
+#[test]
+fn server_killed_mid_stream_fails_open_and_scoring_resumes() {
+    let Some(mut server) = v2server::start_or_skip(&v2server::student_models()[..1]) else {
+        return;
+    };
+    let frames = clip(40);
+    init();
+    let bus = gst::Bus::new();
+    let e = element(&format!(
+        "mode=annotate server={} server-timeout=500",
+        server.url()
+    ));
+    e.set_bus(Some(&bus));
+    let mut h = gst_check::Harness::with_element(&e, Some("sink"), Some("src"));
+    h.set_src_caps_str(&rgb_caps(W, H));
+    h.play();
+    let mut pts = 0u64;
+    let mut push = |h: &mut gst_check::Harness, f: &Vec<u8>| {
+        let t0 = Instant::now();
+        h.push(buffer(f.clone(), pts)).unwrap();
+        pts += 33;
+        let out = drain(h);
+        assert_eq!(out.len(), 1, "annotate mode: every frame leaves");
+        (meta(&out[0]), t0.elapsed())
+    };
+    // Healthy.
+    for f in &frames[..20] {
+        let (m, _) = push(&mut h, f);
+        assert_ne!(m.reason, Reason::Error);
+    }
+    // Killed (as a crash): frames keep flowing, kept with reason `error`, none waits long.
+    let pgid = server.pgid().unwrap();
+    server.kill();
+    assert!(
+        !v2server::group_alive(pgid, Duration::from_secs(5)),
+        "the killed server left processes"
+    );
+    let t_down = Instant::now();
+    let mut failed = 0;
+    while t_down.elapsed() < Duration::from_secs(2) {
+        let (m, took) = push(&mut h, &frames[20 + failed % 20]);
+        assert!(m.keep, "fail open");
+        assert_eq!(m.reason, Reason::Error);
+        assert!(
+            took < Duration::from_millis(1500),
+            "a frame waited {took:?}"
+        );
+        failed += 1;
+        std::thread::sleep(Duration::from_millis(33));
+    }
+    assert!(
+        failed > 10,
+        "frames flowed while the server was down: {failed}"
+    );
+    // A warning on the bus names the server (rate-limited: one or two, not one per frame).
+    let warnings: Vec<String> = std::iter::from_fn(|| bus.pop())
+        .filter_map(|m| match m.view() {
+            gst::MessageView::Warning(w) => Some(w.error().to_string()),
+            _ => None,
+        })
+        .collect();
+    assert!(
+        !warnings.is_empty() && warnings.len() <= 2,
+        "{} warnings: {warnings:?}",
+        warnings.len()
+    );
+    assert!(
+        warnings[0].contains(&server.url()) && warnings[0].contains("fail open"),
+        "{}",
+        warnings[0]
+    );
+    // Back on the same port: scoring resumes within the backoff (at most 2 s after ready).
+    server.spawn().expect("restart the server");
+    let t_up = Instant::now();
+    let mut resumed = None;
+    let mut i = 0;
+    while t_up.elapsed() < Duration::from_secs(10) {
+        let (m, _) = push(&mut h, &frames[i % 40]);
+        i += 1;
+        if m.reason != Reason::Error {
+            resumed = Some(t_up.elapsed());
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(33));
+    }
+    let resumed = resumed.expect("scoring resumed after the server came back");
+    eprintln!("{failed} frames failed open while down; scoring resumed {resumed:?} after ready");
+    for f in &frames[..10] {
+        let (m, _) = push(&mut h, f);
+        assert_ne!(m.reason, Reason::Error);
+    }
+    // Slow: every call now takes 800 ms against a 500 ms timeout: fail open again, quickly.
+    server.set_delay_ms(800);
+    let t_slow = Instant::now();
+    let mut slow_failed = 0;
+    while t_slow.elapsed() < Duration::from_secs(2) {
+        let (m, took) = push(&mut h, &frames[slow_failed % 40]);
+        assert!(m.keep && m.reason == Reason::Error, "{m:?}");
+        assert!(
+            took < Duration::from_millis(1500),
+            "a frame waited {took:?}"
+        );
+        slow_failed += 1;
+    }
+    server.set_delay_ms(0);
+    let t_fast = Instant::now();
+    loop {
+        let (m, _) = push(&mut h, &frames[3]);
+        if m.reason != Reason::Error {
+            break;
+        }
+        assert!(
+            t_fast.elapsed() < Duration::from_secs(10),
+            "scoring did not resume"
+        );
+        std::thread::sleep(Duration::from_millis(33));
+    }
+    let s = stats_now(&e, &bus).server.unwrap();
+    assert!(s.failed_requests >= 2, "{s:?}");
+    assert!(
+        s.failed_requests < (failed + slow_failed) as u64,
+        "backoff: not every failed frame is a request ({s:?}, {} frames failed)",
+        failed + slow_failed
+    );
+    drop(h);
+    let pgid = server.pgid().unwrap();
+    drop(server);
+    assert!(
+        !v2server::group_alive(pgid, Duration::from_secs(5)),
+        "the server left processes"
+    );
+}
+
+#[test]
+fn triton_repository_matches_the_models() {
+    let py = v2server::repo_root().join(".venv/bin/python");
+    if !py.exists() {
+        eprintln!("SKIPPED: {} is absent (scripts/setup.sh)", py.display());
+        return;
+    }
+    let out = std::process::Command::new(py)
+        .arg(v2server::repo_root().join("models/triton/make_repo.py"))
+        .arg("--check")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "models/triton is stale: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn server_properties_are_documented_and_refused_while_running() {
+    init();
+    let e = gst::ElementFactory::make("leangate").build().unwrap();
+    for name in [
+        "server",
+        "server-model",
+        "server-timeout",
+        "server-max-in-flight",
+    ] {
+        let p = e
+            .find_property(name)
+            .unwrap_or_else(|| panic!("property {name} missing"));
+        assert!(p.blurb().is_some_and(|b| b.len() > 20), "{name}");
+    }
+    assert_eq!(e.property::<Option<String>>("server"), None);
+    assert_eq!(e.property::<u32>("server-timeout"), 1000);
+    assert_eq!(e.property::<u32>("server-max-in-flight"), 16);
+    // Local scoring (server unset): a running element refuses a new server.
+    let mut h = harness("", &rgb_caps(W, H));
+    h.push(buffer(texture(W, H, 1), 0)).unwrap();
+    let el = h.element().unwrap();
+    el.set_property("server", "http://127.0.0.1:1");
+    assert_eq!(el.property::<Option<String>>("server"), None);
+    let stats = el.property::<u64>("frames-in");
+    assert_eq!(stats, 1);
+}
