@@ -4,6 +4,10 @@
 //! runs Debian's /usr/bin/python3 (python3-gi) with the plugin built beside this test, under a
 //! timeout: a hang fails the test instead of hanging CI.
 
+#[path = "common/paths.rs"]
+#[allow(dead_code)]
+mod paths;
+
 use std::io::Read;
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
@@ -22,23 +26,6 @@ fn fixture(name: &str) -> String {
         .join(name)
         .display()
         .to_string()
-}
-
-/// A directory holding only a link to the cdylib built with this test (see tests/python_client.rs).
-fn plugin_dir() -> tempfile::TempDir {
-    let exe = std::env::current_exe().expect("current_exe");
-    let deps = exe.parent().expect("test binary in target/<profile>/deps");
-    let candidates = [
-        deps.join("libgstleangate.so"),
-        deps.parent().unwrap().join("libgstleangate.so"),
-    ];
-    let lib = candidates
-        .iter()
-        .find(|p| p.exists())
-        .unwrap_or_else(|| panic!("no libgstleangate.so in {candidates:?} (cargo build)"));
-    let dir = tempfile::tempdir().unwrap();
-    std::os::unix::fs::symlink(lib, dir.path().join("libgstleangate.so")).unwrap();
-    dir
 }
 
 fn python_ok() -> bool {
@@ -101,7 +88,7 @@ fn scenario(body: &str) -> Option<String> {
     if !python_ok() {
         return None;
     }
-    let plugins = plugin_dir();
+    let plugins = paths::plugin_dir();
     let script = format!("{PRELUDE}\n{body}");
     let mut child = Command::new(PYTHON)
         .arg("-c")

@@ -8,6 +8,10 @@
 //! with only PYTHONPATH pointing at `pipelines/`, installs with `pip install --no-deps
 //! --target`, and logs its diagnostics to stderr, leaving stdout to the frames and the summary.
 
+#[path = "common/paths.rs"]
+#[allow(dead_code)]
+mod paths;
+
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -21,27 +25,6 @@ fn repo() -> PathBuf {
 
 fn model() -> String {
     repo().join("tests/fixtures/mad.onnx").display().to_string()
-}
-
-/// A directory for GST_PLUGIN_PATH holding only `libgstleangate.so`, linked to the cdylib built
-/// with this test binary. The test binary lives in target/<profile>/deps, next to that cdylib;
-/// `cargo test` rebuilds it there but only `cargo build` copies it up to target/<profile>, so
-/// the copy there may be stale. (Pointing GST_PLUGIN_PATH at deps/ itself would make GStreamer
-/// scan every shared object in it.)
-fn plugin_dir() -> tempfile::TempDir {
-    let exe = std::env::current_exe().expect("current_exe");
-    let deps = exe.parent().expect("test binary in target/<profile>/deps");
-    let candidates = [
-        deps.join("libgstleangate.so"),
-        deps.parent().unwrap().join("libgstleangate.so"),
-    ];
-    let lib = candidates
-        .iter()
-        .find(|p| p.exists())
-        .unwrap_or_else(|| panic!("no libgstleangate.so in {candidates:?} (cargo build)"));
-    let dir = tempfile::tempdir().unwrap();
-    std::os::unix::fs::symlink(lib, dir.path().join("libgstleangate.so")).unwrap();
-    dir
 }
 
 /// None (with a SKIPPED message) when /usr/bin/python3 cannot import the GStreamer bindings.
@@ -69,19 +52,6 @@ fn python_ok() -> bool {
     }
 }
 
-fn shared_clip(name: &str) -> Option<PathBuf> {
-    let p = repo().join("../shared/data/cotracker_clips").join(name);
-    if p.exists() {
-        Some(p)
-    } else {
-        eprintln!(
-            "SKIPPED: {} is absent (the shared development data lives beside the checkout)",
-            p.display()
-        );
-        None
-    }
-}
-
 fn command(program: &str) -> Command {
     let mut c = Command::new(program);
     c.current_dir(repo())
@@ -91,7 +61,7 @@ fn command(program: &str) -> Command {
 }
 
 fn run(mut c: Command) -> Output {
-    let plugins = plugin_dir();
+    let plugins = paths::plugin_dir();
     c.env("GST_PLUGIN_PATH", plugins.path());
     let out = c.output().expect("spawn");
     eprintln!("--- {c:?}\nstatus {}", out.status);
@@ -531,7 +501,7 @@ fn real_clip_drop_and_annotate_agree() {
     if !python_ok() {
         return;
     }
-    let Some(clip) = shared_clip("bear.mp4") else {
+    let Some(clip) = paths::shared_data("cotracker_clips/bear.mp4") else {
         return;
     };
     let clip = clip.to_str().unwrap();
@@ -1104,7 +1074,7 @@ fn plugin_path_argument_finds_the_plugin_without_gst_plugin_path() {
     if !python_ok() {
         return;
     }
-    let plugins = plugin_dir();
+    let plugins = paths::plugin_dir();
     let empty = tempfile::tempdir().unwrap();
     // A registry of its own, so that these runs neither see nor rewrite the shared cache.
     let registry = empty.path().join("registry.bin");

@@ -68,26 +68,42 @@ fn contract(model: &str, reason: String) -> ScorerError {
     }
 }
 
+/// The dimensions of the float32 tensor `want` among a graph's inputs or outputs (`what`).
+fn float32_dims<'a>(
+    what: &str,
+    outlets: impl Iterator<Item = (&'a str, &'a ValueType)>,
+    want: &str,
+    model: &str,
+) -> Result<Vec<i64>, ScorerError> {
+    let outlets: Vec<(&str, &ValueType)> = outlets.collect();
+    let names: Vec<&str> = outlets.iter().map(|(n, _)| *n).collect();
+    let (_, dtype) = outlets
+        .iter()
+        .find(|(n, _)| *n == want)
+        .ok_or_else(|| contract(model, format!("it has {what}s {names:?}, no `{want}`")))?;
+    let (ty, dims) = tensor_dims(dtype)
+        .ok_or_else(|| contract(model, format!("{what} `{want}` is not a tensor")))?;
+    if ty != TensorElementType::Float32 {
+        return Err(contract(
+            model,
+            format!("{what} `{want}` is {ty:?}, not float32"),
+        ));
+    }
+    Ok(dims)
+}
+
 fn input_dims(
     session: &Session,
     want: &str,
     rank4: bool,
     model: &str,
 ) -> Result<Vec<i64>, ScorerError> {
-    let names: Vec<&str> = session.inputs().iter().map(|i| i.name()).collect();
-    let input = session
-        .inputs()
-        .iter()
-        .find(|i| i.name() == want)
-        .ok_or_else(|| contract(model, format!("it has inputs {names:?}, no `{want}`")))?;
-    let (ty, dims) = tensor_dims(input.dtype())
-        .ok_or_else(|| contract(model, format!("input `{want}` is not a tensor")))?;
-    if ty != TensorElementType::Float32 {
-        return Err(contract(
-            model,
-            format!("input `{want}` is {ty:?}, not float32"),
-        ));
-    }
+    let dims = float32_dims(
+        "input",
+        session.inputs().iter().map(|i| (i.name(), i.dtype())),
+        want,
+        model,
+    )?;
     if rank4 && (dims.len() != 4 || (dims[1] != 3 && dims[1] >= 0)) {
         return Err(contract(
             model,
@@ -128,20 +144,12 @@ fn check_output(
     utility: bool,
     model: &str,
 ) -> Result<Vec<i64>, ScorerError> {
-    let onames: Vec<&str> = session.outputs().iter().map(|o| o.name()).collect();
-    let out = session
-        .outputs()
-        .iter()
-        .find(|o| o.name() == want)
-        .ok_or_else(|| contract(model, format!("it has outputs {onames:?}, no `{want}`")))?;
-    let (ty, dims) = tensor_dims(out.dtype())
-        .ok_or_else(|| contract(model, format!("output `{want}` is not a tensor")))?;
-    if ty != TensorElementType::Float32 {
-        return Err(contract(
-            model,
-            format!("output `{want}` is {ty:?}, not float32"),
-        ));
-    }
+    let dims = float32_dims(
+        "output",
+        session.outputs().iter().map(|o| (o.name(), o.dtype())),
+        want,
+        model,
+    )?;
     if utility && !(dims.len() == 1 || (dims.len() == 2 && (dims[1] == 1 || dims[1] < 0))) {
         return Err(contract(
             model,

@@ -37,3 +37,24 @@ pub fn shared_data(rel: &str) -> Option<PathBuf> {
         None
     }
 }
+
+/// A directory for GST_PLUGIN_PATH holding only `libgstleangate.so`, linked to the cdylib built
+/// with this test binary. The test binary lives in target/<profile>/deps, next to that cdylib;
+/// `cargo test` rebuilds it there but only `cargo build` copies it up to target/<profile>, so
+/// the copy there may be stale. (Pointing GST_PLUGIN_PATH at deps/ itself would make GStreamer
+/// scan every shared object in it.)
+pub fn plugin_dir() -> tempfile::TempDir {
+    let exe = std::env::current_exe().expect("current_exe");
+    let deps = exe.parent().expect("test binary in target/<profile>/deps");
+    let candidates = [
+        deps.join("libgstleangate.so"),
+        deps.parent().unwrap().join("libgstleangate.so"),
+    ];
+    let lib = candidates
+        .iter()
+        .find(|p| p.exists())
+        .unwrap_or_else(|| panic!("no libgstleangate.so in {candidates:?} (cargo build)"));
+    let dir = tempfile::tempdir().unwrap();
+    std::os::unix::fs::symlink(lib, dir.path().join("libgstleangate.so")).unwrap();
+    dir
+}
