@@ -692,8 +692,11 @@ fn property_and_event_storms_during_streaming() {
     });
     pipeline.set_state(gst::State::Playing).unwrap();
     let stop = Arc::new(AtomicBool::new(false));
+    // Rounds of changes done so far: the feeder waits for some mid-stream, so the storm really
+    // overlaps streaming even when a loaded machine schedules it late.
+    let rounds = Arc::new(std::sync::atomic::AtomicU64::new(0));
     let storm = {
-        let (lg, stop) = (lg.clone(), stop.clone());
+        let (lg, stop, rounds) = (lg.clone(), stop.clone(), rounds.clone());
         std::thread::spawn(move || {
             let mut n = 0u64;
             while !stop.load(Ordering::Relaxed) {
@@ -730,6 +733,7 @@ fn property_and_event_storms_during_streaming() {
                         gstleangate::FORCE_KEYFRAME_EVENT,
                     )));
                 n += 1;
+                rounds.store(n, Ordering::Relaxed);
             }
             n
         })
@@ -737,6 +741,12 @@ fn property_and_event_storms_during_streaming() {
     let pics: Vec<Vec<u8>> = (0..3).map(|k| texture(32, 24, k)).collect();
     let feeder = std::thread::spawn(move || {
         for i in 0..frames {
+            if i == frames / 2 {
+                let t0 = std::time::Instant::now();
+                while rounds.load(Ordering::Relaxed) < 12 && t0.elapsed().as_secs() < 30 {
+                    std::thread::sleep(std::time::Duration::from_millis(1));
+                }
+            }
             src.push_buffer(buffer(pics[(i % 3) as usize].clone(), i * 33))
                 .unwrap();
         }
