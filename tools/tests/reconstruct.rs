@@ -179,7 +179,15 @@ fn consumer_reconstructs_what_the_gate_keeps_of_a_real_clip() {
     let (out_dir, json) = (dir.path().join("rec"), dir.path().join("rec.json"));
     let out = consumer(
         &py,
-        &["--max-gap", "3", "--max-frames", "8", "--plugin-path"],
+        &[
+            "--max-gap",
+            "3",
+            "--max-frames",
+            "8",
+            "--threads",
+            "1",
+            "--plugin-path",
+        ],
         &[
             &plugins,
             &clip,
@@ -205,7 +213,11 @@ fn consumer_reconstructs_what_the_gate_keeps_of_a_real_clip() {
     }
     let reg = v["registered"].as_u64().unwrap();
     assert!(reg >= 5, "{reg} of 8 registered");
-    assert_eq!(v["models"], 1);
+    // COLMAP's incremental mapper is not deterministic: on one CI run the last three frames of
+    // this handheld clip formed a second model beside the five-frame one. The largest model
+    // holds at least 5 of the 8 kept frames either way.
+    let models = v["models"].as_u64().unwrap();
+    assert!((1..=2).contains(&models), "{models} models");
 
     // Explicit frames of a video (what eval --reconstruct asks for): decoded, no gate.
     let json2 = dir.path().join("frames.json");
