@@ -16,6 +16,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+#[path = "common/mod.rs"]
+mod common;
+
+use common::{measure, run_to_eos};
 use gst::prelude::*;
 use gstleangate::{PixelFormat, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix};
 
@@ -44,56 +48,10 @@ fn has(factory: &str) -> bool {
     gst::ElementFactory::find(factory).is_some()
 }
 
-/// Run a pipeline to EOS; panics on an error message.
-fn run_to_eos(desc: &str) {
-    let pipeline = gst::parse::launch(desc).unwrap_or_else(|e| panic!("`{desc}`: {e}"));
-    let bus = pipeline.bus().unwrap();
-    pipeline.set_state(gst::State::Playing).unwrap();
-    for msg in bus.iter_timed(gst::ClockTime::from_seconds(600)) {
-        match msg.view() {
-            gst::MessageView::Eos(_) => break,
-            gst::MessageView::Error(e) => panic!("`{desc}`: {} ({:?})", e.error(), e.debug()),
-            _ => {}
-        }
-    }
-    pipeline.set_state(gst::State::Null).unwrap();
-}
-
 /// Frames/s of `desc` (which names the measured element `gate`), counted at the gate's sink pad
 /// from the first buffer to EOS (start-up and model loading excluded).
 fn fps(desc: &str) -> f64 {
-    let pipeline = gst::parse::launch(desc).unwrap_or_else(|e| panic!("`{desc}`: {e}"));
-    let bin = pipeline.downcast_ref::<gst::Bin>().unwrap();
-    let gate = bin.by_name("gate").expect("an element named gate");
-    let count = Arc::new(AtomicU64::new(0));
-    let first: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
-    {
-        let (count, first) = (count.clone(), first.clone());
-        gate.static_pad("sink")
-            .unwrap()
-            .add_probe(gst::PadProbeType::BUFFER, move |_, _| {
-                if count.fetch_add(1, Ordering::Relaxed) == 0 {
-                    *first.lock().unwrap() = Some(Instant::now());
-                }
-                gst::PadProbeReturn::Ok
-            });
-    }
-    let bus = pipeline.bus().unwrap();
-    pipeline.set_state(gst::State::Playing).unwrap();
-    let end = loop {
-        let msg = bus
-            .timed_pop(gst::ClockTime::from_seconds(600))
-            .unwrap_or_else(|| panic!("`{desc}` timed out"));
-        match msg.view() {
-            gst::MessageView::Eos(_) => break Instant::now(),
-            gst::MessageView::Error(e) => panic!("`{desc}`: {} ({:?})", e.error(), e.debug()),
-            _ => {}
-        }
-    };
-    pipeline.set_state(gst::State::Null).unwrap();
-    let frames = count.load(Ordering::Relaxed);
-    let first = first.lock().unwrap().expect("at least one buffer");
-    frames as f64 / end.duration_since(first).as_secs_f64()
+    measure(desc).fps
 }
 
 /// Run each variant of `template` (GATE replaced) `reps` times, interleaved; median frames/s.
@@ -127,12 +85,15 @@ fn make_clip(dir: &Path, w: u32, h: u32, frames: u64) -> Option<(PathBuf, &'stat
         return None;
     };
     let path = dir.join(format!("ball_{w}x{h}.{ext}"));
-    run_to_eos(&format!(
-        "videotestsrc pattern=ball num-buffers={frames} ! \
+    run_to_eos(
+        &format!(
+            "videotestsrc pattern=ball num-buffers={frames} ! \
          video/x-raw,format=I420,width={w},height={h},framerate=30/1 ! {enc} ! {mux} ! \
          filesink location=\"{}\"",
-        path.display()
-    ));
+            path.display()
+        ),
+        Duration::from_secs(600),
+    );
     Some((path, codec))
 }
 
