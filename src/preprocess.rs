@@ -1177,7 +1177,7 @@ mod test_pack;
 mod tests {
     use super::*;
 
-    use super::test_pack::pack_rgb;
+    use super::test_pack::{pack_rgb, raw_frame};
 
     fn spec(w: u32, h: u32, resize: ResizeMode) -> TensorSpec {
         TensorSpec {
@@ -1218,21 +1218,7 @@ mod tests {
         s: &TensorSpec,
     ) -> Vec<f32> {
         let (planes, strides) = pack_rgb(rgb, w, h, format, pad);
-        let frame = RawFrame {
-            format,
-            width: w,
-            height: h,
-            planes: [
-                &planes[0],
-                planes.get(1).map(|p| &p[..]).unwrap_or(&[]),
-                planes.get(2).map(|p| &p[..]).unwrap_or(&[]),
-            ],
-            strides: [
-                strides[0] as isize,
-                *strides.get(1).unwrap_or(&0) as isize,
-                *strides.get(2).unwrap_or(&0) as isize,
-            ],
-        };
+        let frame = raw_frame(format, w, h, &planes, &strides);
         let p = Preprocessor::new(format, w, h, YuvMatrix::BT601, s.clone()).unwrap();
         let mut out = vec![0.0; s.len()];
         p.run(&frame, &mut out).unwrap();
@@ -1326,21 +1312,7 @@ mod tests {
                         ),
                     ] {
                         let (planes, strides) = pack_rgb(&pic, w, h, f, pad);
-                        let frame = RawFrame {
-                            format: f,
-                            width: w,
-                            height: h,
-                            planes: [
-                                &planes[0],
-                                planes.get(1).map(|p| &p[..]).unwrap_or(&[]),
-                                planes.get(2).map(|p| &p[..]).unwrap_or(&[]),
-                            ],
-                            strides: [
-                                strides[0] as isize,
-                                *strides.get(1).unwrap_or(&0) as isize,
-                                *strides.get(2).unwrap_or(&0) as isize,
-                            ],
-                        };
+                        let frame = raw_frame(f, w, h, &planes, &strides);
                         let p = Preprocessor::new(f, w, h, yuv, s.clone()).unwrap();
                         let mut fast = vec![0.0; s.len()];
                         let mut slow = vec![0.0; s.len()];

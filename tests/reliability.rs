@@ -9,10 +9,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use common::pack::pack_rgb;
+use common::pack::{pack_rgb, raw_frame};
 use common::*;
 use gst::prelude::*;
-use gstleangate::{PixelFormat, Preprocessor, RawFrame, Reason, ResizeMode, TensorSpec, YuvMatrix};
+use gstleangate::{PixelFormat, Preprocessor, Reason, ResizeMode, TensorSpec, YuvMatrix};
 use proptest::prelude::*;
 
 const W: u32 = 64;
@@ -830,21 +830,7 @@ fn flush_seek_storm() {
 /// Tightly packed planes of `format` as a RawFrame.
 fn packed_tensor(format: PixelFormat, w: u32, h: u32, pic: &[u8], p: &Preprocessor) -> Vec<f32> {
     let (planes, strides) = pack_rgb(pic, w, h, format, 0);
-    let frame = RawFrame {
-        format,
-        width: w,
-        height: h,
-        planes: [
-            &planes[0],
-            planes.get(1).map(|p| &p[..]).unwrap_or(&[]),
-            planes.get(2).map(|p| &p[..]).unwrap_or(&[]),
-        ],
-        strides: [
-            strides[0] as isize,
-            *strides.get(1).unwrap_or(&0) as isize,
-            *strides.get(2).unwrap_or(&0) as isize,
-        ],
-    };
+    let frame = raw_frame(format, w, h, &planes, &strides);
     let mut out = vec![0.0; p.spec().len()];
     p.run(&frame, &mut out).unwrap();
     out

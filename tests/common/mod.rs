@@ -151,4 +151,4 @@ pub fn element_message<'a>(msgs: &'a [gst::Message], name: &str) -> Vec<&'a gst:
 /// `pack_rgb`: an RGB picture in any supported format (shared with the crate's unit tests).
 pub mod pack;
 #[allow(unused_imports)]
-use gstleangate::{PixelFormat, YuvMatrix};
+use gstleangate::{PixelFormat, RawFrame, YuvMatrix};

@@ -2,7 +2,7 @@
 //! any supported pixel format (with `pad` bytes of row padding), the way a decoder would.
 
 #[allow(unused_imports)]
-use super::{PixelFormat, YuvMatrix};
+use super::{PixelFormat, RawFrame, YuvMatrix};
 
 /// Test and tool helper: pack an RGB image (tightly packed rows) into `format` with the given
 /// row padding, using the BT.601 limited-range matrix for YUV. Returns the planes and strides.
@@ -108,5 +108,24 @@ pub fn pack_rgb(
                 (vec![yp, up, vp], vec![ys, cs, cs])
             }
         }
+    }
+}
+
+/// The planes and strides [`pack_rgb`] returns, as the `RawFrame` the preprocessor reads.
+pub fn raw_frame<'a>(
+    format: PixelFormat,
+    width: u32,
+    height: u32,
+    planes: &'a [Vec<u8>],
+    strides: &[usize],
+) -> RawFrame<'a> {
+    let plane = |i: usize| planes.get(i).map(|p| &p[..]).unwrap_or(&[]);
+    let stride = |i: usize| strides.get(i).copied().unwrap_or(0) as isize;
+    RawFrame {
+        format,
+        width,
+        height,
+        planes: [plane(0), plane(1), plane(2)],
+        strides: [stride(0), stride(1), stride(2)],
     }
 }
