@@ -5,6 +5,15 @@ use std::sync::Once;
 
 use super::{err, EvalError, PlotData, SweepPoint, THUMB_H, THUMB_W};
 
+/// One colour per policy row or curve, in display order (model, oracle, then the baselines).
+const PALETTE: [plotters::style::RGBColor; 5] = [
+    plotters::style::RGBColor(220, 80, 20),
+    plotters::style::RGBColor(30, 30, 30),
+    plotters::style::RGBColor(40, 120, 200),
+    plotters::style::RGBColor(60, 160, 60),
+    plotters::style::RGBColor(150, 60, 180),
+];
+
 /// A grid of the kept frames' thumbnails (at most `max_tiles`, evenly sampled), 8 per row.
 pub fn contact_sheet(
     kept: &[(usize, image::RgbImage)],
@@ -114,12 +123,7 @@ pub fn plot(data: &PlotData, title: &str, out: &Path) -> Result<(), EvalError> {
         .y_label_area_size(45)
         .build_cartesian_2d(0f64..(n - 1) as f64, 0f64..rows as f64)
         .map_err(|x| e(x.to_string()))?;
-    let palette = [
-        RGBColor(220, 80, 20),
-        RGBColor(30, 30, 30),
-        RGBColor(40, 120, 200),
-        RGBColor(60, 160, 60),
-    ];
+    let palette = PALETTE;
     for (row, (name, kept)) in data.kept.iter().enumerate() {
         let y = (rows - row) as f64 - 0.5;
         let c = palette[row % palette.len()];
@@ -185,13 +189,7 @@ pub fn plot_sweep(points: &[SweepPoint], title: &str, out: &Path) -> Result<(), 
     let root = BitMapBackend::new(out, (1000, 900)).into_drawing_area();
     root.fill(&WHITE).map_err(err("sweep plot"))?;
     let (top, bottom) = root.split_vertically(450);
-    let palette = [
-        RGBColor(220, 80, 20),
-        RGBColor(30, 30, 30),
-        RGBColor(40, 120, 200),
-        RGBColor(60, 160, 60),
-        RGBColor(150, 60, 180),
-    ];
+    let palette = PALETTE;
     let series = |policy: &str, f: &dyn Fn(&SweepPoint) -> Option<f64>| -> Vec<(f64, f64)> {
         let mut v: Vec<(f64, f64)> = points
             .iter()
