@@ -217,30 +217,21 @@ class SequenceGateSource(LeanGateSource):
             f"{props} ! videoconvert ! appsink name=sink caps=video/x-raw,format=RGB sync=false"
         )
 
-    def _build(self):
+    _pipeline_name = "leangate-sequence"
+
+    def _build_source(self, pipeline, gate) -> None:
         Gst = _gst.Gst
-        pipeline = Gst.Pipeline.new("leangate-sequence")
         src = _make("multifilesrc", "src")
         _set(src, "location", os.path.join(self._tmp, f"%06d{self._ext}"))
         _set(src, "index", 0)
         _set(src, "stop-index", self._count - 1)
         _set(src, "caps", Gst.Caps.from_string(self._caps()))
         dec = _make("decodebin", "decode")
-        gate = _make("leangate", "gate")
-        for k, v in self.gate_properties.items():
-            _set(gate, k, v)
-        convert = _make("videoconvert", "convert")
-        sink = _make("appsink", "sink")
-        _set(sink, "caps", Gst.Caps.from_string("video/x-raw,format=RGB"))
-        _set(sink, "sync", False)
-        _set(sink, "max-buffers", 8)
-        _set(sink, "drop", False)
-        for el in (src, dec, gate, convert, sink):
-            pipeline.add(el)
-        if not src.link(dec) or not gate.link(convert) or not convert.link(sink):
-            raise SetupError("cannot link multifilesrc ! decodebin, leangate ! videoconvert ! appsink")
+        pipeline.add(src)
+        pipeline.add(dec)
+        if not src.link(dec):
+            raise SetupError("cannot link multifilesrc ! decodebin")
         self._watch_decoder(dec, gate)
-        return pipeline, gate, sink
 
     def close(self) -> None:
         super().close()

@@ -255,8 +255,16 @@ class LeanGateSource:
         return caps
 
     def _build(self):
-        Gst, GstVideo = _gst.Gst, _gst.GstVideo
-        pipeline = Gst.Pipeline.new("leangate-client")
+        pipeline = _gst.Gst.Pipeline.new(self._pipeline_name)
+        gate, sink = self._build_tail(pipeline)
+        self._build_source(pipeline, gate)
+        return pipeline, gate, sink
+
+    _pipeline_name = "leangate-client"
+
+    def _build_tail(self, pipeline):
+        """``leangate ! videoconvert ! appsink`` (RGB), added to ``pipeline`` and linked."""
+        Gst = _gst.Gst
         gate = _make("leangate", "gate")
         for k, v in self.gate_properties.items():
             _set(gate, k, v)
@@ -270,7 +278,11 @@ class LeanGateSource:
             pipeline.add(el)
         if not gate.link(convert) or not convert.link(sink):
             raise SetupError("cannot link leangate ! videoconvert ! appsink")
+        return gate, sink
 
+    def _build_source(self, pipeline, gate) -> None:
+        """The source part, added to ``pipeline`` and linked (or watched) into ``gate``."""
+        Gst, GstVideo = _gst.Gst, _gst.GstVideo
         s = self.source
         if s.startswith("test://"):
             p = parse_test_uri(s)
@@ -301,7 +313,6 @@ class LeanGateSource:
             if not src.link(dec):
                 raise SetupError("cannot link filesrc ! decodebin")
             self._watch_decoder(dec, gate)
-        return pipeline, gate, sink
 
     def _watch_decoder(self, dec, gate) -> None:
         dec.connect("pad-added", self._on_pad_added, gate)
