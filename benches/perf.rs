@@ -396,12 +396,21 @@ mod streams {
     /// (label, extra leangate properties)
     const CONFIGS: [(&str, &str); 5] = [
         ("separate sessions", "shared-session=false"),
-        ("shared, unbatched", "shared-session=true batch-size=1"),
-        ("shared, batch-size=16", "shared-session=true batch-size=16"),
-        ("shared, batch-size=4", "shared-session=true batch-size=4"),
         (
-            "shared, batch-size=16, threads=2",
-            "shared-session=true batch-size=16 threads=2",
+            "shared (default: a session per core)",
+            "shared-session=true batch-size=1",
+        ),
+        (
+            "shared, one session",
+            "shared-session=true max-sessions=1 batch-size=1",
+        ),
+        (
+            "shared, one session, batch-size=16",
+            "shared-session=true max-sessions=1 batch-size=16",
+        ),
+        (
+            "shared, a session per core, batch-size=4",
+            "shared-session=true batch-size=4",
         ),
     ];
 
@@ -508,13 +517,14 @@ mod streams {
 
     /// Scorer only (no GStreamer): `k` threads each scoring `frames` tensors (a keep every 10th),
     /// aggregate scored frames/s.
-    fn scorer_fps(k: usize, frames: usize, shared: bool, batch: usize) -> f64 {
+    fn scorer_fps(k: usize, frames: usize, shared: bool, batch: usize, max_sessions: usize) -> f64 {
         use gstleangate::{ExecutionProvider, Scorer, ScorerOptions};
         let opts = ScorerOptions {
             execution_provider: ExecutionProvider::Cpu,
             shared,
             batch_size: batch,
             batch_timeout: Duration::from_micros(2000),
+            max_sessions,
             ..Default::default()
         };
         let mut scorers: Vec<Scorer> = (0..k)
@@ -548,22 +558,25 @@ mod streams {
     pub fn section(reps: usize) {
         let reps = reps.min(3);
         println!("\n## Scorer only (no pipeline), default student, K threads scoring 100 frames each: aggregate scored frames/s (median of {reps}, interleaved)");
-        println!("| threads K | separate sessions | shared, unbatched | shared, batch-size=K | batched / separate |");
-        println!("|---|---|---|---|---|");
+        println!("| threads K | separate sessions | shared (default: a session per core) | shared, one session | shared, one session, batch-size=K | shared default / separate | one session batched / separate |");
+        println!("|---|---|---|---|---|---|---|");
         for k in [1usize, 4, 8] {
-            let mut r = [Vec::new(), Vec::new(), Vec::new()];
+            let mut r = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
             for _ in 0..reps {
-                r[0].push(scorer_fps(k, 100, false, 1));
-                r[1].push(scorer_fps(k, 100, true, 1));
-                r[2].push(scorer_fps(k, 100, true, k));
+                r[0].push(scorer_fps(k, 100, false, 1, 0));
+                r[1].push(scorer_fps(k, 100, true, 1, 0));
+                r[2].push(scorer_fps(k, 100, true, 1, 1));
+                r[3].push(scorer_fps(k, 100, true, k, 1));
             }
             let m: Vec<f64> = r.iter().map(|v| median(v)).collect();
             println!(
-                "| {k} | {:.1} | {:.1} | {:.1} | {:.2} |",
+                "| {k} | {:.1} | {:.1} | {:.1} | {:.1} | {:.2} | {:.2} |",
                 m[0],
                 m[1],
                 m[2],
-                m[2] / m[0]
+                m[3],
+                m[1] / m[0],
+                m[3] / m[0]
             );
         }
         let frames: u64 = env_or("LEANGATE_BENCH_STREAM_FRAMES", 100);

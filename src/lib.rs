@@ -41,8 +41,8 @@ pub use preprocess::{
 pub use remote::{Backend, RemoteError, RemoteOptions, RemoteScorer};
 pub use runtime::RuntimeError;
 pub use scorer::{
-    ExecutionProvider, ModelInfo, ModelSource, Scorer, ScorerError, ScorerOptions, MAX_INPUT_SIDE,
-    MAX_TENSOR_BYTES,
+    default_max_sessions, ExecutionProvider, ModelInfo, ModelSource, Scorer, ScorerError,
+    ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
 };
 pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};
 

@@ -637,7 +637,8 @@ fn eight_concurrent_pipelines_are_identical_to_solo_runs() {
 fn shared_batched_elements_match_separate_sessions() {
     let frames = 40;
     let separate = "execution-provider=cpu shared-session=false";
-    let batched = "execution-provider=cpu shared-session=true batch-size=4 batch-timeout=20000";
+    let batched =
+        "execution-provider=cpu shared-session=true max-sessions=1 batch-size=4 batch-timeout=20000";
     let solo: Vec<_> = (0..4)
         .map(|s| annotate_run_with(s, frames, separate))
         .collect();

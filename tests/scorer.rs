@@ -245,20 +245,22 @@ fn gate_stream(s: &mut Scorer, frames: &[Vec<f32>]) -> Vec<(f32, bool)> {
 }
 
 /// Shared sessions and batched encoder runs give the same decisions and utilities (within
-/// 1e-5) as one unshared, unbatched session per stream, on the same frames.
+/// 1e-5) as one unshared, unbatched session per stream, on the same frames; with a session cap
+/// of 2, four streams spread over exactly two sessions, two streams each.
 #[test]
 fn shared_and_batched_scoring_matches_separate_sessions() {
-    let opts = |shared: bool, batch_size: usize| ScorerOptions {
+    let opts = |shared: bool, batch_size: usize, max_sessions: usize| ScorerOptions {
         execution_provider: ExecutionProvider::Cpu,
         shared,
         batch_size,
         batch_timeout: std::time::Duration::from_millis(200),
+        max_sessions,
         ..Default::default()
     };
     let streams = 4;
     let n = 28;
     let len = {
-        let s = Scorer::load(&gstleangate::default_model(), &opts(false, 1)).unwrap();
+        let s = Scorer::load(&gstleangate::default_model(), &opts(false, 1, 0)).unwrap();
         s.info().spec.len()
     };
     let frames: Vec<Vec<Vec<f32>>> = (0..streams).map(|k| stream_frames(len, k, n)).collect();
@@ -267,19 +269,30 @@ fn shared_and_batched_scoring_matches_separate_sessions() {
     let separate: Vec<Vec<(f32, bool)>> = frames
         .iter()
         .map(|f| {
-            let mut s = Scorer::load(&gstleangate::default_model(), &opts(false, 1)).unwrap();
+            let mut s = Scorer::load(&gstleangate::default_model(), &opts(false, 1, 0)).unwrap();
             gate_stream(&mut s, f)
         })
         .collect();
 
-    for batch in [1usize, 4] {
+    for (batch, cap) in [(1usize, 1usize), (4, 1), (1, 2), (4, 2)] {
         let mut scorers: Vec<Scorer> = (0..streams)
-            .map(|_| Scorer::load(&gstleangate::default_model(), &opts(true, batch)).unwrap())
+            .map(|_| Scorer::load(&gstleangate::default_model(), &opts(true, batch, cap)).unwrap())
             .collect();
-        for s in &scorers[1..] {
-            assert!(s.shares_session_with(&scorers[0]), "one session for all");
+        // How many scorers each distinct session serves.
+        let mut groups = std::collections::BTreeMap::<usize, usize>::new();
+        for (i, s) in scorers.iter().enumerate() {
+            let first = (0..=i)
+                .find(|&j| scorers[j].shares_session_with(s))
+                .unwrap();
+            *groups.entry(first).or_default() += 1;
             assert_eq!(s.is_batching(), batch > 1);
         }
+        let groups: Vec<usize> = groups.into_values().collect();
+        assert_eq!(
+            groups,
+            vec![streams / cap; cap],
+            "batch {batch}, cap {cap}: scorers per session"
+        );
         let before = scorers[0].batch_counts();
         let results: Vec<Vec<(f32, bool)>> = std::thread::scope(|scope| {
             let handles: Vec<_> = scorers
@@ -301,11 +314,11 @@ fn shared_and_batched_scoring_matches_separate_sessions() {
             for (i, ((ua, ka), (ub, kb))) in a.iter().zip(b).enumerate() {
                 assert_eq!(
                     ka, kb,
-                    "batch {batch} stream {k} frame {i}: decisions differ"
+                    "batch {batch} cap {cap} stream {k} frame {i}: decisions differ"
                 );
                 assert!(
                     (ua - ub).abs() <= 1e-5,
-                    "batch {batch} stream {k} frame {i}: {ua} vs {ub}"
+                    "batch {batch} cap {cap} stream {k} frame {i}: {ua} vs {ub}"
                 );
             }
             assert!(
@@ -315,9 +328,43 @@ fn shared_and_batched_scoring_matches_separate_sessions() {
         }
     }
     // A scorer with sharing off gets its own session.
-    let a = Scorer::load(&gstleangate::default_model(), &opts(true, 1)).unwrap();
-    let b = Scorer::load(&gstleangate::default_model(), &opts(false, 1)).unwrap();
+    let a = Scorer::load(&gstleangate::default_model(), &opts(true, 1, 1)).unwrap();
+    let b = Scorer::load(&gstleangate::default_model(), &opts(false, 1, 1)).unwrap();
     assert!(!a.shares_session_with(&b));
+}
+
+/// The default session cap: one session per core on the CPU provider (each session scores one
+/// frame at a time), one on GPU providers.
+#[test]
+fn default_session_cap_is_one_per_core_on_cpu() {
+    let cores = std::thread::available_parallelism().unwrap().get();
+    assert_eq!(gstleangate::default_max_sessions("cpu", 1), cores);
+    assert_eq!(
+        gstleangate::default_max_sessions("cpu", 2),
+        (cores / 2).max(1)
+    );
+    assert_eq!(gstleangate::default_max_sessions("cuda", 1), 1);
+    assert_eq!(gstleangate::default_max_sessions("tensorrt", 1), 1);
+    // Streams beyond the cap join existing sessions; below it each gets its own.
+    let opts = ScorerOptions {
+        execution_provider: ExecutionProvider::Cpu,
+        shared: true,
+        // A key no other test of this binary uses.
+        threads: 5,
+        ..Default::default()
+    };
+    let cap = opts.effective_max_sessions("cpu");
+    let scorers: Vec<Scorer> = (0..cap + 2)
+        .map(|_| Scorer::load(&gstleangate::default_model(), &opts).unwrap())
+        .collect();
+    let distinct = (0..scorers.len())
+        .filter(|&i| {
+            !scorers[..i]
+                .iter()
+                .any(|o| o.shares_session_with(&scorers[i]))
+        })
+        .count();
+    assert_eq!(distinct, cap);
 }
 
 /// Batching adds no latency to a stream that is alone on its session: with a one-second

@@ -41,6 +41,7 @@ const DEFAULT_ORT_SPINNING: bool = false;
 const DEFAULT_SHARED_SESSION: bool = true;
 const DEFAULT_BATCH_SIZE: u32 = 1;
 const DEFAULT_BATCH_TIMEOUT_US: u64 = 2000;
+const DEFAULT_MAX_SESSIONS: u32 = 0;
 const DEFAULT_STATS_INTERVAL: u64 = 0;
 const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
 const DEFAULT_SERVER_MAX_IN_FLIGHT: u32 = 16;
@@ -64,6 +65,7 @@ struct Settings {
     shared_session: bool,
     batch_size: u32,
     batch_timeout_us: u64,
+    max_sessions: u32,
     stats_interval: u64,
     /// Remote scoring (crate::remote): the V2 server's URL; None = local ONNX Runtime.
     server: Option<String>,
@@ -90,6 +92,7 @@ impl Default for Settings {
             shared_session: DEFAULT_SHARED_SESSION,
             batch_size: DEFAULT_BATCH_SIZE,
             batch_timeout_us: DEFAULT_BATCH_TIMEOUT_US,
+            max_sessions: DEFAULT_MAX_SESSIONS,
             stats_interval: DEFAULT_STATS_INTERVAL,
             server: None,
             server_model: None,
@@ -508,6 +511,15 @@ impl ObjectImpl for LeanGate {
                     .default_value(DEFAULT_BATCH_TIMEOUT_US)
                     .mutable_ready()
                     .build(),
+                glib::ParamSpecUInt::builder("max-sessions")
+                    .nick("Maximum sessions")
+                    .blurb(
+                        "With shared-session: at most this many ONNX Runtime sessions of the model                          in the process; a new element gets its own while there are fewer and                          otherwise joins the least used (a session scores one frame at a time).                          0 = one per `threads` CPU cores on the CPU provider, 1 on GPU providers",
+                    )
+                    .maximum(1024)
+                    .default_value(DEFAULT_MAX_SESSIONS)
+                    .mutable_ready()
+                    .build(),
                 glib::ParamSpecUInt64::builder("stats-interval")
                     .nick("Statistics interval")
                     .blurb(
@@ -585,6 +597,7 @@ impl ObjectImpl for LeanGate {
                 | "shared-session"
                 | "batch-size"
                 | "batch-timeout"
+                | "max-sessions"
                 | "server"
                 | "server-model"
                 | "server-timeout"
@@ -654,6 +667,10 @@ impl ObjectImpl for LeanGate {
                     settings.batch_timeout_us = value.get().expect("type checked upstream");
                     None
                 }
+                "max-sessions" => {
+                    settings.max_sessions = value.get().expect("type checked upstream");
+                    None
+                }
                 "stats-interval" => {
                     settings.stats_interval = value.get().expect("type checked upstream");
                     None
@@ -709,6 +726,7 @@ impl LeanGate {
             "shared-session" => settings.shared_session.to_value(),
             "batch-size" => settings.batch_size.to_value(),
             "batch-timeout" => settings.batch_timeout_us.to_value(),
+            "max-sessions" => settings.max_sessions.to_value(),
             "stats-interval" => settings.stats_interval.to_value(),
             "server" => settings.server.to_value(),
             "server-model" => settings.server_model.to_value(),
@@ -791,6 +809,7 @@ impl BaseTransformImpl for LeanGate {
             shared: settings.shared_session,
             batch_size: settings.batch_size as usize,
             batch_timeout: std::time::Duration::from_micros(settings.batch_timeout_us),
+            max_sessions: settings.max_sessions as usize,
         };
         let scorer = Scorer::load(&source, &opts).map_err(|e| {
             release();

@@ -107,6 +107,12 @@ pub struct ScorerOptions {
     /// The longest a frame waits for others to fill a batch. No wait when this scorer is the
     /// only one using the session with batching on.
     pub batch_timeout: Duration,
+    /// With `shared`: at most this many sessions of one model in the process. A new scorer gets
+    /// a session of its own while there are fewer, and otherwise joins the least used one. One
+    /// session runs one frame at a time, so on the CPU up to one session per core lets
+    /// concurrent streams use every core; on a GPU one session (with batching) is what pays.
+    /// 0 = [`default_max_sessions`].
+    pub max_sessions: usize,
 }
 
 impl ScorerOptions {
@@ -117,6 +123,27 @@ impl ScorerOptions {
         } else {
             default_threads()
         }
+    }
+
+    /// The session cap actually used (`max_sessions`, or [`default_max_sessions`] for 0).
+    pub fn effective_max_sessions(&self, provider: &str) -> usize {
+        if self.max_sessions > 0 {
+            self.max_sessions
+        } else {
+            default_max_sessions(provider, self.effective_threads())
+        }
+    }
+}
+
+/// Sessions per shared model when `max_sessions` is 0: on the CPU provider, one per
+/// `threads` cores (so that concurrent streams can use every core: a session runs one frame at
+/// a time); on any other provider one (a GPU gains from batching, not from more sessions).
+pub fn default_max_sessions(provider: &str, threads: usize) -> usize {
+    if provider == ExecutionProvider::Cpu.as_str() {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        (cores / threads.max(1)).max(1)
+    } else {
+        1
     }
 }
 
@@ -205,7 +232,8 @@ struct ModelKey {
     spinning: bool,
 }
 
-static REGISTRY: LazyLock<Mutex<HashMap<ModelKey, Weak<Model>>>> =
+/// Per key, the loaded instances of the model (at most `max_sessions`).
+static REGISTRY: LazyLock<Mutex<HashMap<ModelKey, Vec<Weak<Model>>>>> =
     LazyLock::new(|| Mutex::new(HashMap::new()));
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -311,12 +339,21 @@ impl Scorer {
                     // Held while loading: a second stream starting at the same time waits for
                     // the first's model instead of loading its own.
                     let mut reg = lock(&REGISTRY);
-                    reg.retain(|_, w| w.strong_count() > 0);
-                    match reg.get(&key).and_then(Weak::upgrade) {
-                        Some(m) => m,
-                        None => {
+                    reg.retain(|_, v| {
+                        v.retain(|w| w.strong_count() > 0);
+                        !v.is_empty()
+                    });
+                    let live: Vec<Arc<Model>> = reg
+                        .get(&key)
+                        .map(|v| v.iter().filter_map(Weak::upgrade).collect())
+                        .unwrap_or_default();
+                    // The least used instance (the `live` clones add one to each count).
+                    let least = live.iter().min_by_key(|m| Arc::strong_count(m)).cloned();
+                    match least {
+                        Some(m) if live.len() >= opts.effective_max_sessions(m.provider) => m,
+                        _ => {
                             let m = Arc::new(Self::load_model(source, opts)?);
-                            reg.insert(key, Arc::downgrade(&m));
+                            reg.entry(key).or_default().push(Arc::downgrade(&m));
                             m
                         }
                     }
@@ -525,7 +562,8 @@ impl Scorer {
         self.encoder_runs
     }
 
-    /// Whether this scorer shares its sessions with `other` (same registry entry).
+    /// Whether this scorer shares its sessions with `other` (the same loaded instance of the
+    /// model in the registry).
     pub fn shares_session_with(&self, other: &Scorer) -> bool {
         Arc::ptr_eq(&self.model, &other.model)
     }
