@@ -53,3 +53,4 @@ MOTIONS = ["static", "pan", "shaky", "walk", "rotate", "bursts", "mixed", "mixed
 # photos whose names start with these are held out of training (validation homographies, eval textures)
 HELDOUT_PREFIXES = ("paragliding", "apple")
 TRAIN_SEED0, VAL_SEED0, EVAL_SEED0 = 1000, 5000, 9001
+REPLAY_SEED0 = 2000  # gen_data --steps replay: real trajectories + sensor realism

@@ -64,18 +64,20 @@ def main():
             continue
         d = json.load(open(js))
         P = d["policies"]
-        m, o, st, pdf = P["model"], P.get("oracle", {}), P.get("stride", {}), P.get("pixel_diff", {})
+        m, o, st, pdf, mo = (P["model"], P.get("oracle", {}), P.get("stride", {}), P.get("pixel_diff", {}),
+                             P.get("motion", {}))
         dropped = 1 - m["kept"] / d["frames"]
         rows.append(
             f"| {name} | {d['frames']} | {fmt(d['threshold'], 2)} | {m['kept']} ({100 * dropped:.0f}% dropped) | "
-            f"{fmt(o.get('kept'))} | {fmt(st.get('kept'))} / {fmt(pdf.get('kept'))} | {fmt(m.get('breaks'))} / "
-            f"{fmt(st.get('breaks'))} / {fmt(pdf.get('breaks'))} | {fmt(m.get('late_keeps'))} / "
-            f"{fmt(st.get('late_keeps'))} / {fmt(pdf.get('late_keeps'))} | {fmt(m.get('overdue_drops'))} | "
+            f"{fmt(o.get('kept'))} | {fmt(st.get('kept'))} / {fmt(pdf.get('kept'))} / {fmt(mo.get('kept'))} | "
+            f"{fmt(m.get('breaks'))} / {fmt(st.get('breaks'))} / {fmt(pdf.get('breaks'))} / {fmt(mo.get('breaks'))} | "
+            f"{fmt(m.get('late_keeps'))} / {fmt(st.get('late_keeps'))} / {fmt(pdf.get('late_keeps'))} / "
+            f"{fmt(mo.get('late_keeps'))} | {fmt(m.get('overdue_drops'))} | "
             f"{fmt(m.get('min_pair_S'))} | {fmt(m.get('utility_rmse'))} | {fmt(m.get('utility_mae'))} | "
             f"{fmt(m.get('fps'), 1)} |")
-    head = ("| sequence | frames | T | model kept | oracle kept | stride / pixel_diff kept | breaks model / stride / "
-            "pixel_diff | late keeps model / stride / pixel_diff | overdue drops | min pair S | utility RMSE | "
-            "utility MAE | fps |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    head = ("| sequence | frames | T | model kept | oracle kept | stride / pixel_diff / motion kept | breaks model / "
+            "stride / pixel_diff / motion | late keeps model / stride / pixel_diff / motion | overdue drops | "
+            "min pair S | utility RMSE | utility MAE | fps |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     table = head + "\n" + "\n".join(rows) + "\n"
     open(os.path.join(a.out, "summary.md"), "w").write(table)
     print(table)

@@ -11,10 +11,15 @@ Steps (all under --root, default config.DATA_ROOT: $LEANGATE_TRAIN_DATA or <repo
   tum       tum_fr1_rpy cut into its train / cal / test parts (config.TUM_SPLIT) as sub-sequence
             directories <root>/tum/<part>; teacher-labelled pairs of the train part (training) and
             gate-like pairs of the cal part (calibration) -> cache/tum_{train,cal}.npz (see tum.py)
+  replay    synthetic sequences whose camera replays a real trajectory (the train part of
+            tum_fr1_rpy, fox_orbit's COLMAP poses) with sensor realism (`--sensor`: exposure and
+            white-balance drift, motion blur from the real motion, rolling shutter, depth noise and
+            holes, vignetting, JPEG), labelled like `synth` -> <root>/cache/replay/seq_<seed>.npz
   evalseqs  held-out 300-frame mixed-motion sequences (new seeds, 640x480) for `leangate eval`
 
-Usage: python -m training.gen_data [--root DIR] [--steps photos,synth,cache,homog,tum,evalseqs]
+Usage: python -m training.gen_data [--root DIR] [--steps photos,synth,cache,homog,tum,replay,evalseqs]
                                    [--n-train 64] [--n-val 6] [--frames 240] [--homog-train 12000]
+                                   [--n-replay 40]
 """
 import argparse
 import glob
@@ -29,8 +34,8 @@ import numpy as np
 from PIL import Image
 
 from . import tum
-from .config import (DATA_ROOT, EVAL_SEED0, HELDOUT_PREFIXES, IN_H, IN_W, LEANGATE, MOTIONS, REPO, SHARED,
-                     TRAIN_SEED0, VAL_SEED0)
+from .config import (DATA_ROOT, EVAL_SEED0, HELDOUT_PREFIXES, IN_H, IN_W, LEANGATE, MOTIONS, REPLAY_SEED0, REPO,
+                     SHARED, TRAIN_SEED0, VAL_SEED0)
 from .preprocess import load_resized, read_list
 
 
@@ -77,7 +82,10 @@ def step_photos(root):
 
 
 # ------------------------------------------------------------------------------------------ synth
-def synth_one(root, split, seed, frames):
+def synth_one(root, split, seed, frames, motion_args=None, extra=None):
+    """Render and label one sequence. Default: a procedural motion (config.MOTIONS); `motion_args`
+    replaces `--motion ...` (e.g. a replayed trajectory) and `extra` replaces the random
+    blur/lighting/jpeg flags (e.g. `--sensor realistic`)."""
     rng = np.random.default_rng(seed)
     seq = os.path.join(root, "seqs", split, f"seq_{seed}")
     csv = seq + ".csv"
@@ -88,16 +96,19 @@ def synth_one(root, split, seed, frames):
     motion = MOTIONS[seed % len(MOTIONS)]
     tex = os.path.join(root, "textures_train")
     cmd = [LEANGATE, "synth", "--out", seq, "--seed", str(seed), "--frames", str(frames),
-           "--motion", motion, "--width", "320", "--height", "240",
+           *(motion_args or ["--motion", motion]), "--width", "320", "--height", "240",
            "--noise", f"{rng.uniform(0.0, 0.03):.4f}"]
     if rng.random() < 0.8:
         cmd += ["--textures", tex]
-    if rng.random() < 0.4:
-        cmd += ["--blur"]
-    if rng.random() < 0.4:
-        cmd += ["--lighting"]
-    if rng.random() < 0.3:
-        cmd += ["--jpeg"]
+    if extra is not None:
+        cmd += extra
+    else:
+        if rng.random() < 0.4:
+            cmd += ["--blur"]
+        if rng.random() < 0.4:
+            cmd += ["--lighting"]
+        if rng.random() < 0.3:
+            cmd += ["--jpeg"]
     run(cmd)
     # pairs across the whole tau range: several gap scales so both small and large tau are common
     parts = []
@@ -112,7 +123,8 @@ def synth_one(root, split, seed, frames):
             fo.write("\n".join(lines if k == 0 else lines[1:]) + "\n")
             os.remove(p)
     os.replace(csv + ".tmp", csv)
-    print(f"  {split} seed {seed} motion {motion} {' '.join(c for c in cmd if c.startswith('--') and c not in ('--out','--seed','--frames','--motion','--width','--height','--noise','--textures'))}", flush=True)
+    shown = [c for c in cmd[2:] if not c.startswith("/") and not c.startswith(root)]
+    print(f"  {split} seed {seed}: {' '.join(shown)}", flush=True)
     return seq
 
 
@@ -150,6 +162,50 @@ def step_cache(root, keep_train_raw=False):
     taus = np.concatenate(taus)
     h, _ = np.histogram(taus, bins=10, range=(0, 1))
     print(f"cache: {len(taus)} synthetic train pairs, tau histogram (10 bins) {h.tolist()}")
+
+
+# ----------------------------------------------------------------------------------------- replay
+SENSOR_SUBSETS = ["realistic", "realistic", "realistic", "exposure,wb,blur,depth-noise,holes",
+                  "blur,rolling,vignette,jpeg,depth-noise", "wb,blur,holes,jpeg"]
+
+
+def replay_trajectories(root):
+    """Real camera paths that may be replayed: (file, usable seconds). Only the *train* part of
+    tum_fr1_rpy (its cal and test parts' motion is never seen), and fox_orbit's COLMAP poses.
+    7-Scenes is an evaluation sequence and is not replayed."""
+    out = []
+    gt = os.path.join(root, "tum", "train", "groundtruth.txt")
+    if os.path.exists(gt):
+        ts = [float(l.split()[0]) for l in open(gt) if l.strip() and not l.startswith("#")]
+        out.append((gt, ts[-1] - ts[0]))
+    fox = os.path.join(SHARED, "fox_orbit", "data", "nerf", "fox", "transforms.json")
+    if os.path.exists(fox):
+        out.append((fox, 0.0))
+    return out
+
+
+def step_replay(root, n, frames, jobs):
+    trajs = replay_trajectories(root)
+    if not trajs:
+        sys.exit("replay: no trajectory (run the `tum` step first)")
+
+    def one(k):
+        seed = REPLAY_SEED0 + k
+        rng = np.random.default_rng(seed)
+        # 4 of 5 sequences replay the real handheld trajectory, from a random start (bouncing at the end)
+        traj, secs = trajs[0] if (k % 5 != 4 or len(trajs) == 1) else trajs[1]
+        start = rng.uniform(0.0, max(secs - frames / 30.0 * 0.6, 0.0)) if secs > 0 else 0.0
+        motion = ["--motion", f"replay:{traj}", "--replay-start", f"{start:.2f}", "--replay-end", "bounce"]
+        extra = ["--sensor", SENSOR_SUBSETS[k % len(SENSOR_SUBSETS)]]
+        seq = synth_one(root, "replay", seed, frames, motion, extra)
+        os.makedirs(os.path.join(root, "cache", "replay"), exist_ok=True)
+        cache_one(root, "replay", seq, False)
+
+    with ThreadPoolExecutor(jobs) as ex:
+        list(ex.map(one, range(n)))
+    taus = np.concatenate([np.load(f)["pairs"][:, 2] for f in glob.glob(os.path.join(root, "cache", "replay", "*.npz"))])
+    h, _ = np.histogram(taus, bins=10, range=(0, 1))
+    print(f"replay: {len(taus)} pairs, tau histogram (10 bins) {h.tolist()}")
 
 
 # ------------------------------------------------------------------------------------------ homog
@@ -290,12 +346,13 @@ def step_evalseqs(root, n=3):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", default=DATA_ROOT)
-    ap.add_argument("--steps", default="photos,synth,cache,homog,tum,evalseqs")
+    ap.add_argument("--steps", default="photos,synth,cache,homog,tum,replay,evalseqs")
     ap.add_argument("--n-train", type=int, default=64)
     ap.add_argument("--n-val", type=int, default=6)
     ap.add_argument("--frames", type=int, default=240)
     ap.add_argument("--homog-train", type=int, default=12000)
     ap.add_argument("--homog-val", type=int, default=1000)
+    ap.add_argument("--n-replay", type=int, default=40)
     ap.add_argument("--jobs", type=int, default=2)
     a = ap.parse_args()
     root = os.path.abspath(a.root)
@@ -312,6 +369,8 @@ def main():
         step_homog(a.root, a.homog_train, a.homog_val)
     if "tum" in steps:
         tum.build(a.root)
+    if "replay" in steps:
+        step_replay(a.root, a.n_replay, a.frames, a.jobs)
     if "evalseqs" in steps:
         step_evalseqs(a.root)
 

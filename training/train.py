@@ -8,6 +8,9 @@ pairs; photometric / grey / flip augmentation. Validation on held-out synthetic 
 seeds) and held-out photos every --val-every steps; checkpoints <out>/last.pt and <out>/best.pt,
 log <out>/log.csv.
 
+Replayed pairs (--p-replay): synthetic scenes seen along real camera trajectories with sensor realism
+(cache/replay, `gen_data --steps replay`), drawn with inverse tau-bin frequency like the synthetic ones.
+
 Real pairs: tum_fr1_rpy's training part (cache/tum_train.npz, teacher labels) are a fixed share of
 each batch (--p-real), and "unrelated" pairs (reference and current from two different sequences:
 a complete view change, tau = 1) another (--p-unrelated), the case where the first student
@@ -114,15 +117,20 @@ def photometric(x, g):
 
 
 def make_batch(rng, g, synth, homog, n, p_homog=0.35, p_ident=0.04, augment=True, real=None, p_real=0.0,
-               p_unrel=0.0):
+               p_unrel=0.0, replay=None, p_replay=0.0):
     nh = int(round(n * p_homog))
     ni = int(round(n * p_ident))
     nr = int(round(n * p_real)) if real is not None else 0
+    nrp = int(round(n * p_replay)) if replay is not None else 0
     nu = int(round(n * p_unrel))
-    ns = n - nh - ni - nr - nu
+    ns = n - nh - ni - nr - nrp - nu
+    if ns < 0:
+        raise ValueError("the fractions --p-homog, --p-real, --p-replay and --p-unrelated add up to more than 1")
     parts = [synth.sample(rng, ns), homog.sample(rng, nh), synth.identical(rng, ni)]
     if nr:
         parts.append(real.sample(rng, nr))
+    if nrp:
+        parts.append(replay.sample(rng, nrp))
     if nu:
         # half across synthetic sequences, half between a real frame and a synthetic one
         nu1 = nu // 2
@@ -170,6 +178,9 @@ def main():
     ap.add_argument("--data", default=os.path.join(DATA_ROOT, "cache"))
     ap.add_argument("--out", default=os.path.join(DATA_ROOT, "runs", "s"))
     ap.add_argument("--minutes", type=float, default=45)
+    ap.add_argument("--stop-minutes", type=float, default=None,
+                    help="end the run after this many minutes of the --minutes schedule (the learning rate "
+                         "follows the --minutes cosine; the shipped student is such a run)")
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--wd", type=float, default=1e-4)
@@ -182,6 +193,8 @@ def main():
     ap.add_argument("--resume", action="store_true", help="continue <out>/last.pt")
     ap.add_argument("--p-homog", type=float, default=0.35, help="fraction of real-photo homography pairs")
     ap.add_argument("--p-real", type=float, default=0.0, help="fraction of real tum_fr1_rpy training pairs")
+    ap.add_argument("--p-replay", type=float, default=0.0,
+                    help="fraction of replayed-trajectory synthetic pairs with sensor realism (cache/replay)")
     ap.add_argument("--p-unrelated", type=float, default=0.0, help="fraction of unrelated pairs (tau = 1)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
@@ -201,6 +214,10 @@ def main():
     if a.p_real > 0:
         real = SynthPool([os.path.join(a.data, "tum_train.npz")])
         print(f"real: {len(real.pairs)} tum_fr1_rpy training pairs", flush=True)
+    replay = None
+    if a.p_replay > 0:
+        replay = SynthPool(glob.glob(os.path.join(a.data, "replay", "*.npz")))
+        print(f"replay: {len(replay.pairs)} pairs in {len(replay.frames)} replayed-trajectory sequences", flush=True)
     cal_f = os.path.join(a.data, "tum_cal.npz")
     if os.path.exists(cal_f):
         cal = SynthPool([cal_f])
@@ -250,13 +267,13 @@ def main():
     while True:
         el = time.time() - t0
         frac = el / budget
-        if frac >= 1:
+        if frac >= 1 or (a.stop_minutes is not None and el >= a.stop_minutes * 60):
             break
         lr = a.lr * min(1.0, (step + 1) / a.warmup) * 0.5 * (1 + math.cos(math.pi * frac))
         for gr in opt.param_groups:
             gr["lr"] = lr
         ref, cur, y = make_batch(rng, g, synth, homog, a.batch, p_homog=a.p_homog, real=real, p_real=a.p_real,
-                                 p_unrel=a.p_unrelated)
+                                 p_unrel=a.p_unrelated, replay=replay, p_replay=a.p_replay)
         outs = model(ref, cur, all_iters=True)
         K = len(outs) - 1
         loss = sum(0.8 ** (K - k) * huber(o, y) for k, o in enumerate(outs))
@@ -266,7 +283,7 @@ def main():
         opt.step()
         run_loss.append(huber(outs[-1].detach(), y).item())
         step += 1
-        last = time.time() - t0 >= budget
+        last = time.time() - t0 >= (budget if a.stop_minutes is None else min(budget, a.stop_minutes * 60))
         if step % a.val_every == 0 or last:
             r = evaluate(model, sets)
             if frozen_bn:
