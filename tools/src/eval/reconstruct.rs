@@ -187,6 +187,23 @@ pub struct SfmOutcome {
     pub sfm_seconds: f64,
 }
 
+/// The consumer's `--frames @LIST` file: `index [image path]` per line. Paths are made absolute:
+/// the consumer resolves a relative one against the sequence's folder, not the working directory
+/// (a sequence given as `../data/seq` would otherwise be looked up in `../data/seq/../data/seq`).
+fn frame_list(frames: &[(usize, Option<PathBuf>)]) -> String {
+    let mut text = String::from("# index [image path]\n");
+    for (i, p) in frames {
+        match p {
+            Some(p) => {
+                let p = std::path::absolute(p).unwrap_or_else(|_| p.clone());
+                text.push_str(&format!("{i} {}\n", p.display()))
+            }
+            None => text.push_str(&format!("{i}\n")),
+        }
+    }
+    text
+}
+
 /// Run the consumer on `frames` (`(index, image path)`; the path None for a video frame, which
 /// the consumer decodes) of `input`, in `out_dir`.
 pub fn run_consumer(
@@ -200,14 +217,8 @@ pub fn run_consumer(
     std::fs::create_dir_all(out_dir)
         .map_err(|e| EvalError(format!("`{}`: {e}", out_dir.display())))?;
     let list = out_dir.join("frames.txt");
-    let mut text = String::from("# index [image path]\n");
-    for (i, p) in frames {
-        match p {
-            Some(p) => text.push_str(&format!("{i} {}\n", p.display())),
-            None => text.push_str(&format!("{i}\n")),
-        }
-    }
-    std::fs::write(&list, text).map_err(|e| EvalError(format!("`{}`: {e}", list.display())))?;
+    std::fs::write(&list, frame_list(frames))
+        .map_err(|e| EvalError(format!("`{}`: {e}", list.display())))?;
     let json = out_dir.join("result.json");
     let mut frames_arg = std::ffi::OsString::from("@");
     frames_arg.push(&list);
@@ -417,6 +428,22 @@ mod tests {
                 Vector3::new(t.sin() * 2.0, 0.3 * t, (0.7 * t).cos() - 1.0)
             })
             .collect()
+    }
+
+    /// A sequence given by a relative path (`leangate eval --sequence ../data/seq`): the frame
+    /// list holds absolute paths that name the same files, and video frames carry no path.
+    #[test]
+    fn frame_list_paths_are_absolute() {
+        let rel = PathBuf::from("../data/seq/rgb/0001.png");
+        let text = frame_list(&[(3, Some(rel.clone())), (5, None)]);
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], "# index [image path]");
+        let (idx, path) = lines[1].split_once(' ').unwrap();
+        assert_eq!(idx, "3");
+        let path = Path::new(path);
+        assert!(path.is_absolute(), "{text}");
+        assert_eq!(path, std::env::current_dir().unwrap().join(&rel));
+        assert_eq!(lines[2], "5");
     }
 
     #[test]
