@@ -514,7 +514,10 @@ impl ObjectImpl for LeanGate {
                 glib::ParamSpecUInt::builder("max-sessions")
                     .nick("Maximum sessions")
                     .blurb(
-                        "With shared-session: at most this many ONNX Runtime sessions of the model                          in the process; a new element gets its own while there are fewer and                          otherwise joins the least used (a session scores one frame at a time).                          0 = one per `threads` CPU cores on the CPU provider, 1 on GPU providers",
+                        "With shared-session: at most this many ONNX Runtime sessions of the model in the \
+                         process; a new element gets its own while there are fewer and otherwise joins the least \
+                         used (a session scores one frame at a time). 0 = one per `threads` CPU cores on the CPU \
+                         provider, 1 on GPU providers",
                     )
                     .maximum(1024)
                     .default_value(DEFAULT_MAX_SESSIONS)
