@@ -326,6 +326,7 @@ impl Scorer {
     /// batch of 2, a head that does not fit its encoder, NaN out) is a start error, not a
     /// failure on every frame.
     pub fn load(source: &ModelSource, opts: &ScorerOptions) -> Result<Scorer, ScorerError> {
+        let mut fallback = None;
         let model = if opts.shared {
             match identity(source) {
                 Some(id) => {
@@ -351,11 +352,26 @@ impl Scorer {
                     let least = live.iter().min_by_key(|m| Arc::strong_count(m)).cloned();
                     match least {
                         Some(m) if live.len() >= opts.effective_max_sessions(m.provider) => m,
-                        _ => {
-                            let m = Arc::new(Self::load_model(source, opts)?);
-                            reg.entry(key).or_default().push(Arc::downgrade(&m));
-                            m
-                        }
+                        least => match Self::load_model(source, opts) {
+                            Ok(m) => {
+                                let m = Arc::new(m);
+                                reg.entry(key).or_default().push(Arc::downgrade(&m));
+                                m
+                            }
+                            // Another instance could not be made (memory, a provider that
+                            // refuses a second session): share one that works.
+                            Err(e) => match least {
+                                Some(m) => {
+                                    fallback = Some(format!(
+                                        "another session of {} could not be created, sharing an \
+                                         existing one: {e}",
+                                        source.describe()
+                                    ));
+                                    m
+                                }
+                                None => return Err(e),
+                            },
+                        },
                     }
                 }
                 None => Arc::new(Self::load_model(source, opts)?),
@@ -375,8 +391,10 @@ impl Scorer {
         if batching {
             model.batcher.users.fetch_add(1, Ordering::SeqCst);
         }
+        let mut warnings = model.warnings.clone();
+        warnings.extend(fallback);
         Ok(Scorer {
-            warnings: model.warnings.clone(),
+            warnings,
             model,
             reference: None,
             current: None,
