@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 #[path = "common/mod.rs"]
 mod common;
 
-use common::{measure, run_to_eos};
+use common::{frame_planes, measure, run_to_eos};
 use gst::prelude::*;
 use gstleangate::{PixelFormat, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix};
 
@@ -252,36 +252,6 @@ fn section_mpdecimate(reps: usize) {
         median(&b),
         median(&a) / median(&b)
     );
-}
-
-/// A deterministic, textured plane of `len` bytes.
-fn noise(len: usize, seed: u32) -> Vec<u8> {
-    let mut x = 0x9E37_79B9u32 ^ seed;
-    (0..len)
-        .map(|i| {
-            x ^= x << 13;
-            x ^= x >> 17;
-            x ^= x << 5;
-            ((i as u32 / 7) as u8).wrapping_add((x >> 24) as u8 / 4)
-        })
-        .collect()
-}
-
-fn frame_planes(format: PixelFormat, w: usize, h: usize) -> (Vec<Vec<u8>>, [isize; 3]) {
-    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
-    match format {
-        PixelFormat::Rgb | PixelFormat::Bgr => (vec![noise(3 * w * h, 1)], [3 * w as isize, 0, 0]),
-        PixelFormat::Gray8 => (vec![noise(w * h, 1)], [w as isize, 0, 0]),
-        PixelFormat::Nv12 => (
-            vec![noise(w * h, 1), noise(2 * cw * ch, 2)],
-            [w as isize, 2 * cw as isize, 0],
-        ),
-        PixelFormat::I420 => (
-            vec![noise(w * h, 1), noise(cw * ch, 2), noise(cw * ch, 3)],
-            [w as isize, cw as isize, cw as isize],
-        ),
-        _ => (vec![noise(4 * w * h, 1)], [4 * w as isize, 0, 0]),
-    }
 }
 
 /// Median µs per frame of (fast `run`, reference `run_reference`), interleaved.

@@ -27,7 +27,7 @@ use std::time::{Duration, Instant};
 #[path = "common/mod.rs"]
 mod common;
 
-use common::{measure, run_to_eos};
+use common::{frame_planes, measure, run_to_eos};
 use gstleangate::{PixelFormat, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix};
 
 const W: u32 = 640;
@@ -133,34 +133,10 @@ fn compare(case: &str, template: &str, leangate: &str, reps: usize) -> Row {
     row
 }
 
-/// A deterministic, textured plane of `len` bytes.
-fn noise(len: usize, seed: u32) -> Vec<u8> {
-    let mut x = 0x9E37_79B9u32 ^ seed;
-    (0..len)
-        .map(|i| {
-            x ^= x << 13;
-            x ^= x >> 17;
-            x ^= x << 5;
-            ((i as u32 / 7) as u8).wrapping_add((x >> 24) as u8 / 4)
-        })
-        .collect()
-}
-
 /// Median microseconds per frame of `Preprocessor::run`.
 fn preprocess_us(format: PixelFormat, size: u32, reps: usize) -> f64 {
     let (w, h) = (W as usize, H as usize);
-    let (planes, strides): (Vec<Vec<u8>>, [isize; 3]) = match format {
-        PixelFormat::Rgb => (vec![noise(3 * w * h, 1)], [3 * w as isize, 0, 0]),
-        PixelFormat::Nv12 => (
-            vec![noise(w * h, 1), noise(w * h / 2, 2)],
-            [w as isize, w as isize, 0],
-        ),
-        PixelFormat::I420 => (
-            vec![noise(w * h, 1), noise(w * h / 4, 2), noise(w * h / 4, 3)],
-            [w as isize, (w / 2) as isize, (w / 2) as isize],
-        ),
-        other => unimplemented!("{other:?}"),
-    };
+    let (planes, strides) = frame_planes(format, w, h);
     let mut p: [&[u8]; 3] = [&[], &[], &[]];
     for (i, plane) in planes.iter().enumerate() {
         p[i] = plane;

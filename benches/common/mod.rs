@@ -1,5 +1,6 @@
-//! What the pipeline benches share: run a pipeline to EOS, and time one from the first buffer
-//! at its `gate` element to EOS (included by path from `pipeline.rs` and `perf.rs`).
+//! What the pipeline benches share: run a pipeline to EOS, time one from the first buffer at its
+//! `gate` element to EOS, and make textured test frames for the preprocessing figures (included
+//! by path from `pipeline.rs` and `perf.rs`).
 #![allow(dead_code)]
 
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -7,6 +8,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use gst::prelude::*;
+use gstleangate::PixelFormat;
 
 /// Run a pipeline to EOS; panics on an error message.
 pub fn run_to_eos(desc: &str, timeout: Duration) -> Vec<gst::Message> {
@@ -108,5 +110,36 @@ pub fn measure(desc: &str) -> RunResult {
         provider: stats
             .as_ref()
             .and_then(|s| s.get::<String>("execution-provider").ok()),
+    }
+}
+
+/// A deterministic, textured plane of `len` bytes.
+pub fn noise(len: usize, seed: u32) -> Vec<u8> {
+    let mut x = 0x9E37_79B9u32 ^ seed;
+    (0..len)
+        .map(|i| {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            ((i as u32 / 7) as u8).wrapping_add((x >> 24) as u8 / 4)
+        })
+        .collect()
+}
+
+/// Planes and strides of a tightly packed `w`x`h` frame of `format`, filled by [`noise`].
+pub fn frame_planes(format: PixelFormat, w: usize, h: usize) -> (Vec<Vec<u8>>, [isize; 3]) {
+    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+    match format {
+        PixelFormat::Rgb | PixelFormat::Bgr => (vec![noise(3 * w * h, 1)], [3 * w as isize, 0, 0]),
+        PixelFormat::Gray8 => (vec![noise(w * h, 1)], [w as isize, 0, 0]),
+        PixelFormat::Nv12 => (
+            vec![noise(w * h, 1), noise(2 * cw * ch, 2)],
+            [w as isize, 2 * cw as isize, 0],
+        ),
+        PixelFormat::I420 => (
+            vec![noise(w * h, 1), noise(cw * ch, 2), noise(cw * ch, 3)],
+            [w as isize, cw as isize, cw as isize],
+        ),
+        _ => (vec![noise(4 * w * h, 1)], [4 * w as isize, 0, 0]),
     }
 }
