@@ -401,6 +401,10 @@ struct PlanePass {
     x: FlatTaps,
     /// Vertical taps, in rows of this plane.
     y: Vec<Taps>,
+    /// Per vertical tap: its interior rows (all but the first and last, at least two, at most
+    /// [`MAX_U16_ROWS`]) share one weight, so the fast path sums them in u16 (decided once here,
+    /// not per frame).
+    y_sum: Vec<bool>,
     /// (sample within the pixel, output slot 0..3), per used sample.
     chans: Vec<(usize, usize)>,
 }
@@ -463,6 +467,15 @@ fn plane_pass(
     chans: &[(usize, usize)],
 ) -> PlanePass {
     let (x0, x1, x) = flatten(x_taps);
+    let y_sum = y_taps
+        .iter()
+        .map(|t| {
+            let w = &t.weights;
+            w.len() >= 4
+                && w.len() - 2 <= MAX_U16_ROWS
+                && w[1..w.len() - 1].iter().all(|&x| x == w[1])
+        })
+        .collect();
     PlanePass {
         plane,
         bpp,
@@ -470,6 +483,7 @@ fn plane_pass(
         x1,
         x,
         y: y_taps,
+        y_sum,
         chans: chans.to_vec(),
     }
 }
@@ -739,11 +753,8 @@ impl Preprocessor {
                         &data[at..at + n]
                     };
                     let w = &ty.weights;
-                    let last = w.len().saturating_sub(1);
-                    if w.len() >= 4
-                        && last - 1 <= MAX_U16_ROWS
-                        && w[1..last].iter().all(|&x| x == w[1])
-                    {
+                    if pass.y_sum[oy] {
+                        let last = w.len() - 1;
                         // Area averaging: the interior rows share one weight. Sum them exactly
                         // in u16 (16 samples per instruction), then one multiply-add; the two
                         // partial edge rows as floats.
