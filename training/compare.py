@@ -20,19 +20,16 @@ import numpy as np
 from .calibrate import encode, score_pairs, sessions
 from .config import DATA_ROOT, SHARED
 from .preprocess import load_resized, read_list
-from .tum import _label, gate_pairs
+from .tum import label_gate_pairs
 
 
 def pair_set(root, out, name, seq, max_gap):
     lab = os.path.join(out, "labels")
     os.makedirs(lab, exist_ok=True)
     files = read_list(seq)
-    pcsv = os.path.join(lab, f"{name}_pairs_{max_gap}.csv")
     npz = os.path.join(lab, f"{name}_{max_gap}.npz")
     if not os.path.exists(npz):
-        with open(pcsv, "w") as f:
-            f.write("i,j\n" + "".join(f"{i},{j}\n" for i, j in gate_pairs(len(files), max_gap)))
-        P = _label(seq, ["--pairs", pcsv], os.path.join(lab, f"{name}_{max_gap}.csv"))
+        P = label_gate_pairs(seq, len(files), max_gap, os.path.join(lab, f"{name}_{max_gap}"))
         P = P[np.isfinite(P[:, 2])]
         np.savez(npz, frames=np.stack([load_resized(f) for f in files]), pairs=P)
     d = np.load(npz)

@@ -263,11 +263,13 @@ def main():
                   "val_homog_huber,val_homog_rmse,val_homog_mae,val_real_rmse,val_real_mae\n")
     t0 = time.time() - t_done
     budget = a.minutes * 60
+    # The learning rate follows the --minutes schedule; the run ends there or at --stop-minutes.
+    end = budget if a.stop_minutes is None else min(budget, a.stop_minutes * 60)
     run_loss = []
     while True:
         el = time.time() - t0
         frac = el / budget
-        if frac >= 1 or (a.stop_minutes is not None and el >= a.stop_minutes * 60):
+        if el >= end:
             break
         lr = a.lr * min(1.0, (step + 1) / a.warmup) * 0.5 * (1 + math.cos(math.pi * frac))
         for gr in opt.param_groups:
@@ -283,7 +285,7 @@ def main():
         opt.step()
         run_loss.append(huber(outs[-1].detach(), y).item())
         step += 1
-        last = time.time() - t0 >= (budget if a.stop_minutes is None else min(budget, a.stop_minutes * 60))
+        last = time.time() - t0 >= end
         if step % a.val_every == 0 or last:
             r = evaluate(model, sets)
             if frozen_bn:

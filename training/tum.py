@@ -65,6 +65,15 @@ def gate_pairs(n, horizon):
     return [(j + k, j) for j in range(n) for k in range(1, horizon + 1) if j + k < n]
 
 
+def label_gate_pairs(seq, n, horizon, stem):
+    """Teacher labels of `gate_pairs(n, horizon)` on `seq` (pair list `<stem>_pairs.csv`, labels
+    `<stem>.csv`): [P,5] i,j,tau,f_m,f_u."""
+    pcsv = f"{stem}_pairs.csv"
+    with open(pcsv, "w") as f:
+        f.write("i,j\n" + "".join(f"{i},{j}\n" for i, j in gate_pairs(n, horizon)))
+    return _label(seq, ["--pairs", pcsv], f"{stem}.csv")
+
+
 def build(root, horizon=45):
     cache = os.path.join(root, "cache")
     os.makedirs(cache, exist_ok=True)
@@ -82,10 +91,7 @@ def build(root, horizon=45):
                         os.path.join(root, "tum", "train_random.csv"))
             pairs = np.concatenate([p1, p2])
         else:
-            pcsv = os.path.join(root, "tum", f"{part}_gate_pairs.csv")
-            with open(pcsv, "w") as f:
-                f.write("i,j\n" + "".join(f"{i},{j}\n" for i, j in gate_pairs(len(files), horizon)))
-            pairs = _label(seq, ["--pairs", pcsv], os.path.join(root, "tum", f"{part}_gate.csv"))
+            pairs = label_gate_pairs(seq, len(files), horizon, os.path.join(root, "tum", f"{part}_gate"))
         pairs = pairs[np.isfinite(pairs[:, 2])]
         frames = np.stack([load_resized(f) for f in files])
         np.savez(out, frames=frames, pairs=pairs)
