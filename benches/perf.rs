@@ -255,7 +255,7 @@ fn section_mpdecimate(reps: usize) {
 }
 
 /// Median µs per frame of (fast `run`, reference `run_reference`), interleaved.
-fn preprocess_us(format: PixelFormat, w: u32, h: u32, reps: usize) -> (f64, f64) {
+fn preprocess_us(format: PixelFormat, w: u32, h: u32, out: (u32, u32), reps: usize) -> (f64, f64) {
     let (planes, strides) = frame_planes(format, w as usize, h as usize);
     let mut p: [&[u8]; 3] = [&[], &[], &[]];
     for (i, plane) in planes.iter().enumerate() {
@@ -269,8 +269,8 @@ fn preprocess_us(format: PixelFormat, w: u32, h: u32, reps: usize) -> (f64, f64)
         strides,
     };
     let spec = TensorSpec {
-        width: 256,
-        height: 256,
+        width: out.0,
+        height: out.1,
         resize: ResizeMode::ShortSideCrop,
         mean: [0.485, 0.456, 0.406],
         std: [0.229, 0.224, 0.225],
@@ -301,14 +301,23 @@ fn preprocess_us(format: PixelFormat, w: u32, h: u32, reps: usize) -> (f64, f64)
     (median(&a), median(&b))
 }
 
+/// Output sizes: the embedded `leangate-s`'s input (what the element does per frame with the
+/// default model), and a larger square input for bigger models.
+const PREPROCESS_OUT: [(u32, u32); 2] = [(160, 120), (256, 256)];
+
 fn section_preprocess(reps: usize) {
-    println!("\n## Preprocessing → 256x256 short-side-crop, one core, µs per frame (median of {reps}, interleaved): fast path (`run`) vs the previous float path (`run_reference`)");
-    println!("| format | size | fast µs | float reference µs | speed-up |");
-    println!("|---|---|---|---|---|");
-    for (w, h) in [(1920u32, 1080u32), (640, 480)] {
-        for f in PixelFormat::ALL {
-            let (a, b) = preprocess_us(f, w, h, reps);
-            println!("| {f:?} | {w}x{h} | {a:.0} | {b:.0} | {:.1}x |", b / a);
+    println!("\n## Preprocessing, short-side crop, one core, µs per frame (median of {reps}, interleaved): fast path (`run`) vs the previous float path (`run_reference`); 160x120 is the embedded model's input");
+    println!("| format | size | → tensor | fast µs | float reference µs | speed-up |");
+    println!("|---|---|---|---|---|---|");
+    for (ow, oh) in PREPROCESS_OUT {
+        for (w, h) in [(1920u32, 1080u32), (640, 480)] {
+            for f in PixelFormat::ALL {
+                let (a, b) = preprocess_us(f, w, h, (ow, oh), reps);
+                println!(
+                    "| {f:?} | {w}x{h} | {ow}x{oh} | {a:.0} | {b:.0} | {:.1}x |",
+                    b / a
+                );
+            }
         }
     }
 }
