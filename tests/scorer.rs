@@ -394,3 +394,60 @@ fn a_single_batching_stream_never_waits() {
         t.elapsed()
     );
 }
+
+/// When another session of a shared model cannot be created, a new scorer shares an existing
+/// one and says so in its warnings, instead of failing to start. The second load is made to
+/// fail by corrupting the split model's head file after the first load (the registry knows the
+/// model by its encoder file, which is unchanged, so the second scorer still looks for a
+/// session of the same model).
+#[test]
+fn a_failed_extra_session_falls_back_to_sharing_one_that_works() {
+    let dir = tempfile::tempdir().unwrap();
+    let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
+    for f in ["leangate-s-encoder.onnx", "leangate-s-head.onnx"] {
+        std::fs::copy(models.join(f), dir.path().join(f)).unwrap();
+    }
+    let source = ModelSource::File(dir.path().join("leangate-s-encoder.onnx"));
+    let opts = ScorerOptions {
+        execution_provider: ExecutionProvider::Cpu,
+        shared: true,
+        max_sessions: 2,
+        ..Default::default()
+    };
+    let mut first = Scorer::load(&source, &opts).unwrap();
+    assert!(first.warnings.is_empty(), "{:?}", first.warnings);
+    std::fs::write(
+        dir.path().join("leangate-s-head.onnx"),
+        b"not an onnx model",
+    )
+    .unwrap();
+    // With sharing off the broken head is a plain start error...
+    let err = Scorer::load(
+        &source,
+        &ScorerOptions {
+            shared: false,
+            ..opts.clone()
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("head"), "{err}");
+    // ...with sharing on, below the cap, the new scorer shares the session that works.
+    let mut second = Scorer::load(&source, &opts).unwrap();
+    assert!(second.shares_session_with(&first));
+    assert_eq!(second.warnings.len(), 1, "{:?}", second.warnings);
+    assert!(
+        second.warnings[0].contains("could not be created, sharing an existing one"),
+        "{:?}",
+        second.warnings
+    );
+    let len = first.info().spec.len();
+    let (a, b) = (stream_frames(len, 0, 2), stream_frames(len, 1, 2));
+    let ua = first.score(&a[0], &a[1]).unwrap();
+    let ub = second.score(&a[0], &a[1]).unwrap();
+    assert_eq!(ua, ub);
+    assert!(second.score(&b[0], &b[1]).unwrap().is_finite());
+    // With no working session left, the broken model is an error again.
+    drop((first, second));
+    assert!(Scorer::load(&source, &opts).is_err());
+}
