@@ -451,3 +451,40 @@ fn a_failed_extra_session_falls_back_to_sharing_one_that_works() {
     drop((first, second));
     assert!(Scorer::load(&source, &opts).is_err());
 }
+
+/// The embedded student's calibration (its knots, as `leangate.calibration` states them) covers
+/// the raw range 0..1 and is strictly increasing: every threshold inside its range makes a
+/// different cut of the network's ranking (a flat segment would make neighbouring thresholds
+/// keep the same frames).
+#[test]
+fn embedded_calibration_is_strictly_increasing() {
+    let s = Scorer::load(
+        &gstleangate::default_model(),
+        &ScorerOptions {
+            execution_provider: ExecutionProvider::Cpu,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let cal = s.info().calibration.clone().unwrap();
+    let knots: Vec<(f64, f64)> = cal
+        .split("raw->calibrated ")
+        .nth(1)
+        .unwrap_or_else(|| panic!("no knots in {cal:?}"))
+        .split([' ', ','])
+        .map_while(|tok| {
+            let (r, c) = tok.split_once(':')?;
+            Some((r.parse().ok()?, c.parse().ok()?))
+        })
+        .collect();
+    assert!(knots.len() >= 3, "{cal}");
+    assert_eq!(knots.first().unwrap().0, 0.0, "{cal}");
+    assert_eq!(knots.last().unwrap().0, 1.0, "{cal}");
+    for w in knots.windows(2) {
+        assert!(w[1].0 > w[0].0, "raw knots increase: {cal}");
+        assert!(
+            w[1].1 > w[0].1,
+            "calibrated values strictly increase: {cal}"
+        );
+    }
+}

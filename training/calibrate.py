@@ -6,8 +6,10 @@ exported ONNX models, so that `threshold` is tau_keep in the teacher's units (de
    frame as the reference against each of its next 45 frames; frames 415-559, see config.TUM_SPLIT),
    optionally plus held-out synthetic validation pairs (--synth N).
 2. Monotone piecewise-linear map f: knots at fixed raw values (--knots), f(u) = v0 + sum_k s_k *
-   clip(u - k_k, 0, k_{k+1} - k_k) with every slope s_k >= 0 (non-negative least squares), then
-   clipped to [0, 1]. Monotone, so the student's ranking is unchanged; only the scale moves.
+   clip(u - k_k, 0, k_{k+1} - k_k) with every slope s_k >= --min-slope (bounded least squares), then
+   clipped to [0, 1]. Strictly increasing (a segment the data would leave flat, e.g. raw scores
+   above the real pairs' range, keeps the minimum slope), so the student's ranking is unchanged and
+   every threshold inside the map's range selects a different cut; only the scale moves.
 3. The map is appended to the pair model and the head as ONNX ops after the sigmoid (Unsqueeze,
    Sub, Max, Min, MatMul, Add, Clip); the output is still `utility` [N]. Metadata:
    `leangate.threshold` = 0.5, `leangate.calibration` = the knots and what they were fitted on.
@@ -67,8 +69,8 @@ def basis(u, knots):
     return np.clip(u[:, None] - k[None, :-1], 0, np.diff(k)[None, :])
 
 
-def nnls_fit(u, t, knots, w=None, iters=3000):
-    """Least squares v0 + B s with s >= 0 (coordinate descent on the normal equations)."""
+def nnls_fit(u, t, knots, w=None, iters=3000, min_slope=0.0):
+    """Least squares v0 + B s with s >= min_slope (coordinate descent on the normal equations)."""
     B = np.concatenate([np.ones((len(u), 1)), basis(u, knots)], 1)
     w = np.ones(len(u)) if w is None else w
     A = B.T @ (B * w[:, None]) + 1e-9 * np.eye(B.shape[1])
@@ -80,7 +82,7 @@ def nnls_fit(u, t, knots, w=None, iters=3000):
             r = b[j] - A[j] @ x + A[j, j] * x[j]
             x[j] = r / A[j, j]
             if j > 0:
-                x[j] = max(x[j], 0.0)
+                x[j] = max(x[j], min_slope)
     return x[0], x[1:]
 
 
@@ -160,6 +162,9 @@ def main():
                     help="use the cal part's pairs up to this frame gap (the oracle keeps every ~12-15 frames)")
     ap.add_argument("--synth", type=int, default=3000, help="also fit on N held-out synthetic validation pairs (0: real only)")
     ap.add_argument("--synth-weight", type=float, default=0.5, help="weight of each synthetic pair in the fit")
+    ap.add_argument("--min-slope", type=float, default=0.05,
+                    help="least slope of every segment: keeps the map strictly increasing (0: plain NNLS, "
+                         "which may leave segments flat)")
     ap.add_argument("--json", default="", help="write the fit and its diagnostics here")
     a = ap.parse_args()
     out_dir = a.out_dir or a.models
@@ -186,7 +191,7 @@ def main():
         u, t = np.concatenate([u, us]), np.concatenate([t, ts])
         w = np.concatenate([w, np.full(len(us), a.synth_weight)])
         fitted_on += f" + {len(us)} held-out synthetic validation pairs (weight {a.synth_weight:g})"
-    v0, s = nnls_fit(u, t, knots, w)
+    v0, s = nnls_fit(u, t, knots, w, min_slope=a.min_slope)
     vals = knot_values(np.asarray(knots), v0, s)
     cal_u = apply(u, knots, v0, s)
     print(f"fit on {fitted_on}")
@@ -198,7 +203,8 @@ def main():
 
     desc = ("monotone piecewise-linear map of the sigmoid output, knots raw->calibrated "
             + " ".join(f"{k:g}:{v:.3f}" for k, v in zip(knots, vals))
-            + f", clipped to [0,1]; least squares to the exact teacher's tau on {fitted_on}")
+            + f", clipped to [0,1]; least squares (every slope >= {a.min_slope:g}) to the exact teacher's tau on "
+            + fitted_on)
     meta = {"leangate.threshold": f"{DEFAULT_THRESHOLD:.3f}", "leangate.calibration": desc}
     os.makedirs(out_dir, exist_ok=True)
     for n in names:
