@@ -24,7 +24,9 @@ def conv_bn(cin, cout, stride=1):
 
 
 class Encoder(nn.Module):
-    def __init__(self, width=(16, 32, 48, 96)):
+    """stride 16 (the shipped `s16`): 96 channels on an 8x10 grid; stride 8 (`s8`): 64 on 15x20."""
+
+    def __init__(self, width=(16, 32, 48, 96), stride=16):
         super().__init__()
         c1, c2, c3, c4 = width
         self.net = nn.Sequential(
@@ -32,7 +34,7 @@ class Encoder(nn.Module):
             conv_bn(c1, c2, 2),  # 30x40
             conv_bn(c2, c3, 2),  # 15x20
             conv_bn(c3, c3),
-            conv_bn(c3, c4, 2),  # 8x10
+            conv_bn(c3, c4, 2 if stride == 16 else 1),  # 8x10 (s16) or 15x20 (s8)
             conv_bn(c4, c4),
             nn.Conv2d(c4, c4, 1),
         )
@@ -43,16 +45,24 @@ class Encoder(nn.Module):
 
 
 class Head(nn.Module):
-    def __init__(self, c=96, grid=(8, 10), hidden=64):
+    def __init__(self, c=96, grid=(8, 10), hidden=64, reduce=False):
         super().__init__()
         self.gh, self.gw = grid
         n = self.gh * self.gw
         self.logit_scale = nn.Parameter(torch.tensor(2.3))  # exp -> temperature ~10
-        # read the cost volume from the current side (channels = reference cells) and the reference side
-        self.cur_net = nn.Sequential(nn.Conv2d(n + 2, hidden, 3, 1, 1), nn.ReLU(inplace=True),
+
+        # read the cost volume from the current side (channels = reference cells) and the reference side;
+        # `reduce` (the s8 grid's 300 cells) first maps the cells to `hidden` channels with a 1x1 conv
+        def side_net():
+            if reduce:
+                return nn.Sequential(nn.Conv2d(n + 2, hidden, 1), nn.ReLU(inplace=True),
+                                     nn.Conv2d(hidden, hidden, 3, 1, 1), nn.ReLU(inplace=True),
                                      nn.Conv2d(hidden, hidden, 3, 1, 1), nn.ReLU(inplace=True))
-        self.ref_net = nn.Sequential(nn.Conv2d(n + 2, hidden, 3, 1, 1), nn.ReLU(inplace=True),
-                                     nn.Conv2d(hidden, hidden, 3, 1, 1), nn.ReLU(inplace=True))
+            return nn.Sequential(nn.Conv2d(n + 2, hidden, 3, 1, 1), nn.ReLU(inplace=True),
+                                 nn.Conv2d(hidden, hidden, 3, 1, 1), nn.ReLU(inplace=True))
+
+        self.cur_net = side_net()
+        self.ref_net = side_net()
         self.ctx = nn.Sequential(nn.Linear(4 * hidden, 128), nn.ReLU(inplace=True), nn.Linear(128, 64), nn.ReLU(inplace=True))
         # iterative refinement of an 8-d latent (4 iterations)
         self.init = nn.Linear(64, LATENT)
@@ -98,11 +108,28 @@ class Head(nn.Module):
         return torch.sigmoid(logit).reshape(-1)
 
 
+ARCHS = ("s16", "s8")
+
+
 class LeanGateS(nn.Module):
-    def __init__(self):
+    def __init__(self, arch="s16"):
         super().__init__()
-        self.encoder = Encoder()
-        self.head = Head(self.encoder.out_channels)
+        if arch not in ARCHS:
+            raise ValueError(f"unknown architecture {arch!r} (one of {ARCHS})")
+        self.arch = arch
+        if arch == "s16":
+            self.encoder = Encoder()
+            self.head = Head(self.encoder.out_channels)
+        else:
+            self.encoder = Encoder(width=(16, 32, 48, 64), stride=8)
+            self.head = Head(self.encoder.out_channels, grid=(15, 20), reduce=True)
+
+    @staticmethod
+    def from_checkpoint(ck):
+        """The model a training checkpoint holds (checkpoints before `arch` existed are s16)."""
+        m = LeanGateS(ck.get("arch", "s16"))
+        m.load_state_dict(ck["model"])
+        return m
 
     def forward(self, reference, current, all_iters=False):
         f = self.encoder(torch.cat([reference, current], 0))

@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from .config import DATA_ROOT, MEAN, STD
-from .model import LeanGateS, count_flops, freeze_bn, load_onnx_weights
+from .model import ARCHS, LeanGateS, count_flops, freeze_bn, load_onnx_weights
 
 MEAN_T = torch.tensor(MEAN).view(1, 3, 1, 1)
 STD_T = torch.tensor(STD).view(1, 3, 1, 1)
@@ -187,6 +187,8 @@ def main():
     ap.add_argument("--warmup", type=int, default=200)
     ap.add_argument("--val-every", type=int, default=250)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--arch", default="s16", choices=ARCHS,
+                    help="s16: 8x10 feature grid (the shipped model); s8: 15x20 grid, 64 channels")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--init", default="", help="checkpoint to start from")
     ap.add_argument("--init-onnx", default="", help="encoder .onnx (its head beside it) to start from")
@@ -226,7 +228,7 @@ def main():
           f"homography pairs; val: {len(vidx)} synthetic pairs ({len(vsynth.frames)} sequences), "
           f"{len(vhom.y)} homography pairs", flush=True)
 
-    model = LeanGateS()
+    model = LeanGateS(a.arch)
     frozen_bn = False
     if a.init:
         ck0 = torch.load(a.init)
@@ -305,7 +307,7 @@ def main():
             score = vs["huber"] + 0.5 * vh["huber"] + vr["huber"]
             improved = score < best
             best = min(best, score)
-            ck = {"model": model.state_dict(), "step": step, "val": r, "frozen_bn": frozen_bn,
+            ck = {"model": model.state_dict(), "arch": model.arch, "step": step, "val": r, "frozen_bn": frozen_bn,
                   "opt": opt.state_dict(), "elapsed": time.time() - t0, "best": best}
             torch.save(ck, os.path.join(a.out, "last.pt.tmp"))
             os.replace(os.path.join(a.out, "last.pt.tmp"), os.path.join(a.out, "last.pt"))
