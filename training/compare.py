@@ -23,7 +23,7 @@ from .preprocess import load_resized, read_list
 from .tum import label_gate_pairs
 
 
-def pair_set(root, out, name, seq, max_gap):
+def pair_set(out, name, seq, max_gap):
     lab = os.path.join(out, "labels")
     os.makedirs(lab, exist_ok=True)
     files = read_list(seq)
@@ -51,7 +51,7 @@ def main():
         "tum cal": os.path.join(a.root, "tum", "cal"),
         "7scenes": os.path.join(SHARED, "7scenes_redkitchen_dev"),
     }
-    data = {k: pair_set(a.root, a.out, k.replace(" ", "_"), s, a.max_gap) for k, s in sets.items() if os.path.exists(s)}
+    data = {k: pair_set(a.out, k.replace(" ", "_"), s, a.max_gap) for k, s in sets.items() if os.path.exists(s)}
     res = {}
     for name, d in zip(names, dirs):
         enc, head, _ = sessions(d)

@@ -180,7 +180,7 @@ def main():
     ap.add_argument("--minutes", type=float, default=45)
     ap.add_argument("--stop-minutes", type=float, default=None,
                     help="end the run after this many minutes of the --minutes schedule (the learning rate "
-                         "follows the --minutes cosine; the shipped student is such a run)")
+                         "follows the --minutes cosine); --resume continues it later")
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--wd", type=float, default=1e-4)
