@@ -31,7 +31,7 @@ mod stats;
 
 pub use default_model::{source as default_model, NAME as DEFAULT_MODEL_NAME};
 pub use leangate::{
-    ExecutionProviderChoice, GateMode, LeanGate, FORCE_KEYFRAME_EVENT, RESET_EVENT,
+    ExecutionProviderChoice, GateMode, LeanGate, PrecisionChoice, FORCE_KEYFRAME_EVENT, RESET_EVENT,
 };
 pub use meta::{GateMeta, META_NAME};
 pub use policy::{Decision, Gate, GateConfig, Reason, Score};
@@ -41,8 +41,8 @@ pub use preprocess::{
 pub use remote::{Backend, RemoteError, RemoteOptions, RemoteScorer};
 pub use runtime::RuntimeError;
 pub use scorer::{
-    default_max_sessions, ExecutionProvider, ModelInfo, ModelSource, Scorer, ScorerError,
-    ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
+    default_max_sessions, ExecutionProvider, ModelInfo, ModelSource, Precision, Scorer,
+    ScorerError, ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
 };
 pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};
 

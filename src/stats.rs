@@ -33,6 +33,8 @@ pub struct StatsMessage {
     pub execution_provider: String,
     /// The model's name.
     pub model: String,
+    /// `model-precision`: the arithmetic of the graph that runs (`fp32`, `int8`).
+    pub model_precision: String,
     /// The threshold in force.
     pub threshold: f64,
     /// Remote scoring only (the `server` property set): the `server-*` fields.
@@ -80,6 +82,7 @@ impl StatsMessage {
             .field("interval-inference-p99-us", self.interval_inference_p99_us)
             .field("execution-provider", self.execution_provider.as_str())
             .field("model", self.model.as_str())
+            .field("model-precision", self.model_precision.as_str())
             .field("threshold", self.threshold)
             .field_if_some("server", self.server.as_ref().map(|v| v.server.as_str()))
             .field_if_some(
@@ -127,6 +130,7 @@ impl StatsMessage {
             interval_inference_p99_us: get(s, "interval-inference-p99-us")?,
             execution_provider: get(s, "execution-provider")?,
             model: get(s, "model")?,
+            model_precision: get(s, "model-precision")?,
             threshold: get(s, "threshold")?,
             server: if s.has_field("server") {
                 Some(ServerStats {
@@ -382,6 +386,7 @@ mod tests {
             interval_inference_p99_us: 900,
             execution_provider: "cpu".into(),
             model: "leangate-s".into(),
+            model_precision: "int8".into(),
             threshold: 0.5,
             server: None,
         };

@@ -456,6 +456,34 @@ fn no_model_property_runs_the_embedded_default() {
     );
     assert_eq!(s.get::<u64>("frames-in").unwrap(), 10);
     assert!(s.get::<u64>("frames-kept").unwrap() >= 1);
+    // `precision` auto: the INT8 build on the CPU provider.
+    assert_eq!(s.get::<&str>("execution-provider").unwrap(), "cpu");
+    assert_eq!(s.get::<&str>("model-precision").unwrap(), "int8");
+}
+
+#[test]
+fn precision_picks_the_embedded_build_and_leaves_model_files_as_they_are() {
+    let run = |props: &str| {
+        let msgs = run_pipeline(
+            &format!(
+                "videotestsrc num-buffers=5 pattern=ball ! video/x-raw,width=160,height=120 ! \
+                 leangate {props} ! fakesink"
+            ),
+            60,
+        );
+        assert!(error_text(&msgs).is_none(), "{:?}", error_text(&msgs));
+        let stats = element_message(&msgs, "leangate-stats");
+        let s = stats.last().unwrap();
+        assert_eq!(s.get::<u64>("frames-in").unwrap(), 5);
+        s.get::<String>("model-precision").unwrap()
+    };
+    assert_eq!(run("precision=fp32"), "fp32");
+    assert_eq!(run("precision=int8"), "int8");
+    assert_eq!(run("execution-provider=cpu precision=auto"), "int8");
+    assert_eq!(
+        run(&format!("model={} precision=int8", fixture("mad.onnx"))),
+        "fp32"
+    );
 }
 
 #[test]

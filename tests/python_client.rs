@@ -296,6 +296,7 @@ print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.recei
         "inference-p99-us",
         "execution-provider",
         "model",
+        "model-precision",
         "threshold",
     ] {
         assert!(keys.contains(&k), "{k} missing from {keys:?}");

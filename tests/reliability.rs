@@ -377,6 +377,7 @@ fn model_change_while_running_is_refused_and_the_property_stays() {
         "execution-provider",
         gstleangate::ExecutionProviderChoice::Cpu,
     );
+    e.set_property("precision", gstleangate::PrecisionChoice::Fp32);
     assert_eq!(
         e.property::<String>("model"),
         first,
@@ -386,14 +387,19 @@ fn model_change_while_running_is_refused_and_the_property_stays() {
         e.property::<gstleangate::ExecutionProviderChoice>("execution-provider"),
         gstleangate::ExecutionProviderChoice::Auto
     );
+    assert_eq!(
+        e.property::<gstleangate::PrecisionChoice>("precision"),
+        gstleangate::PrecisionChoice::Auto
+    );
     let warnings: Vec<String> = std::iter::from_fn(|| bus.pop())
         .filter_map(|m| match m.view() {
             gst::MessageView::Warning(w) => Some(w.error().to_string()),
             _ => None,
         })
         .collect();
-    assert_eq!(warnings.len(), 2, "{warnings:?}");
+    assert_eq!(warnings.len(), 3, "{warnings:?}");
     assert!(warnings[0].contains("`model` cannot change while the element runs"));
+    assert!(warnings[2].contains("`precision` cannot change while the element runs"));
     h.push(buffer(texture(W, H, 2), 33)).unwrap();
     drain(&mut h);
     assert_eq!(

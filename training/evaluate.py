@@ -2,7 +2,9 @@
 sequences, the calibration and test parts of tum_fr1_rpy and the whole sequence, 7-Scenes, EuRoC
 static, every cotracker clip and webcam_classroom; write the JSON reports and a Markdown summary.
 
-Usage: python -m training.evaluate [--model models/leangate-s.onnx] [--threshold T] [--out $DATA_ROOT/evals/new]
+Usage: python -m training.evaluate [--model models/leangate-s.onnx | --model embedded [--precision auto|fp32|int8]]
+                                   [--threshold T] [--out $DATA_ROOT/evals/new]
+       (--model embedded: the student compiled into the plugin, as the element runs it by default)
        (--threshold defaults to the model's leangate.threshold; the tum parts come from `gen_data --steps tum`)
 """
 import argparse
@@ -40,6 +42,8 @@ def main():
     ap.add_argument("--out", default=os.path.join(DATA_ROOT, "evals", "new"))
     ap.add_argument("--root", default=DATA_ROOT, help="where gen_data put eval/ and tum/")
     ap.add_argument("--threshold", type=float, default=None)
+    ap.add_argument("--precision", choices=("auto", "fp32", "int8"), default=None,
+                    help="the element's precision (which build of the embedded student runs)")
     ap.add_argument("--only", default="", help="comma-separated substrings: evaluate only matching sequences")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
@@ -52,7 +56,11 @@ def main():
             continue
         tag = name.replace(" ", "_").replace("(", "").replace(")", "").replace("[", "_").replace("]", "")
         js = os.path.join(a.out, tag + ".json")
-        cmd = [LEANGATE, "eval", "--sequence", s, "--model", a.model, "--json", js]
+        cmd = [LEANGATE, "eval", "--sequence", s, "--json", js]
+        if a.model != "embedded":
+            cmd += ["--model", a.model]
+        if a.precision:
+            cmd += ["--precision", a.precision]
         if a.threshold is not None:
             cmd += ["--threshold", str(a.threshold)]
         if name.startswith(("synth_", "7scenes", TUM_SEQ)):

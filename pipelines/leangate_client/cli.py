@@ -218,6 +218,7 @@ def main(
     if stats:
         stats_txt = (
             f" provider={_fmt(stats.execution_provider, '')} model={_fmt(stats.model, '')}"
+            f" precision={_fmt(stats.model_precision, '')}"
             f" threshold={_fmt(stats.threshold, '.4g')}"
             f" inference-mean-us={_fmt(stats.inference_mean_us, '.0f')}"
             f" inference-p99-us={_fmt(stats.inference_p99_us, '.0f')}"

@@ -29,6 +29,7 @@ _FIELDS = {
     "server-latency-p50-us": ("server_latency_p50_us", int, "guint64"),
     "server-latency-p99-us": ("server_latency_p99_us", int, "guint64"),
     "model": ("model", str, "gchararray"),
+    "model-precision": ("model_precision", str, "gchararray"),
     "threshold": ("threshold", float, "gdouble"),
 }
 _ATTR_TO_WIRE = {attr: wire for wire, (attr, _, _) in _FIELDS.items()}
@@ -66,6 +67,8 @@ class LeanGateStats(Mapping):
     server_latency_p50_us: Optional[int] = None
     server_latency_p99_us: Optional[int] = None
     model: Optional[str] = None
+    #: the arithmetic of the graph that runs: "fp32" or "int8" (the element's ``precision``)
+    model_precision: Optional[str] = None
     threshold: Optional[float] = None
     extra: Dict[str, Any] = dataclasses.field(default_factory=dict, hash=False)
 

@@ -8,7 +8,9 @@ use gst::subclass::prelude::*;
 use gst_base::prelude::*;
 use gst_base::subclass::prelude::*;
 
-use super::{ExecutionProviderChoice, GateMode, FORCE_KEYFRAME_EVENT, RESET_EVENT};
+use super::{
+    ExecutionProviderChoice, GateMode, PrecisionChoice, FORCE_KEYFRAME_EVENT, RESET_EVENT,
+};
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
 use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
@@ -35,6 +37,7 @@ const DEFAULT_WARMUP: u32 = 0;
 const DEFAULT_MAX_GAP: u32 = 0;
 const DEFAULT_MODE: GateMode = GateMode::Drop;
 const DEFAULT_EXECUTION_PROVIDER: ExecutionProviderChoice = ExecutionProviderChoice::Auto;
+const DEFAULT_PRECISION: PrecisionChoice = PrecisionChoice::Auto;
 const DEFAULT_DEVICE_ID: i32 = 0;
 const DEFAULT_THREADS: u32 = 0;
 const DEFAULT_ORT_SPINNING: bool = false;
@@ -59,6 +62,7 @@ struct Settings {
     max_gap: u32,
     mode: GateMode,
     execution_provider: ExecutionProviderChoice,
+    precision: PrecisionChoice,
     device_id: i32,
     threads: u32,
     ort_spinning: bool,
@@ -86,6 +90,7 @@ impl Default for Settings {
             max_gap: DEFAULT_MAX_GAP,
             mode: DEFAULT_MODE,
             execution_provider: DEFAULT_EXECUTION_PROVIDER,
+            precision: DEFAULT_PRECISION,
             device_id: DEFAULT_DEVICE_ID,
             threads: DEFAULT_THREADS,
             ort_spinning: DEFAULT_ORT_SPINNING,
@@ -237,6 +242,7 @@ impl LeanGate {
             interval_inference_p99_us: interval.percentile(99.0),
             execution_provider: state.scorer.provider().to_string(),
             model: state.scorer.info().name.clone(),
+            model_precision: state.scorer.info().precision.clone(),
             threshold: state.gate.config().threshold,
             server: state.scorer.server_stats(),
         }
@@ -453,6 +459,14 @@ impl ObjectImpl for LeanGate {
                 )
                 .mutable_ready()
                 .build(),
+                glib::ParamSpecEnum::builder_with_default("precision", DEFAULT_PRECISION)
+                    .nick("Precision")
+                    .blurb(
+                        "Which build of the embedded student runs: auto = INT8 on the CPU \
+                         provider, FP32 on GPU providers; fp32; int8. A model file runs as it is",
+                    )
+                    .mutable_ready()
+                    .build(),
                 glib::ParamSpecInt::builder("device-id")
                     .nick("GPU device id")
                     .blurb("CUDA/TensorRT device index")
@@ -594,6 +608,7 @@ impl ObjectImpl for LeanGate {
             match name {
                 "model"
                 | "execution-provider"
+                | "precision"
                 | "device-id"
                 | "threads"
                 | "ort-spinning"
@@ -644,6 +659,10 @@ impl ObjectImpl for LeanGate {
                 }
                 "execution-provider" => {
                     settings.execution_provider = value.get().expect("type checked upstream");
+                    None
+                }
+                "precision" => {
+                    settings.precision = value.get().expect("type checked upstream");
                     None
                 }
                 "device-id" => {
@@ -723,6 +742,7 @@ impl LeanGate {
             "max-gap" => settings.max_gap.to_value(),
             "mode" => settings.mode.to_value(),
             "execution-provider" => settings.execution_provider.to_value(),
+            "precision" => settings.precision.to_value(),
             "device-id" => settings.device_id.to_value(),
             "threads" => settings.threads.to_value(),
             "ort-spinning" => settings.ort_spinning.to_value(),
@@ -813,6 +833,7 @@ impl BaseTransformImpl for LeanGate {
             batch_size: settings.batch_size as usize,
             batch_timeout: std::time::Duration::from_micros(settings.batch_timeout_us),
             max_sessions: settings.max_sessions as usize,
+            precision: settings.precision.into(),
         };
         let scorer = Scorer::load(&source, &opts).map_err(|e| {
             release();

@@ -55,6 +55,31 @@ impl From<ExecutionProviderChoice> for crate::scorer::ExecutionProvider {
     }
 }
 
+/// `precision` property: which build of the embedded student runs.
+#[derive(Debug, Eq, PartialEq, Ord, PartialOrd, Hash, Clone, Copy, glib::Enum, Default)]
+#[repr(u32)]
+#[enum_type(name = "GstLeanGatePrecision")]
+pub enum PrecisionChoice {
+    #[default]
+    #[enum_value(name = "Auto: the INT8 build on the CPU, FP32 on GPUs", nick = "auto")]
+    Auto = 0,
+    #[enum_value(name = "FP32", nick = "fp32")]
+    Fp32 = 1,
+    #[enum_value(name = "INT8 (convolutions in 8-bit integers)", nick = "int8")]
+    Int8 = 2,
+}
+
+impl From<PrecisionChoice> for crate::scorer::Precision {
+    fn from(c: PrecisionChoice) -> Self {
+        use crate::scorer::Precision as P;
+        match c {
+            PrecisionChoice::Auto => P::Auto,
+            PrecisionChoice::Fp32 => P::Fp32,
+            PrecisionChoice::Int8 => P::Int8,
+        }
+    }
+}
+
 glib::wrapper! {
     pub struct LeanGate(ObjectSubclass<imp::LeanGate>) @extends gst_base::BaseTransform, gst::Element, gst::Object;
 }
@@ -67,6 +92,7 @@ pub const RESET_EVENT: &str = "leangate-reset";
 pub fn register(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     GateMode::static_type().mark_as_plugin_api(gst::PluginAPIFlags::empty());
     ExecutionProviderChoice::static_type().mark_as_plugin_api(gst::PluginAPIFlags::empty());
+    PrecisionChoice::static_type().mark_as_plugin_api(gst::PluginAPIFlags::empty());
     gst::Element::register(
         Some(plugin),
         "leangate",

@@ -407,6 +407,7 @@ pub(super) fn read_metadata(
         },
         threshold,
         calibration: get("leangate.calibration"),
+        precision: get("leangate.precision").unwrap_or_else(|| "fp32".to_string()),
     })
 }
 

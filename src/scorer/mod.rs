@@ -63,15 +63,44 @@ impl ExecutionProvider {
     }
 }
 
+/// Which build of the embedded student to run (`precision` property). A model file runs as it is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum Precision {
+    /// INT8 on the CPU provider (measured: the same keep decisions at 1.7x the speed), FP32 on
+    /// GPU providers.
+    #[default]
+    Auto,
+    Fp32,
+    Int8,
+}
+
+impl Precision {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Precision::Auto => "auto",
+            Precision::Fp32 => "fp32",
+            Precision::Int8 => "int8",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Precision> {
+        [Precision::Auto, Precision::Fp32, Precision::Int8]
+            .into_iter()
+            .find(|p| p.as_str() == s)
+    }
+}
+
 /// Where the model comes from.
 #[derive(Debug, Clone)]
 pub enum ModelSource {
     File(PathBuf),
-    /// Bytes compiled into the binary; `head` is the second half of a split model.
+    /// Bytes compiled into the binary; `head` is the second half of a split model; `int8` an
+    /// INT8 build of the same split model (encoder, head), chosen by [`ScorerOptions::precision`].
     Memory {
         name: String,
         bytes: &'static [u8],
         head: Option<&'static [u8]>,
+        int8: Option<(&'static [u8], &'static [u8])>,
     },
 }
 
@@ -113,6 +142,9 @@ pub struct ScorerOptions {
     /// concurrent streams use every core; on a GPU one session (with batching) is what pays.
     /// 0 = [`default_max_sessions`].
     pub max_sessions: usize,
+    /// Which build of an embedded model with an INT8 variant to run (ignored for model files,
+    /// with a warning when not `Auto`).
+    pub precision: Precision,
 }
 
 impl ScorerOptions {
@@ -189,6 +221,8 @@ pub struct ModelInfo {
     /// `leangate.calibration`: how the model's utility was calibrated to the teacher's units
     /// (informational; the calibration itself is part of the graph).
     pub calibration: Option<String>,
+    /// `leangate.precision` (`fp32` when absent): the arithmetic of the graph that runs.
+    pub precision: String,
 }
 
 /// The two model forms, sessions only (shareable between streams).
@@ -230,6 +264,7 @@ struct ModelKey {
     device_id: i32,
     threads: usize,
     spinning: bool,
+    precision: Precision,
 }
 
 /// Per key, the loaded instances of the model (at most `max_sessions`).
@@ -255,11 +290,17 @@ fn identity(source: &ModelSource) -> Option<String> {
                 .unwrap_or(0);
             Some(format!("file:{}:{}:{mtime}", canon.display(), md.len()))
         }
-        ModelSource::Memory { name, bytes, head } => Some(format!(
-            "memory:{name}:{:p}:{}:{:?}",
+        ModelSource::Memory {
+            name,
+            bytes,
+            head,
+            int8,
+        } => Some(format!(
+            "memory:{name}:{:p}:{}:{:?}:{:?}",
             bytes.as_ptr(),
             bytes.len(),
-            head.map(|h| (h.as_ptr(), h.len()))
+            head.map(|h| (h.as_ptr(), h.len())),
+            int8.map(|(e, h)| (e.as_ptr(), e.len(), h.as_ptr(), h.len()))
         )),
     }
 }
@@ -336,6 +377,7 @@ impl Scorer {
                         device_id: opts.device_id,
                         threads: opts.effective_threads(),
                         spinning: opts.spinning,
+                        precision: opts.precision,
                     };
                     // Held while loading: a second stream starting at the same time waits for
                     // the first's model instead of loading its own.
@@ -393,6 +435,14 @@ impl Scorer {
         }
         let mut warnings = model.warnings.clone();
         warnings.extend(fallback);
+        if matches!(source, ModelSource::File(_)) && opts.precision != Precision::Auto {
+            warnings.push(format!(
+                "precision `{}` applies to the embedded student only; {} runs as it is ({})",
+                opts.precision.as_str(),
+                source.describe(),
+                model.info.precision
+            ));
+        }
         Ok(Scorer {
             warnings,
             model,
@@ -408,22 +458,42 @@ impl Scorer {
     /// Load, check and dry-run a model (its sessions, unshared).
     fn load_model(source: &ModelSource, opts: &ScorerOptions) -> Result<Model, ScorerError> {
         let model = source.describe();
-        let input = match source {
-            ModelSource::File(p) => {
-                session::check_model_file(p)?;
-                Input::File(p)
-            }
-            ModelSource::Memory { bytes, .. } => Input::Memory(bytes),
-        };
+        if let ModelSource::File(p) = source {
+            session::check_model_file(p)?;
+        }
         let (env, _) = runtime::environment()?;
 
         let mut warnings = Vec::new();
         let mut last_err = None;
         for &provider in session::provider_order(opts.execution_provider) {
+            // The graph for this provider: an embedded model's INT8 build runs on the CPU
+            // (precision auto) or wherever it is asked for (int8).
+            let (input, embedded_head) = match source {
+                ModelSource::File(p) => (Input::File(p), None),
+                ModelSource::Memory {
+                    bytes, head, int8, ..
+                } => match int8 {
+                    Some((e, h))
+                        if opts.precision == Precision::Int8
+                            || (opts.precision == Precision::Auto
+                                && provider == ExecutionProvider::Cpu) =>
+                    {
+                        (Input::Memory(e), Some(*h))
+                    }
+                    _ => (Input::Memory(bytes), *head),
+                },
+            };
             match build_session(&env, input, provider, opts) {
                 Ok(session) => {
-                    let (kind, info) =
-                        Self::assemble(source, &env, session, provider, opts, &model)?;
+                    let (kind, info) = Self::assemble(
+                        source,
+                        embedded_head,
+                        &env,
+                        session,
+                        provider,
+                        opts,
+                        &model,
+                    )?;
                     let m = Arc::new(Model {
                         kind,
                         info,
@@ -467,8 +537,10 @@ impl Scorer {
     }
 
     /// Check the graph(s) against the contract; for a split model, load and check its head.
+    #[allow(clippy::too_many_arguments)]
     fn assemble(
         source: &ModelSource,
+        embedded_head: Option<&'static [u8]>,
         env: &ort::environment::Environment,
         session: Session,
         provider: ExecutionProvider,
@@ -483,22 +555,18 @@ impl Scorer {
             "encoder" => {
                 let (info, features) = contract::validate_encoder(&session, model)?;
                 let (head_name, head_path);
-                let head_input = match source {
-                    ModelSource::Memory {
-                        name,
-                        head: Some(h),
-                        ..
-                    } => {
+                let head_input = match (source, embedded_head) {
+                    (ModelSource::Memory { name, .. }, Some(h)) => {
                         head_name = format!("embedded model `{name}` (head)");
                         Input::Memory(h)
                     }
-                    ModelSource::Memory { .. } => {
+                    (ModelSource::Memory { .. }, None) => {
                         return Err(ScorerError::Contract {
                             model: model.to_string(),
                             reason: "an embedded split encoder without its head".into(),
                         })
                     }
-                    ModelSource::File(p) => {
+                    (ModelSource::File(p), _) => {
                         head_path = contract::head_path(p, &session, model)?;
                         session::check_model_file(&head_path)?;
                         head_name = format!("`{}`", head_path.display());

@@ -7,13 +7,14 @@ use std::sync::Once;
 use gst::prelude::*;
 
 /// Every property the issue asks the element to have.
-pub const PROPERTIES: [&str; 11] = [
+pub const PROPERTIES: [&str; 12] = [
     "model",
     "threshold",
     "warmup",
     "max-gap",
     "mode",
     "execution-provider",
+    "precision",
     "device-id",
     "threads",
     "stats-interval",

@@ -120,6 +120,10 @@ enum Command {
         /// LeanGate model (.onnx, pair model or split encoder); default: the embedded leangate-s.
         #[arg(long)]
         model: Option<PathBuf>,
+        /// The element's `precision`: which build of the embedded student runs (auto: INT8 on
+        /// the CPU; fp32; int8). Default: the element's default, auto.
+        #[arg(long, value_parser = ["auto", "fp32", "int8"])]
+        precision: Option<String>,
         /// tau_keep (default: the model's leangate.threshold, else 0.5).
         #[arg(long)]
         threshold: Option<f64>,
@@ -314,6 +318,7 @@ fn run(cli: Cli) -> Res {
         Command::Eval {
             sequence,
             model,
+            precision,
             threshold,
             json,
             plot,
@@ -331,7 +336,10 @@ fn run(cli: Cli) -> Res {
             sfm_max_features,
         } => eval_cmd(
             &sequence,
-            model.as_deref(),
+            eval::GateModel {
+                path: model.as_deref(),
+                precision: precision.as_deref(),
+            },
             threshold,
             EvalOutputs {
                 json,
@@ -369,7 +377,7 @@ struct EvalOutputs {
 
 fn eval_cmd(
     sequence: &Path,
-    model: Option<&Path>,
+    model: eval::GateModel<'_>,
     threshold: Option<f64>,
     out: EvalOutputs,
     cfg: TeacherConfig,
@@ -452,8 +460,8 @@ fn eval_cmd(
 
 fn print_summary(r: &eval::EvalReport) {
     println!(
-        "{}: {} frames, model {} ({}), threshold {:.3}",
-        r.sequence, r.frames, r.model, r.execution_provider, r.threshold
+        "{}: {} frames, model {} ({}, {}), threshold {:.3}",
+        r.sequence, r.frames, r.model, r.model_precision, r.execution_provider, r.threshold
     );
     println!(
         "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7}",

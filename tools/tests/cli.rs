@@ -121,6 +121,7 @@ fn synth_label_eval_end_to_end() {
     assert_eq!(v["threshold"], 0.05);
     assert_eq!(v["model"], "fixture-mad", "the model the element ran");
     assert_eq!(v["execution_provider"], "cpu");
+    assert_eq!(v["model_precision"], "fp32", "a model file runs as it is");
     let oracle = &v["policies"]["oracle"];
     assert_eq!(oracle["overdue_drops"], 0);
     assert_eq!(oracle["utility_mae"], 0.0);
@@ -269,16 +270,20 @@ fn embedded_student_drops_a_static_camera() {
     let Some(seq) = shared_data("euroc_v101_static") else {
         return;
     };
-    let v = eval_json(&seq, &[]);
-    assert_eq!(
-        v["frames"], 95,
-        "every colour frame is gated, with or without a pose"
-    );
-    let ratio = v["policies"]["model"]["keep_ratio"].as_f64().unwrap();
-    assert!(
-        ratio <= 0.05,
-        "a static camera must lose at least 95% of its frames: kept {ratio}"
-    );
+    // Both builds of the embedded student: INT8 (the default on the CPU) and FP32.
+    for (args, precision) in [(&[][..], "int8"), (&["--precision", "fp32"][..], "fp32")] {
+        let v = eval_json(&seq, args);
+        assert_eq!(v["model_precision"], precision);
+        assert_eq!(
+            v["frames"], 95,
+            "every colour frame is gated, with or without a pose"
+        );
+        let ratio = v["policies"]["model"]["keep_ratio"].as_f64().unwrap();
+        assert!(
+            ratio <= 0.05,
+            "{precision}: a static camera must lose at least 95% of its frames: kept {ratio}"
+        );
+    }
 }
 
 #[test]

@@ -39,7 +39,7 @@ pub use baselines::{
     oracle_gate, pixel_diff_for_budget, pixel_diff_gate, stride_for_budget, stride_gate,
 };
 pub use judge::{judge, PolicyReport, TeacherCache};
-pub use model_run::{init_gstreamer, run_model, ModelRun};
+pub use model_run::{init_gstreamer, run_model, GateModel, ModelRun};
 pub use motion::{motion_for_budget, motion_gate};
 pub use report::{contact_sheet, plot, plot_sweep};
 
@@ -145,6 +145,8 @@ pub struct EvalReport {
     /// The model the element ran (its `leangate.name`) and the execution provider, from the
     /// element's `leangate-stats` message.
     pub model: String,
+    /// `fp32` or `int8` (the element's `precision`; the embedded student runs INT8 on the CPU).
+    pub model_precision: String,
     pub execution_provider: String,
     pub policies: serde_json::Map<String, serde_json::Value>,
     /// Equal-budget curves (`--sweep`).
@@ -172,7 +174,7 @@ pub struct PlotData {
 /// Run every policy and judge it. `progress(stage, done, total)`.
 pub fn evaluate(
     path: &Path,
-    model: Option<&Path>,
+    model: GateModel<'_>,
     threshold: Option<f64>,
     teacher_cfg: &crate::teacher::TeacherConfig,
     mut progress: impl FnMut(&str, usize, usize),
@@ -260,6 +262,7 @@ pub fn evaluate(
             frames: n,
             threshold: t,
             model: run.model_name.clone(),
+            model_precision: run.model_precision.clone(),
             execution_provider: run.provider.clone(),
             policies,
             sweep: None,
@@ -295,7 +298,7 @@ pub struct SweepPoint {
 /// the model's budget. Needs depth and poses (the teacher judges every point).
 pub fn sweep(
     path: &Path,
-    model: Option<&Path>,
+    model: GateModel<'_>,
     thresholds: &[f64],
     teacher_cfg: &crate::teacher::TeacherConfig,
     mut progress: impl FnMut(&str, usize, usize),

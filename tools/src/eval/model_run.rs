@@ -24,6 +24,8 @@ pub struct ModelRun {
     pub threshold: f64,
     pub provider: String,
     pub model_name: String,
+    /// `model-precision` of the element's stats (`fp32`, `int8`).
+    pub model_precision: String,
 }
 
 impl ModelRun {
@@ -101,11 +103,19 @@ fn grey(rgb: &image::RgbImage) -> Vec<u8> {
         .collect()
 }
 
-/// Run the real element in annotate mode over the source, with `model` (None: the embedded
-/// default). `progress(done)` is called per frame.
+/// The model the element runs: `path` (None: the embedded default) and its `precision`
+/// property (None: the element's default, auto).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct GateModel<'a> {
+    pub path: Option<&'a Path>,
+    pub precision: Option<&'a str>,
+}
+
+/// Run the real element in annotate mode over the source, with `model`. `progress(done)` is
+/// called per frame.
 pub fn run_model(
     source: &Source,
-    model: Option<&Path>,
+    model: GateModel<'_>,
     threshold: Option<f64>,
     mut progress: impl FnMut(usize),
 ) -> Result<ModelRun, EvalError> {
@@ -113,8 +123,20 @@ pub fn run_model(
     let gate = gst::ElementFactory::make("leangate")
         .build()
         .map_err(err("creating leangate"))?;
-    if let Some(m) = model {
+    if let Some(m) = model.path {
         gate.set_property("model", m.display().to_string());
+    }
+    if let Some(p) = model.precision {
+        let known = gate
+            .find_property("precision")
+            .and_then(|ps| ps.downcast::<gst::glib::ParamSpecEnum>().ok())
+            .is_some_and(|ps| ps.enum_class().value_by_nick(p).is_some());
+        if !known {
+            return Err(EvalError(format!(
+                "precision `{p}` is not one of auto, fp32, int8"
+            )));
+        }
+        gate.set_property_from_str("precision", p);
     }
     gate.set_property_from_str("mode", "annotate");
     if let Some(t) = threshold {
@@ -231,6 +253,7 @@ pub fn run_model(
     let mut stats_threshold = None;
     let mut provider = String::new();
     let mut name = String::new();
+    let mut precision = String::new();
     while let Some(msg) = bus.pop() {
         match msg.view() {
             gst::MessageView::Error(e) if bus_err.is_none() => {
@@ -248,6 +271,7 @@ pub fn run_model(
                     stats_threshold = Some(stats.threshold);
                     provider = stats.execution_provider;
                     name = stats.model;
+                    precision = stats.model_precision;
                 }
             }
             _ => {}
@@ -272,6 +296,7 @@ pub fn run_model(
         kept_thumbs,
         provider,
         model_name: name,
+        model_precision: precision,
     })
 }
 

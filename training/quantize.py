@@ -1,0 +1,157 @@
+"""Quantize the calibrated split student to INT8 for the CPU: the student's convolutions (encoder
+and head) run in 8-bit integers, everything else in float32.
+
+Static quantization with ONNX Runtime (`quantize_static`, QDQ format): weights int8 per output
+channel with reduce_range (7 bits, so that x86 CPUs without VNNI, whose u8*s8 multiply-add
+saturates at 16 bits, compute the same result as those with it), activations uint8 with min/max
+ranges observed on training data only:
+  encoder: --frames frames (tum_fr1_rpy's training part, training synthetic sequences, training
+           photos), normalised as the element does;
+  head:    the quantized encoder's features of --pairs training pairs (tum_fr1_rpy training pairs and
+           synthetic training pairs), so the head is calibrated on what it will receive.
+Only Conv nodes are quantized (--ops): the cost volume, the reductions, the small fully connected
+refinement and the calibration map stay float32.
+
+Writes <out-dir>/leangate-s-int8-encoder.onnx and leangate-s-int8-head.onnx with the float model's
+leangate.* metadata, leangate.head pointing at the int8 head and leangate.precision = int8, then
+reports the utility difference to the float student on tum_fr1_rpy's calibration part and
+7-Scenes pairs (never used to quantize).
+
+Usage: python -m training.quantize [--models models] [--out-dir models]
+"""
+import argparse
+import glob
+import os
+import tempfile
+
+import numpy as np
+import onnx
+
+from .config import DATA_ROOT, MODELS_DIR, NAME
+from .preprocess import normalise
+
+
+def metadata(path):
+    return {p.key: p.value for p in onnx.load(path).metadata_props}
+
+
+def set_metadata(path, meta):
+    m = onnx.load(path)
+    del m.metadata_props[:]
+    for k, v in meta.items():
+        m.metadata_props.add(key=k, value=v)
+    onnx.checker.check_model(m)
+    onnx.save(m, path)
+
+
+def quantize(src, dst, batches, ops):
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    class Reader(CalibrationDataReader):
+        def __init__(self):
+            self.it = iter(batches)
+
+        def get_next(self):
+            return next(self.it, None)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        pre = os.path.join(tmp, "pre.onnx")
+        quant_pre_process(src, pre)
+        quantize_static(pre, dst, Reader(), quant_format=QuantFormat.QDQ, activation_type=QuantType.QUInt8,
+                        weight_type=QuantType.QInt8, per_channel=True, reduce_range=True, op_types_to_quantize=ops)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--models", default=MODELS_DIR, help="directory of the calibrated float leangate-s-*.onnx")
+    ap.add_argument("--out-dir", default=MODELS_DIR)
+    ap.add_argument("--data", default=os.path.join(DATA_ROOT, "cache"))
+    ap.add_argument("--frames", type=int, default=256)
+    ap.add_argument("--pairs", type=int, default=512)
+    ap.add_argument("--ops", default="Conv")
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args()
+    import onnxruntime as ort
+
+    rng = np.random.default_rng(a.seed)
+    ops = a.ops.split(",")
+    enc_f = os.path.join(a.models, f"{NAME}-encoder.onnx")
+    head_f = os.path.join(a.models, f"{NAME}-head.onnx")
+    enc_q = os.path.join(a.out_dir, f"{NAME}-int8-encoder.onnx")
+    head_q = os.path.join(a.out_dir, f"{NAME}-int8-head.onnx")
+    meta = metadata(enc_f)
+    if "leangate.calibration" not in meta:
+        raise SystemExit(f"{enc_f} is not calibrated: quantize the calibrated student")
+    if meta.get("leangate.precision", "fp32") != "fp32":
+        raise SystemExit(f"{enc_f} is already quantized")
+    os.makedirs(a.out_dir, exist_ok=True)
+
+    # training data only: tum_fr1_rpy's training part, synthetic training sequences, training photos
+    tum = np.load(os.path.join(a.data, "tum_train.npz"))
+    synth = [np.load(f) for f in sorted(glob.glob(os.path.join(a.data, "train", "*.npz")))]
+    homog = np.load(os.path.join(a.data, "homog_train.npz"))["ref"]
+    n_t, n_h = a.frames * 3 // 8, a.frames // 4
+    n_s = a.frames - n_t - n_h
+    picks = [tum["frames"][rng.choice(len(tum["frames"]), n_t, replace=False)], homog[rng.choice(len(homog), n_h, replace=False)]]
+    for k in rng.choice(len(synth), n_s):
+        fr = synth[k]["frames"]
+        picks.append(fr[rng.integers(len(fr))][None])
+    frames = normalise(np.concatenate(picks))
+    quantize(enc_f, enc_q, [{"image": frames[k:k + 16]} for k in range(0, len(frames), 16)], ops)
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 2
+    sess = lambda p: ort.InferenceSession(p, so, providers=["CPUExecutionProvider"])
+    encq = sess(enc_q)
+    feats = lambda fr: np.concatenate([encq.run(None, {"image": normalise(fr[k:k + 64])})[0] for k in range(0, len(fr), 64)])
+    batches = []
+    Ft = feats(tum["frames"])
+    P = tum["pairs"][rng.choice(len(tum["pairs"]), a.pairs // 2, replace=False)]
+    cur, ref = P[:, 0].astype(int), P[:, 1].astype(int)
+    for k in range(0, len(P), 16):
+        batches.append({"reference_features": Ft[ref[k:k + 16]], "current_features": Ft[cur[k:k + 16]]})
+    for k in rng.choice(len(synth), (a.pairs - a.pairs // 2) // 16):
+        d = synth[k]
+        P = d["pairs"][rng.choice(len(d["pairs"]), 16, replace=False)]
+        idx = np.unique(np.concatenate([P[:, 0], P[:, 1]]).astype(int))
+        Fs = dict(zip(idx, feats(d["frames"][idx])))
+        batches.append({"reference_features": np.stack([Fs[int(j)] for j in P[:, 1]]),
+                        "current_features": np.stack([Fs[int(i)] for i in P[:, 0]])})
+    quantize(head_f, head_q, batches, ops)
+
+    qmeta = {**meta, "leangate.precision": "int8", "leangate.head": os.path.basename(head_q),
+             "leangate.quantization": (f"ONNX Runtime static QDQ: {'+'.join(ops)} int8 weights per channel (7-bit range), "
+                                       f"uint8 activations, min/max over {len(frames)} training frames and "
+                                       f"{sum(len(b['current_features']) for b in batches)} training pairs")}
+    set_metadata(enc_q, {**qmeta, "leangate.kind": "encoder"})
+    hmeta = metadata(head_f)
+    set_metadata(head_q, {**hmeta, "leangate.precision": "int8", "leangate.quantization": qmeta["leangate.quantization"]})
+
+    # against the float student, on pairs never used above
+    from .compare import pair_set
+    from .config import SHARED
+    encf, headf, encq2, headq = sess(enc_f), sess(head_f), sess(enc_q), sess(head_q)
+    for name, seq in (("tum cal", os.path.join(DATA_ROOT, "tum", "cal")),
+                      ("7scenes", os.path.join(SHARED, "7scenes_redkitchen_dev"))):
+        if not os.path.exists(seq):
+            continue
+        fr, P = pair_set(os.path.join(DATA_ROOT, "evals", "compare"), name.replace(" ", "_"), seq, 24)
+        x = normalise(fr)
+        u = {}
+        for tag, e, h in (("fp32", encf, headf), ("int8", encq2, headq)):
+            F = np.concatenate([e.run(None, {"image": x[k:k + 64]})[0] for k in range(0, len(x), 64)])
+            u[tag] = np.concatenate([h.run(None, {"reference_features": F[P[k:k + 256, 1].astype(int)],
+                                                  "current_features": F[P[k:k + 256, 0].astype(int)]})[0].reshape(-1)
+                                     for k in range(0, len(P), 256)])
+        d = np.abs(u["int8"] - u["fp32"])
+        t = P[:, 2]
+        rm = lambda v: float(np.sqrt(np.mean((v - t) ** 2)))
+        print(f"{name}, {len(t)} pairs: |int8 - fp32| mean {d.mean():.4f}, p99 {np.quantile(d, 0.99):.4f}, max {d.max():.4f}; "
+              f"RMSE to the teacher fp32 {rm(u['fp32']):.4f}, int8 {rm(u['int8']):.4f}")
+    for p in (enc_q, head_q):
+        print(f"{p}: {os.path.getsize(p) / 1e6:.2f} MB")
+
+
+if __name__ == "__main__":
+    main()
