@@ -150,7 +150,9 @@ fn against_the_student_on_a_v2_server() {
 
 fn split_model_remote_matches_local_with_one_encoder_request_per_frame(server: &V2Server) {
     let frames = clip(80);
-    let (local, _) = gate("", &frames);
+    // The server runs the FP32 encoder, so the element runs the FP32 head here (precision auto
+    // with a server): the local reference is the FP32 build.
+    let (local, _) = gate("precision=fp32", &frames);
     let before = server.count("leangate-s-encoder");
     let head_before = server.count("leangate-s-head");
     init();
@@ -188,6 +190,7 @@ fn split_model_remote_matches_local_with_one_encoder_request_per_frame(server: &
     assert_eq!(srv.failed_requests, 0);
     assert!(srv.latency_p50_us > 0 && srv.latency_p99_us >= srv.latency_p50_us);
     assert_eq!(s.execution_provider, "remote");
+    assert_eq!(s.model_precision, "fp32");
     eprintln!(
         "server latency p50 {} us, p99 {} us",
         srv.latency_p50_us, srv.latency_p99_us

@@ -733,6 +733,14 @@ impl ObjectImpl for LeanGate {
     }
 }
 
+/// Whether frames are scored on a server (`server` set).
+fn has_server(settings: &Settings) -> bool {
+    settings
+        .server
+        .as_deref()
+        .is_some_and(|s| !s.trim().is_empty())
+}
+
 impl LeanGate {
     fn property_value(&self, settings: &Settings, name: &str) -> glib::Value {
         match name {
@@ -833,7 +841,12 @@ impl BaseTransformImpl for LeanGate {
             batch_size: settings.batch_size as usize,
             batch_timeout: std::time::Duration::from_micros(settings.batch_timeout_us),
             max_sessions: settings.max_sessions as usize,
-            precision: settings.precision.into(),
+            // On a server (`server`) the encoder is the FP32 one of models/triton: the head
+            // that runs here is then FP32 too, unless INT8 is asked for explicitly.
+            precision: match settings.precision {
+                PrecisionChoice::Auto if has_server(&settings) => crate::scorer::Precision::Fp32,
+                p => p.into(),
+            },
         };
         let scorer = Scorer::load(&source, &opts).map_err(|e| {
             release();
