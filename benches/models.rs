@@ -1,7 +1,8 @@
-//! The default student in its two forms, side by side in one run: the pair model
+//! The default student in its forms, side by side in one run: the pair model
 //! (`models/leangate-s.onnx`: both images through the encoder for every scored frame) against the
 //! split model embedded in the plugin (encoder once per frame, the reference keyframe's features
-//! cached until the next keep).
+//! cached until the next keep), in its FP32 build and its INT8 build (`precision`; INT8 is what
+//! the element runs on the CPU by default).
 //!
 //!     cargo bench --bench models
 //!
@@ -13,18 +14,19 @@
 use std::time::Instant;
 
 use gst::prelude::*;
-use gstleangate::{ExecutionProvider, ModelSource, Scorer, ScorerOptions};
+use gstleangate::{ExecutionProvider, ModelSource, Precision, Scorer, ScorerOptions};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
 }
 
-fn scorer(source: ModelSource) -> Scorer {
+fn scorer(source: ModelSource, precision: Precision) -> Scorer {
     Scorer::load(
         &source,
         &ScorerOptions {
             execution_provider: ExecutionProvider::Cpu,
+            precision,
             ..Default::default()
         },
     )
@@ -79,32 +81,35 @@ fn main() {
     gst::init().unwrap();
     gstleangate::plugin_register_static().unwrap();
     let pair_path = concat!(env!("CARGO_MANIFEST_DIR"), "/models/leangate-s.onnx");
-    let mut pair = scorer(ModelSource::File(pair_path.into()));
-    let mut split = scorer(gstleangate::default_model());
+    let mut pair = scorer(ModelSource::File(pair_path.into()), Precision::Auto);
+    let mut fp32 = scorer(gstleangate::default_model(), Precision::Fp32);
+    let mut int8 = scorer(gstleangate::default_model(), Precision::Int8);
     let reps = 5;
-    println!("leangate-s, pair vs split (embedded), CPU, median of {reps}");
-    println!("| case | pair fps | split fps | split/pair |");
-    println!("|---|---|---|---|");
+    println!("leangate-s: pair (FP32) vs split (embedded) FP32 vs split INT8, CPU, frames/s, median of {reps}, interleaved");
+    println!("| case | pair | split FP32 | split INT8 | split FP32 / pair | INT8 / FP32 |");
+    println!("|---|---|---|---|---|---|");
+    let row = |case: &str, a: Vec<f64>, b: Vec<f64>, c: Vec<f64>| {
+        let (a, b, c) = (median(a), median(b), median(c));
+        println!(
+            "| {case} | {a:.1} | {b:.1} | {c:.1} | {:.2} | {:.2} |",
+            b / a,
+            c / b
+        );
+    };
     for keep_every in [10usize, 2] {
-        let (mut a, mut b) = (Vec::new(), Vec::new());
+        let (mut a, mut b, mut c) = (Vec::new(), Vec::new(), Vec::new());
         for _ in 0..reps {
             a.push(scorer_fps(&mut pair, 200, keep_every));
-            b.push(scorer_fps(&mut split, 200, keep_every));
+            b.push(scorer_fps(&mut fp32, 200, keep_every));
+            c.push(scorer_fps(&mut int8, 200, keep_every));
         }
-        let (a, b) = (median(a), median(b));
-        println!(
-            "| scorer only, 1 keep in {keep_every} | {a:.1} | {b:.1} | {:.2} |",
-            b / a
-        );
+        row(&format!("scorer only, 1 keep in {keep_every}"), a, b, c);
     }
-    let (mut a, mut b) = (Vec::new(), Vec::new());
+    let (mut a, mut b, mut c) = (Vec::new(), Vec::new(), Vec::new());
     for _ in 0..reps {
         a.push(pipeline_fps(&format!("model={pair_path}"), 150));
-        b.push(pipeline_fps("", 150));
+        b.push(pipeline_fps("precision=fp32", 150));
+        c.push(pipeline_fps("", 150));
     }
-    let (a, b) = (median(a), median(b));
-    println!(
-        "| pipeline 640x480 I420 (videotestsrc ball) | {a:.1} | {b:.1} | {:.2} |",
-        b / a
-    );
+    row("pipeline 640x480 I420 (videotestsrc ball)", a, b, c);
 }

@@ -190,6 +190,20 @@ fn section_pipeline(reps: usize, n: u64, tmp: &Path) {
             ),
         ));
     }
+    // The same decoded cases with a small queue before the gate (in both pipelines), as a
+    // pipeline would run a gate in its own streaming thread: decoding and scoring overlap on two
+    // cores. max-size-buffers=2 keeps the frames buffered before the first one is counted at most 2.
+    let queued: Vec<(String, String)> = cases
+        .iter()
+        .filter(|(name, _)| name.starts_with("decoded"))
+        .map(|(name, t)| {
+            (
+                format!("{name}, queue max-size-buffers=2 before the gate"),
+                t.replace("! GATE", "! queue max-size-buffers=2 ! GATE"),
+            )
+        })
+        .collect();
+    cases.extend(queued);
     if let Some(why) = encoder {
         println!("note: {why}");
     }
@@ -373,7 +387,9 @@ mod streams {
     pub const CHILD_FLAG: &str = "--streams-child=";
 
     /// (label, extra leangate properties)
-    const CONFIGS: [(&str, &str); 5] = [
+    /// The first five run the element's default build (INT8 on the CPU); the last two the FP32
+    /// build, for the INT8 / FP32 ratio in the same run.
+    const CONFIGS: [(&str, &str); 7] = [
         ("separate sessions", "shared-session=false"),
         (
             "shared (default: a session per core)",
@@ -391,7 +407,14 @@ mod streams {
             "shared, a session per core, batch-size=4",
             "shared-session=true batch-size=4",
         ),
+        (
+            "FP32, separate sessions",
+            "shared-session=false precision=fp32",
+        ),
+        ("FP32, shared (default)", "shared-session=true precision=fp32"),
     ];
+    /// CONFIGS[..DEFAULT_BUILD] run the default build.
+    const DEFAULT_BUILD: usize = 5;
 
     fn rss_kib(key: &str) -> u64 {
         std::fs::read_to_string("/proc/self/status")
@@ -575,12 +598,12 @@ mod streams {
         for (label, _) in CONFIGS {
             print!(" {label} fps | RSS MiB |");
         }
-        println!(" best shared / separate fps |");
+        println!(" best shared / separate fps | shared default / FP32 separate fps |");
         print!("|---|");
         for _ in CONFIGS {
             print!("---|---|");
         }
-        println!("---|");
+        println!("---|---|");
         let med: Vec<Vec<(f64, f64)>> = res
             .iter()
             .map(|r| r.iter().map(|(f, m)| (median(f), median(m))).collect())
@@ -590,8 +613,15 @@ mod streams {
             for (fps, rss) in &med[ni] {
                 print!(" {fps:.1} | {:.1} |", rss / 1024.0);
             }
-            let best = med[ni][1..].iter().map(|x| x.0).fold(0.0, f64::max);
-            println!(" {:.2} |", best / med[ni][0].0);
+            let best = med[ni][1..DEFAULT_BUILD]
+                .iter()
+                .map(|x| x.0)
+                .fold(0.0, f64::max);
+            println!(
+                " {:.2} | {:.2} |",
+                best / med[ni][0].0,
+                med[ni][1].0 / med[ni][DEFAULT_BUILD].0
+            );
         }
         let (i1, i16) = (0, counts.len() - 1);
         print!("RSS per added stream (1 → 16), MiB:");
