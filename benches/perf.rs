@@ -411,7 +411,10 @@ mod streams {
             "FP32, separate sessions",
             "shared-session=false precision=fp32",
         ),
-        ("FP32, shared (default)", "shared-session=true precision=fp32"),
+        (
+            "FP32, shared (default)",
+            "shared-session=true precision=fp32",
+        ),
     ];
     /// CONFIGS[..DEFAULT_BUILD] run the default build.
     const DEFAULT_BUILD: usize = 5;
