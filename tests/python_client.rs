@@ -248,7 +248,7 @@ print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.recei
                   "stats_model": (src.stats or {}).get("model"),
                   "stats_typed": isinstance(st, LeanGateStats),
                   "stats": [st.frames_in, st.frames_kept, st.keep_ratio, st.execution_provider,
-                            st.model, st.threshold, st.extra,
+                            st.model, st.model_precision, st.threshold, st.extra,
                             st.inference_p50_us is not None, st.interval_frames_in],
                   "stats_timings": [type(st.inference_mean_us).__name__,
                                     type(st.inference_p99_us).__name__],
@@ -279,7 +279,18 @@ print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.recei
     assert_eq!(end["stats_typed"], true);
     assert_eq!(
         end["stats"],
-        serde_json::json!([12, 1, 1.0 / 12.0, "cpu", "fixture-mad", 0.5, {}, true, 12])
+        serde_json::json!([
+            12,
+            1,
+            1.0 / 12.0,
+            "cpu",
+            "fixture-mad",
+            "fp32",
+            0.5,
+            {},
+            true,
+            12
+        ])
     );
     assert_eq!(end["stats_timings"], serde_json::json!(["float", "int"]));
     let keys: Vec<&str> = end["stats_dict"]
@@ -1117,5 +1128,53 @@ fn plugin_path_argument_finds_the_plugin_without_gst_plugin_path() {
     assert!(
         err.contains("`leangate` not found") && err.contains("GST_PLUGIN_PATH"),
         "{err}"
+    );
+}
+
+/// `precision` picks the embedded student's build from Python (and from the CLI), the stats say
+/// which ran, and a value the element does not know is a setup error naming the choices.
+#[test]
+fn precision_from_python_and_the_cli() {
+    if !python_ok() {
+        return;
+    }
+    let script = r#"
+import json
+from leangate_client import LeanGateSource, SetupError
+out = {}
+for p in ("int8", "fp32"):
+    src = LeanGateSource("test://ball?num-buffers=4&width=160&height=120", precision=p,
+                         execution_provider="cpu", arrays=False)
+    with src:
+        n = sum(1 for _ in src)
+    out[p] = [n, src.stats.model_precision]
+try:
+    LeanGateSource("videotestsrc", precision="fp16")
+except SetupError as e:
+    out["error"] = str(e)
+print(json.dumps(out))
+"#;
+    let mut c = command(PYTHON);
+    c.env("PYTHONPATH", pkg_dir()).args(["-c", script]);
+    let out = run(c);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert_eq!(v["int8"][1], "int8");
+    assert_eq!(v["fp32"][1], "fp32");
+    assert!(v["int8"][0].as_u64().unwrap() >= 1);
+    let e = v["error"].as_str().unwrap();
+    assert!(e.contains("auto, fp32, int8") && e.contains("fp16"), "{e}");
+    let o = client(&[
+        "test://ball?num-buffers=4&width=160&height=120",
+        "--precision",
+        "fp32",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("precision=fp32") || stdout(&o).contains("precision=fp32"),
+        "{}\n{}",
+        stdout(&o),
+        stderr(&o)
     );
 }

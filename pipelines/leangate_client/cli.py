@@ -21,7 +21,7 @@ import sys
 from typing import Iterable, List, Optional, Sequence
 
 from .errors import PipelineError, SetupError
-from .source import EXECUTION_PROVIDERS, LeanGateSource
+from .source import EXECUTION_PROVIDERS, PRECISIONS, LeanGateSource
 
 log = logging.getLogger("leangate_client")
 
@@ -108,6 +108,9 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
     ap.add_argument("--warmup", type=int, default=None)
     ap.add_argument("--max-gap", type=int, default=None)
     ap.add_argument("--execution-provider", choices=EXECUTION_PROVIDERS)
+    ap.add_argument("--precision", choices=PRECISIONS, default=None,
+                    help="which build of the embedded student runs; default: the element's (auto: "
+                    "INT8 on the CPU)")
     ap.add_argument("--stats-interval", type=float, default=None, metavar="SECONDS",
                     help="have the element post leangate-stats this often (logged at -v)")
     ap.add_argument("--csv", metavar="OUT", help="write one row per received frame to OUT")
@@ -159,6 +162,7 @@ def main(
             warmup=args.warmup,
             max_gap=args.max_gap,
             execution_provider=args.execution_provider,
+            precision=args.precision,
             max_frames=args.max_frames,
             arrays=True,
             stats_interval=args.stats_interval,

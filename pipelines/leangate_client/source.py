@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 
 MODES = ("drop", "annotate")
 EXECUTION_PROVIDERS = ("auto", "cpu", "cuda", "tensorrt")
+PRECISIONS = ("auto", "fp32", "int8")
 TEST_PARAMETERS = ("num-buffers", "width", "height", "fps", "format")
 
 
@@ -121,8 +122,9 @@ class LeanGateSource:
     ``test://PATTERN?num-buffers=N&width=W&height=H&fps=F`` (``videotestsrc``; ``"videotestsrc"``
     alone means ``test://ball``).
 
-    ``model``, ``threshold``, ``mode``, ``warmup``, ``max_gap``, ``execution_provider``: the
-    element's properties (None = the element's default; ``model=None`` is the embedded student
+    ``model``, ``threshold``, ``mode``, ``warmup``, ``max_gap``, ``execution_provider``,
+    ``precision`` (which build of the embedded student runs: auto, fp32, int8): the element's
+    properties (None = the element's default; ``model=None`` is the embedded student
     leangate-s). ``stats_interval``: seconds between periodic `leangate-stats` messages (None:
     only at EOS). ``properties``: any other element properties by their GStreamer names, e.g.
     ``{"threads": 2, "device-id": 1}``.
@@ -158,6 +160,7 @@ class LeanGateSource:
         *,
         stats_interval: Optional[float] = None,
         properties: Optional[Mapping[str, Any]] = None,
+        precision: Optional[str] = None,
         plugin_path: Optional[PathLike] = None,
         plugin_fallbacks=(),
     ):
@@ -169,6 +172,8 @@ class LeanGateSource:
                 f"execution_provider must be one of {', '.join(EXECUTION_PROVIDERS)}, "
                 f"not {execution_provider!r}"
             )
+        if precision is not None and precision not in PRECISIONS:
+            raise SetupError(f"precision must be one of {', '.join(PRECISIONS)}, not {precision!r}")
         if model is not None and os.fspath(model) and not os.path.exists(model):
             raise SetupError(f"model not found: {os.fspath(model)}")
         if threshold is not None and not (threshold == -1 or 0.0 <= threshold <= 1.0):
@@ -191,6 +196,8 @@ class LeanGateSource:
             self.gate_properties["max-gap"] = int(max_gap)
         if execution_provider:
             self.gate_properties["execution-provider"] = execution_provider
+        if precision:
+            self.gate_properties["precision"] = precision
         if stats_interval is not None:
             self.gate_properties["stats-interval"] = int(round(stats_interval * 1e9))
         self.gate_properties.update(properties or {})
