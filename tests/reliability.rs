@@ -665,6 +665,56 @@ fn shared_batched_elements_match_separate_sessions() {
     }
 }
 
+/// Elements of both builds of the embedded student in one process, sharing and batching: each
+/// element gets its own build's sessions (the registry never hands an FP32 element an INT8
+/// session or batches the two together), so every run matches a solo, unshared run of the same
+/// build to 1e-5, and the two builds do score differently.
+#[test]
+fn fp32_and_int8_elements_in_one_process_keep_their_own_build() {
+    let frames = 30;
+    let shared = "execution-provider=cpu shared-session=true max-sessions=1 batch-size=4 \
+                  batch-timeout=20000";
+    let builds = ["fp32", "int8", "fp32", "int8"];
+    let solo: Vec<_> = builds
+        .iter()
+        .enumerate()
+        .map(|(s, b)| {
+            annotate_run_with(
+                s as u32 / 2,
+                frames,
+                &format!("execution-provider=cpu shared-session=false precision={b}"),
+            )
+        })
+        .collect();
+    let handles: Vec<_> = builds
+        .iter()
+        .enumerate()
+        .map(|(s, b)| {
+            let props = format!("{shared} precision={b}");
+            std::thread::spawn(move || annotate_run_with(s as u32 / 2, frames, &props))
+        })
+        .collect();
+    for (s, h) in handles.into_iter().enumerate() {
+        let got = h.join().unwrap();
+        assert_eq!(got.len(), solo[s].len(), "pipeline {s}");
+        for (i, (a, b)) in solo[s].iter().zip(&got).enumerate() {
+            let (ua, ub) = (f64::from_bits(a.1), f64::from_bits(b.1));
+            assert!(
+                (ua.is_nan() && ub.is_nan()) || (ua - ub).abs() <= 1e-5,
+                "pipeline {s} ({}) frame {i}: {ua} vs {ub}",
+                builds[s]
+            );
+        }
+    }
+    // Same frames (seed 0), FP32 against INT8: close, not identical.
+    let differ = solo[0]
+        .iter()
+        .zip(&solo[1])
+        .filter(|(a, b)| a.1 != b.1)
+        .count();
+    assert!(differ > 0, "the INT8 build scores differently from FP32");
+}
+
 #[test]
 fn property_and_event_storms_during_streaming() {
     init();
