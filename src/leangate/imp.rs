@@ -463,7 +463,8 @@ impl ObjectImpl for LeanGate {
                     .nick("Precision")
                     .blurb(
                         "Which build of the embedded student runs: auto = INT8 on the CPU \
-                         provider, FP32 on GPU providers; fp32; int8. A model file runs as it is",
+                         provider, FP32 on GPU providers and with a server; fp32; int8. A model \
+                         file runs as it is",
                     )
                     .mutable_ready()
                     .build(),

@@ -61,7 +61,10 @@ impl From<ExecutionProviderChoice> for crate::scorer::ExecutionProvider {
 #[enum_type(name = "GstLeanGatePrecision")]
 pub enum PrecisionChoice {
     #[default]
-    #[enum_value(name = "Auto: the INT8 build on the CPU, FP32 on GPUs", nick = "auto")]
+    #[enum_value(
+        name = "Auto: the INT8 build on the CPU, FP32 on GPUs and with a server",
+        nick = "auto"
+    )]
     Auto = 0,
     #[enum_value(name = "FP32", nick = "fp32")]
     Fp32 = 1,
