@@ -54,3 +54,4 @@ MOTIONS = ["static", "pan", "shaky", "walk", "rotate", "bursts", "mixed", "mixed
 HELDOUT_PREFIXES = ("paragliding", "apple")
 TRAIN_SEED0, VAL_SEED0, EVAL_SEED0 = 1000, 5000, 9001
 REPLAY_SEED0 = 2000  # gen_data --steps replay: real trajectories + sensor realism
+ROLL_SEED0 = 2100  # gen_data --steps roll: the train trajectory with an added roll

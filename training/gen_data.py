@@ -16,10 +16,12 @@ Steps (all under --root, default config.DATA_ROOT: $LEANGATE_TRAIN_DATA or <repo
             white-balance drift, motion blur from the real motion, rolling shutter, depth noise and
             holes, vignetting, JPEG), labelled like `synth` -> <root>/cache/replay/seq_<seed>.npz
   evalseqs  held-out 300-frame mixed-motion sequences (new seeds, 640x480) for `leangate eval`
+  roll      (not a default step) replayed sequences whose trajectory is tum_fr1_rpy's train part
+            with an added roll about the optical axis -> <root>/cache/replay/seq_21xx.npz
 
 Usage: python -m training.gen_data [--root DIR] [--steps photos,synth,cache,homog,tum,replay,evalseqs]
                                    [--n-train 64] [--n-val 6] [--frames 240] [--homog-train 12000]
-                                   [--n-replay 40]
+                                   [--n-replay 40] [--n-roll 24]
 """
 import argparse
 import glob
@@ -34,7 +36,7 @@ import numpy as np
 from PIL import Image
 
 from . import tum
-from .config import (DATA_ROOT, EVAL_SEED0, HELDOUT_PREFIXES, IN_H, IN_W, LEANGATE, MOTIONS, REPLAY_SEED0, REPO,
+from .config import (DATA_ROOT, EVAL_SEED0, HELDOUT_PREFIXES, IN_H, IN_W, LEANGATE, MOTIONS, REPLAY_SEED0, REPO, ROLL_SEED0,
                      SHARED, TRAIN_SEED0, VAL_SEED0)
 from .preprocess import load_resized, read_list
 
@@ -248,6 +250,58 @@ def overlap_labels(Hr, Hc):
     return 1.0 - min(f_m, f_u), f_m, f_u
 
 
+def rolled_trajectory(src, dst, seed):
+    """`src` (a TUM trajectory) with an added roll about each camera's optical axis: a sum of two
+    sinusoids (amplitudes 8-40 degrees, 0.15-0.9 Hz, random phases) and a slow drift, i.e. roll rates
+    up to about 3 degrees per frame at 30 Hz, as a handheld camera that is rolled back and forth.
+    The positions and the other rotations are the real ones."""
+    rng = np.random.default_rng(seed)
+    comps = [(math.radians(rng.uniform(8, 40)), rng.uniform(0.15, 0.9), rng.uniform(0, 2 * math.pi))
+             for _ in range(2)]
+    drift = math.radians(rng.uniform(-10, 10))
+    rows = [l.split() for l in open(src) if l.strip() and not l.startswith("#")]
+    t0 = float(rows[0][0])
+    with open(dst, "w") as f:
+        f.write(f"# {os.path.basename(src)} with an added roll (seed {seed})\n")
+        for r in rows:
+            t = float(r[0]) - t0
+            phi = sum(a * math.sin(2 * math.pi * fr * t + ph) for a, fr, ph in comps) + drift * t
+            x, y, z, w = (float(v) for v in r[4:8])
+            # q * q_z(phi): the roll is about the camera's own z (optical) axis
+            cz, sz = math.cos(phi / 2), math.sin(phi / 2)
+            q = (x * cz + y * sz, y * cz - x * sz, z * cz + w * sz, w * cz - z * sz)
+            f.write(" ".join(r[:4]) + " " + " ".join(f"{v:.7f}" for v in q) + "\n")
+
+
+def step_roll(root, n, frames, jobs):
+    """Replayed sequences whose trajectory is tum_fr1_rpy's train part plus an added roll: rolls about
+    the optical axis are rare in the train part (about 3 degrees per 10 frames, against 7-9 for pitch
+    and yaw), common in handheld video. Cached with the replay sequences (cache/replay/)."""
+    trajs = replay_trajectories(root)
+    if not trajs or "tum" not in trajs[0][0]:
+        sys.exit("roll: no tum_fr1_rpy train trajectory (run the `tum` step first)")
+    gt, secs = trajs[0]
+
+    def one(k):
+        seed = ROLL_SEED0 + k
+        rng = np.random.default_rng(seed)
+        traj = os.path.join(root, "tum", f"rolled_{seed}.txt")
+        rolled_trajectory(gt, traj, seed)
+        start = rng.uniform(0.0, max(secs - frames / 30.0 * 0.6, 0.0))
+        motion = ["--motion", f"replay:{traj}", "--replay-start", f"{start:.2f}", "--replay-end", "bounce"]
+        extra = ["--sensor", SENSOR_SUBSETS[k % len(SENSOR_SUBSETS)]]
+        seq = synth_one(root, "replay", seed, frames, motion, extra)
+        os.makedirs(os.path.join(root, "cache", "replay"), exist_ok=True)
+        cache_one(root, "replay", seq, False)
+
+    with ThreadPoolExecutor(jobs) as ex:
+        list(ex.map(one, range(n)))
+    taus = np.concatenate([np.load(f)["pairs"][:, 2] for f in
+                           glob.glob(os.path.join(root, "cache", "replay", f"seq_{ROLL_SEED0 // 100}*.npz"))])
+    h, _ = np.histogram(taus, bins=10, range=(0, 1))
+    print(f"roll: {len(taus)} pairs, tau histogram (10 bins) {h.tolist()}")
+
+
 def rand_pair(rng, img):
     sw, sh = img.size
     for _ in range(30):
@@ -353,6 +407,7 @@ def main():
     ap.add_argument("--homog-train", type=int, default=12000)
     ap.add_argument("--homog-val", type=int, default=1000)
     ap.add_argument("--n-replay", type=int, default=40)
+    ap.add_argument("--n-roll", type=int, default=24)
     ap.add_argument("--jobs", type=int, default=2)
     a = ap.parse_args()
     root = os.path.abspath(a.root)
@@ -371,6 +426,8 @@ def main():
         tum.build(a.root)
     if "replay" in steps:
         step_replay(a.root, a.n_replay, a.frames, a.jobs)
+    if "roll" in steps:
+        step_roll(a.root, a.n_roll, a.frames, a.jobs)
     if "evalseqs" in steps:
         step_evalseqs(a.root)
 

@@ -198,6 +198,9 @@ def main():
     ap.add_argument("--p-replay", type=float, default=0.0,
                     help="fraction of replayed-trajectory synthetic pairs with sensor realism (cache/replay)")
     ap.add_argument("--p-unrelated", type=float, default=0.0, help="fraction of unrelated pairs (tau = 1)")
+    ap.add_argument("--replay-glob", default="replay/*.npz",
+                    help="which cached replayed sequences (--p-replay) to draw from, relative to --data "
+                         "(replay/seq_20*.npz: the real trajectories only, without the added-roll ones)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     torch.manual_seed(a.seed)
@@ -218,7 +221,7 @@ def main():
         print(f"real: {len(real.pairs)} tum_fr1_rpy training pairs", flush=True)
     replay = None
     if a.p_replay > 0:
-        replay = SynthPool(glob.glob(os.path.join(a.data, "replay", "*.npz")))
+        replay = SynthPool(glob.glob(os.path.join(a.data, a.replay_glob)))
         print(f"replay: {len(replay.pairs)} pairs in {len(replay.frames)} replayed-trajectory sequences", flush=True)
     cal_f = os.path.join(a.data, "tum_cal.npz")
     if os.path.exists(cal_f):
