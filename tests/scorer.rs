@@ -184,22 +184,7 @@ fn embedded_default_is_a_split_model_with_its_metadata() {
         .min()
         .unwrap();
     let spec = s.info().spec.clone();
-    let tensor = |path: &std::path::Path| {
-        let img = image::open(path).unwrap().to_rgb8();
-        let (w, h) = img.dimensions();
-        let pre =
-            Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT601, spec.clone()).unwrap();
-        let raw = RawFrame {
-            format: PixelFormat::Rgb,
-            width: w,
-            height: h,
-            planes: [img.as_raw(), &[], &[]],
-            strides: [3 * w as isize, 0, 0],
-        };
-        let mut t = vec![0.0; spec.len()];
-        pre.run(&raw, &mut t).unwrap();
-        t
-    };
+    let tensor = |path: &std::path::Path| picture_tensor(path, &spec);
     let a = tensor(&kitchen);
     let b = tensor(&first_classroom);
     let same = s.score(&a, &a).unwrap() as f64;

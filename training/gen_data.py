@@ -186,22 +186,27 @@ def replay_trajectories(root):
     return out
 
 
+def replay_one(root, k, seed, frames, traj, secs):
+    """Render, label and cache replayed sequence `seed` (the k-th of its step): `traj` from a random
+    start (bouncing at its end), the k-th sensor subset."""
+    rng = np.random.default_rng(seed)
+    start = rng.uniform(0.0, max(secs - frames / 30.0 * 0.6, 0.0)) if secs > 0 else 0.0
+    motion = ["--motion", f"replay:{traj}", "--replay-start", f"{start:.2f}", "--replay-end", "bounce"]
+    extra = ["--sensor", SENSOR_SUBSETS[k % len(SENSOR_SUBSETS)]]
+    seq = synth_one(root, "replay", seed, frames, motion, extra)
+    os.makedirs(os.path.join(root, "cache", "replay"), exist_ok=True)
+    cache_one(root, "replay", seq, False)
+
+
 def step_replay(root, n, frames, jobs):
     trajs = replay_trajectories(root)
     if not trajs:
         sys.exit("replay: no trajectory (run the `tum` step first)")
 
     def one(k):
-        seed = REPLAY_SEED0 + k
-        rng = np.random.default_rng(seed)
-        # 4 of 5 sequences replay the real handheld trajectory, from a random start (bouncing at the end)
+        # 4 of 5 sequences replay the real handheld trajectory, 1 of 5 fox_orbit's poses
         traj, secs = trajs[0] if (k % 5 != 4 or len(trajs) == 1) else trajs[1]
-        start = rng.uniform(0.0, max(secs - frames / 30.0 * 0.6, 0.0)) if secs > 0 else 0.0
-        motion = ["--motion", f"replay:{traj}", "--replay-start", f"{start:.2f}", "--replay-end", "bounce"]
-        extra = ["--sensor", SENSOR_SUBSETS[k % len(SENSOR_SUBSETS)]]
-        seq = synth_one(root, "replay", seed, frames, motion, extra)
-        os.makedirs(os.path.join(root, "cache", "replay"), exist_ok=True)
-        cache_one(root, "replay", seq, False)
+        replay_one(root, k, REPLAY_SEED0 + k, frames, traj, secs)
 
     with ThreadPoolExecutor(jobs) as ex:
         list(ex.map(one, range(n)))
@@ -284,15 +289,9 @@ def step_roll(root, n, frames, jobs):
 
     def one(k):
         seed = ROLL_SEED0 + k
-        rng = np.random.default_rng(seed)
         traj = os.path.join(root, "tum", f"rolled_{seed}.txt")
         rolled_trajectory(gt, traj, seed)
-        start = rng.uniform(0.0, max(secs - frames / 30.0 * 0.6, 0.0))
-        motion = ["--motion", f"replay:{traj}", "--replay-start", f"{start:.2f}", "--replay-end", "bounce"]
-        extra = ["--sensor", SENSOR_SUBSETS[k % len(SENSOR_SUBSETS)]]
-        seq = synth_one(root, "replay", seed, frames, motion, extra)
-        os.makedirs(os.path.join(root, "cache", "replay"), exist_ok=True)
-        cache_one(root, "replay", seq, False)
+        replay_one(root, k, seed, frames, traj, secs)
 
     with ThreadPoolExecutor(jobs) as ex:
         list(ex.map(one, range(n)))

@@ -734,14 +734,6 @@ impl ObjectImpl for LeanGate {
     }
 }
 
-/// Whether frames are scored on a server (`server` set).
-fn has_server(settings: &Settings) -> bool {
-    settings
-        .server
-        .as_deref()
-        .is_some_and(|s| !s.trim().is_empty())
-}
-
 impl LeanGate {
     fn property_value(&self, settings: &Settings, name: &str) -> glib::Value {
         match name {
@@ -833,6 +825,7 @@ impl BaseTransformImpl for LeanGate {
             Some(path) => ModelSource::File(path.into()),
             None => crate::default_model::source(),
         };
+        let server = settings.server.clone().filter(|s| !s.trim().is_empty());
         let opts = ScorerOptions {
             execution_provider: settings.execution_provider.into(),
             device_id: settings.device_id,
@@ -845,7 +838,7 @@ impl BaseTransformImpl for LeanGate {
             // On a server (`server`) the encoder is the FP32 one of models/triton: the head
             // that runs here is then FP32 too, unless INT8 is asked for explicitly.
             precision: match settings.precision {
-                PrecisionChoice::Auto if has_server(&settings) => crate::scorer::Precision::Fp32,
+                PrecisionChoice::Auto if server.is_some() => crate::scorer::Precision::Fp32,
                 p => p.into(),
             },
         };
@@ -861,7 +854,7 @@ impl BaseTransformImpl for LeanGate {
         for w in &scorer.warnings {
             gst::warning!(CAT, imp = self, "{w}");
         }
-        let scorer = match settings.server.clone().filter(|s| !s.trim().is_empty()) {
+        let scorer = match server {
             None => Backend::Local(scorer),
             Some(url) => {
                 let opts = RemoteOptions {

@@ -82,12 +82,6 @@ impl Precision {
             Precision::Int8 => "int8",
         }
     }
-
-    pub fn parse(s: &str) -> Option<Precision> {
-        [Precision::Auto, Precision::Fp32, Precision::Int8]
-            .into_iter()
-            .find(|p| p.as_str() == s)
-    }
 }
 
 /// Where the model comes from.

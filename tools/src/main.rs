@@ -338,7 +338,11 @@ fn run(cli: Cli) -> Res {
             &sequence,
             eval::GateModel {
                 path: model.as_deref(),
-                precision: precision.as_deref(),
+                precision: precision.as_deref().map(|p| match p {
+                    "fp32" => gstleangate::PrecisionChoice::Fp32,
+                    "int8" => gstleangate::PrecisionChoice::Int8,
+                    _ => gstleangate::PrecisionChoice::Auto,
+                }),
             },
             threshold,
             EvalOutputs {

@@ -108,7 +108,7 @@ fn grey(rgb: &image::RgbImage) -> Vec<u8> {
 #[derive(Debug, Clone, Copy, Default)]
 pub struct GateModel<'a> {
     pub path: Option<&'a Path>,
-    pub precision: Option<&'a str>,
+    pub precision: Option<gstleangate::PrecisionChoice>,
 }
 
 /// Run the real element in annotate mode over the source, with `model`. `progress(done)` is
@@ -127,16 +127,7 @@ pub fn run_model(
         gate.set_property("model", m.display().to_string());
     }
     if let Some(p) = model.precision {
-        let known = gate
-            .find_property("precision")
-            .and_then(|ps| ps.downcast::<gst::glib::ParamSpecEnum>().ok())
-            .is_some_and(|ps| ps.enum_class().value_by_nick(p).is_some());
-        if !known {
-            return Err(EvalError(format!(
-                "precision `{p}` is not one of auto, fp32, int8"
-            )));
-        }
-        gate.set_property_from_str("precision", p);
+        gate.set_property("precision", p);
     }
     gate.set_property_from_str("mode", "annotate");
     if let Some(t) = threshold {
