@@ -18,6 +18,8 @@ Steps (all under --root, default config.DATA_ROOT: $LEANGATE_TRAIN_DATA or <repo
   evalseqs  held-out 300-frame mixed-motion sequences (new seeds, 640x480) for `leangate eval`
   roll      (not a default step) replayed sequences whose trajectory is tum_fr1_rpy's train part
             with an added roll about the optical axis -> <root>/cache/replay/seq_21xx.npz
+  tumhomog  (not a default step) homography pairs of tum_fr1_rpy's train-part frames (the real
+            camera's look, exact overlap labels, any direction of motion) -> cache/homog_tum.npz
 
 Usage: python -m training.gen_data [--root DIR] [--steps photos,synth,cache,homog,tum,replay,evalseqs]
                                    [--n-train 64] [--n-val 6] [--frames 240] [--homog-train 12000]
@@ -380,6 +382,25 @@ def step_homog(root, n_train, n_val):
 
 
 # --------------------------------------------------------------------------------------- evalseqs
+def step_tumhomog(root, n):
+    """Homography pairs of tum_fr1_rpy's *train-part* frames (every 2nd of 0-399): the real camera's
+    colours, blur and exposure with exact overlap labels, in any direction of motion (pitch and yaw
+    are where the student under-estimates real video). -> cache/homog_tum.npz (same layout as
+    homog_train.npz; `train --homog-extra homog_tum.npz --p-homog-extra F`). The cal and test parts
+    are not read."""
+    out = os.path.join(root, "cache", "homog_tum.npz")
+    if os.path.exists(out):
+        return
+    lst = os.path.join(root, "tum", "train", "rgb.txt")
+    if not os.path.exists(lst):
+        sys.exit("tumhomog: no tum/train/rgb.txt (run the `tum` step first)")
+    frames = [l.split()[1] for l in open(lst) if l.strip() and not l.startswith("#")][::2]
+    R, C, Y = make_homog(frames, n, seed=4)
+    np.savez(out, ref=R, cur=C, y=Y)
+    h, _ = np.histogram(Y[:, 0], bins=10, range=(0, 1))
+    print(f"tumhomog: {n} pairs from {len(frames)} tum_fr1_rpy train frames, tau histogram {h.tolist()}", flush=True)
+
+
 def step_evalseqs(root, n=3):
     for k in range(n):
         seed = EVAL_SEED0 + k
@@ -427,6 +448,8 @@ def main():
         step_replay(a.root, a.n_replay, a.frames, a.jobs)
     if "roll" in steps:
         step_roll(a.root, a.n_roll, a.frames, a.jobs)
+    if "tumhomog" in steps:
+        step_tumhomog(a.root, a.homog_train)
     if "evalseqs" in steps:
         step_evalseqs(a.root)
 

@@ -117,16 +117,20 @@ def photometric(x, g):
 
 
 def make_batch(rng, g, synth, homog, n, p_homog=0.35, p_ident=0.04, augment=True, real=None, p_real=0.0,
-               p_unrel=0.0, replay=None, p_replay=0.0):
+               p_unrel=0.0, replay=None, p_replay=0.0, homog2=None, p_homog2=0.0):
     nh = int(round(n * p_homog))
+    nh2 = int(round(n * p_homog2)) if homog2 is not None else 0
     ni = int(round(n * p_ident))
     nr = int(round(n * p_real)) if real is not None else 0
     nrp = int(round(n * p_replay)) if replay is not None else 0
     nu = int(round(n * p_unrel))
-    ns = n - nh - ni - nr - nrp - nu
+    ns = n - nh - nh2 - ni - nr - nrp - nu
     if ns < 0:
-        raise ValueError("the fractions --p-homog, --p-real, --p-replay and --p-unrelated add up to more than 1")
+        raise ValueError("the fractions --p-homog, --p-homog-extra, --p-real, --p-replay and --p-unrelated add up "
+                         "to more than 1")
     parts = [synth.sample(rng, ns), homog.sample(rng, nh), synth.identical(rng, ni)]
+    if nh2:
+        parts.append(homog2.sample(rng, nh2))
     if nr:
         parts.append(real.sample(rng, nr))
     if nrp:
@@ -151,8 +155,15 @@ def make_batch(rng, g, synth, homog, n, p_homog=0.35, p_ident=0.04, augment=True
     return (ref - MEAN_T) / STD_T, (cur - MEAN_T) / STD_T, y
 
 
-def huber(pred, y, delta=0.1):
-    return F.huber_loss(pred, y, delta=delta)
+def huber(pred, y, delta=0.1, w=None):
+    if w is None:
+        return F.huber_loss(pred, y, delta=delta)
+    return (F.huber_loss(pred, y, delta=delta, reduction="none") * w).sum() / w.sum()
+
+
+def decision_weights(y, strength, width=0.15):
+    """1 + strength * exp(-((tau - 0.5) / width)^2): pairs near the paper's tau_keep weigh more."""
+    return 1.0 + strength * torch.exp(-((y - 0.5) / width) ** 2)
 
 
 @torch.no_grad()
@@ -198,6 +209,12 @@ def main():
     ap.add_argument("--p-replay", type=float, default=0.0,
                     help="fraction of replayed-trajectory synthetic pairs with sensor realism (cache/replay)")
     ap.add_argument("--p-unrelated", type=float, default=0.0, help="fraction of unrelated pairs (tau = 1)")
+    ap.add_argument("--homog-extra", default="",
+                    help="a second homography cache relative to --data (e.g. homog_tum.npz from "
+                         "`gen_data --steps tumhomog`), drawn for --p-homog-extra of each batch")
+    ap.add_argument("--p-homog-extra", type=float, default=0.0)
+    ap.add_argument("--decision-weight", type=float, default=0.0,
+                    help="weigh each pair's loss by 1 + W * exp(-((tau - 0.5) / 0.15)^2) (0: plain mean)")
     ap.add_argument("--replay-glob", default="replay/*.npz",
                     help="which cached replayed sequences (--p-replay) to draw from, relative to --data "
                          "(replay/seq_20*.npz: the real trajectories only, without the added-roll ones)")
@@ -223,6 +240,10 @@ def main():
     if a.p_replay > 0:
         replay = SynthPool(glob.glob(os.path.join(a.data, a.replay_glob)))
         print(f"replay: {len(replay.pairs)} pairs in {len(replay.frames)} replayed-trajectory sequences", flush=True)
+    homog2 = None
+    if a.p_homog_extra > 0:
+        homog2 = HomogPool(os.path.join(a.data, a.homog_extra))
+        print(f"extra homographies: {len(homog2.y)} pairs from {a.homog_extra}", flush=True)
     cal_f = os.path.join(a.data, "tum_cal.npz")
     if os.path.exists(cal_f):
         cal = SynthPool([cal_f])
@@ -280,10 +301,12 @@ def main():
         for gr in opt.param_groups:
             gr["lr"] = lr
         ref, cur, y = make_batch(rng, g, synth, homog, a.batch, p_homog=a.p_homog, real=real, p_real=a.p_real,
-                                 p_unrel=a.p_unrelated, replay=replay, p_replay=a.p_replay)
+                                 p_unrel=a.p_unrelated, replay=replay, p_replay=a.p_replay, homog2=homog2,
+                                 p_homog2=a.p_homog_extra)
         outs = model(ref, cur, all_iters=True)
         K = len(outs) - 1
-        loss = sum(0.8 ** (K - k) * huber(o, y) for k, o in enumerate(outs))
+        w = decision_weights(y, a.decision_weight) if a.decision_weight > 0 else None
+        loss = sum(0.8 ** (K - k) * huber(o, y, w=w) for k, o in enumerate(outs))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
