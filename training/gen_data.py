@@ -366,41 +366,39 @@ def make_homog(photos, n, seed):
     return R, C, Y
 
 
+def write_homog(out, images, n, seed, what):
+    """make_homog over `images`, saved to `out` with the tau histogram printed (skipped if it exists)."""
+    if os.path.exists(out):
+        return
+    R, C, Y = make_homog(images, n, seed)
+    np.savez(out, ref=R, cur=C, y=Y)
+    h, _ = np.histogram(Y[:, 0], bins=10, range=(0, 1))
+    print(f"{what}: {n} pairs from {len(images)} images, tau histogram {h.tolist()}", flush=True)
+
+
 def step_homog(root, n_train, n_val):
     photos = sorted(glob.glob(os.path.join(root, "photos", "*.jpg")))
     train = [p for p in photos if not os.path.basename(p).startswith(HELDOUT_PREFIXES)]
     val = [p for p in photos if os.path.basename(p).startswith(HELDOUT_PREFIXES)]
     os.makedirs(os.path.join(root, "cache"), exist_ok=True)
     for name, ph, n, seed in (("train", train, n_train, 1), ("val", val, n_val, 2)):
-        out = os.path.join(root, "cache", f"homog_{name}.npz")
-        if os.path.exists(out):
-            continue
-        R, C, Y = make_homog(ph, n, seed)
-        np.savez(out, ref=R, cur=C, y=Y)
-        h, _ = np.histogram(Y[:, 0], bins=10, range=(0, 1))
-        print(f"homog {name}: {n} pairs from {len(ph)} photos, tau histogram {h.tolist()}", flush=True)
+        write_homog(os.path.join(root, "cache", f"homog_{name}.npz"), ph, n, seed, f"homog {name}")
 
 
-# --------------------------------------------------------------------------------------- evalseqs
 def step_tumhomog(root, n):
     """Homography pairs of tum_fr1_rpy's *train-part* frames (every 2nd of 0-399): the real camera's
     colours, blur and exposure with exact overlap labels, in any direction of motion (pitch and yaw
     are where the student under-estimates real video). -> cache/homog_tum.npz (same layout as
     homog_train.npz; `train --homog-extra homog_tum.npz --p-homog-extra F`). The cal and test parts
     are not read."""
-    out = os.path.join(root, "cache", "homog_tum.npz")
-    if os.path.exists(out):
-        return
-    lst = os.path.join(root, "tum", "train", "rgb.txt")
-    if not os.path.exists(lst):
+    part = os.path.join(root, "tum", "train")
+    if not os.path.exists(os.path.join(part, "rgb.txt")):
         sys.exit("tumhomog: no tum/train/rgb.txt (run the `tum` step first)")
-    frames = [l.split()[1] for l in open(lst) if l.strip() and not l.startswith("#")][::2]
-    R, C, Y = make_homog(frames, n, seed=4)
-    np.savez(out, ref=R, cur=C, y=Y)
-    h, _ = np.histogram(Y[:, 0], bins=10, range=(0, 1))
-    print(f"tumhomog: {n} pairs from {len(frames)} tum_fr1_rpy train frames, tau histogram {h.tolist()}", flush=True)
+    os.makedirs(os.path.join(root, "cache"), exist_ok=True)
+    write_homog(os.path.join(root, "cache", "homog_tum.npz"), read_list(part)[::2], n, 4, "tumhomog")
 
 
+# --------------------------------------------------------------------------------------- evalseqs
 def step_evalseqs(root, n=3):
     for k in range(n):
         seed = EVAL_SEED0 + k

@@ -242,6 +242,8 @@ def main():
         print(f"replay: {len(replay.pairs)} pairs in {len(replay.frames)} replayed-trajectory sequences", flush=True)
     homog2 = None
     if a.p_homog_extra > 0:
+        if not a.homog_extra:
+            raise SystemExit("--p-homog-extra needs --homog-extra FILE (e.g. homog_tum.npz)")
         homog2 = HomogPool(os.path.join(a.data, a.homog_extra))
         print(f"extra homographies: {len(homog2.y)} pairs from {a.homog_extra}", flush=True)
     cal_f = os.path.join(a.data, "tum_cal.npz")
