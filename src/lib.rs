@@ -15,11 +15,13 @@
 //!   (the `leangate-stats` bus message), the custom event names;
 //! - remote scoring on a KServe V2 server: [`RemoteScorer`], [`RemoteOptions`], [`Backend`]
 //!   (module [`remote`], its HTTP client in [`remote::client`]);
+//! - the geometric prior (chained homographies → the teacher's overlap): module [`geometry`];
 //! - the element type [`LeanGate`] and its property enums.
 
 use gst::glib;
 
 mod default_model;
+pub mod geometry;
 mod leangate;
 mod meta;
 mod policy;

@@ -602,3 +602,62 @@ fn split_model_in_the_element_matches_the_pair_model() {
         "grey 0 (first) and 200 (0.78 >= 0.5); 90 vs 200 is 0.43"
     );
 }
+
+/// A smooth RGB texture seen `dx` pixels further right (a camera panning right).
+fn panned(w: u32, h: u32, dx: f32) -> Vec<u8> {
+    let mut v = Vec::with_capacity((w * h * 3) as usize);
+    for y in 0..h {
+        for x in 0..w {
+            let (u, t) = (x as f32 + dx, y as f32);
+            let f = 128.0
+                + 50.0 * (u * 0.21).sin() * (t * 0.17).cos()
+                + 40.0 * ((u + t) * 0.09).sin()
+                + 30.0 * (u * 0.05 - t * 0.11).cos();
+            let g = f.clamp(0.0, 255.0) as u8;
+            v.extend_from_slice(&[g, g, g]);
+        }
+    }
+    v
+}
+
+#[test]
+fn geometric_prior_follows_the_pan_and_can_be_switched_off() {
+    // mad_geometry carries leangate.geometry = 0, 1, 0, 0: with the prior on, the utility is the
+    // teacher-like overlap of the chained homography alone; with geometry=false, the model's MAD.
+    let (w, h) = (160, 120);
+    let run = |props: &str| -> Vec<gstleangate::GateMeta> {
+        let mut hs = harness(
+            &format!(
+                "model={} mode=annotate threshold=0.99 {props}",
+                fixture("mad_geometry.onnx")
+            ),
+            &rgb_caps(w, h),
+        );
+        for k in 0..25u64 {
+            hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
+                .unwrap();
+        }
+        drain(&mut hs).iter().map(meta).collect()
+    };
+    let on = run("");
+    assert_eq!(on.len(), 25);
+    assert!(on[0].keep && on[1..].iter().all(|m| !m.keep));
+    // 2 px per frame: after k frames a fraction 2k/160 of the view is new.
+    for (k, m) in on.iter().enumerate().skip(1) {
+        let want = 2.0 * k as f64 / w as f64;
+        assert!(
+            (m.utility - want).abs() < 0.02,
+            "frame {k}: utility {} vs {want}",
+            m.utility
+        );
+    }
+    let off = run("geometry=false");
+    let mad_24 = off[24].utility;
+    assert!(
+        (mad_24 - on[24].utility).abs() > 0.05,
+        "off: the model alone ({mad_24}), not the prior ({})",
+        on[24].utility
+    );
+    let e = element("");
+    assert!(e.property::<bool>("geometry"), "on by default");
+}

@@ -39,6 +39,10 @@ fn broken_models_are_refused_at_start_naming_model_and_problem() {
         ("threshold_5.onnx", &["leangate.threshold = 5", "[0, 1]"]),
         ("threshold_neg.onnx", &["leangate.threshold = -3", "[0, 1]"]),
         (
+            "geometry_bad.onnx",
+            &["leangate.geometry", "four finite numbers"],
+        ),
+        (
             "nan_always.onnx",
             &["dry run on a blank frame", "not finite"],
         ),

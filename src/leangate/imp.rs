@@ -11,6 +11,7 @@ use gst_base::subclass::prelude::*;
 use super::{
     ExecutionProviderChoice, GateMode, PrecisionChoice, FORCE_KEYFRAME_EVENT, RESET_EVENT,
 };
+use crate::geometry::{grey_from_tensor, Fusion, Pyramid, Tracker};
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
 use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
@@ -46,6 +47,7 @@ const DEFAULT_BATCH_SIZE: u32 = 1;
 const DEFAULT_BATCH_TIMEOUT_US: u64 = 2000;
 const DEFAULT_MAX_SESSIONS: u32 = 0;
 const DEFAULT_STATS_INTERVAL: u64 = 0;
+const DEFAULT_GEOMETRY: bool = true;
 const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
 const DEFAULT_SERVER_MAX_IN_FLIGHT: u32 = 16;
 
@@ -71,6 +73,7 @@ struct Settings {
     batch_timeout_us: u64,
     max_sessions: u32,
     stats_interval: u64,
+    geometry: bool,
     /// Remote scoring (crate::remote): the V2 server's URL; None = local ONNX Runtime.
     server: Option<String>,
     server_model: Option<String>,
@@ -99,6 +102,7 @@ impl Default for Settings {
             batch_timeout_us: DEFAULT_BATCH_TIMEOUT_US,
             max_sessions: DEFAULT_MAX_SESSIONS,
             stats_interval: DEFAULT_STATS_INTERVAL,
+            geometry: DEFAULT_GEOMETRY,
             server: None,
             server_model: None,
             server_timeout_ms: DEFAULT_SERVER_TIMEOUT_MS,
@@ -116,6 +120,7 @@ struct FrameSettings {
     max_gap: u32,
     mode: GateMode,
     stats_interval: u64,
+    geometry: bool,
 }
 
 impl From<&Settings> for FrameSettings {
@@ -126,6 +131,7 @@ impl From<&Settings> for FrameSettings {
             max_gap: s.max_gap,
             mode: s.mode,
             stats_interval: s.stats_interval,
+            geometry: s.geometry,
         }
     }
 }
@@ -133,6 +139,10 @@ impl From<&Settings> for FrameSettings {
 struct State {
     scorer: Backend,
     model_threshold: Option<f64>,
+    /// The model's `leangate.geometry` fusion, if it has one.
+    fusion: Option<Fusion>,
+    /// Chained homographies from the reference to the current frame (only with `fusion`).
+    tracker: Tracker,
     pre: Option<(gst_video::VideoInfo, Preprocessor)>,
     gate: Gate,
     reference: Vec<f32>,
@@ -317,6 +327,18 @@ impl LeanGate {
         let t0 = Instant::now();
         let pre = self.preprocess(state, buf);
         let frame_readable = pre.is_ok();
+        let use_geometry = fs.geometry && state.fusion.is_some();
+        if use_geometry && frame_readable {
+            if !state.gate.has_reference() {
+                state.tracker.clear();
+            }
+            let spec = state.scorer.info().spec.clone();
+            let (w, h) = (spec.width as usize, spec.height as usize);
+            let grey = grey_from_tensor(&state.current, w, h, spec.mean, spec.std);
+            state.tracker.observe(Pyramid::new(&grey, w, h));
+        } else {
+            state.tracker.clear();
+        }
         let (score, utility) = match pre {
             Err(e) => {
                 self.warn_rate_limited(state, out, &format!("cannot read frame: {e}"));
@@ -324,7 +346,17 @@ impl LeanGate {
             }
             Ok(()) if !state.gate.has_reference() => (Score::NoReference, f64::NAN),
             Ok(()) => match state.scorer.score(&state.reference, &state.current) {
-                Ok(u) => (Score::Utility(u as f64), u as f64),
+                Ok(u) => {
+                    let u = match (use_geometry, state.fusion) {
+                        (true, Some(f)) => {
+                            let g = state.tracker.tau();
+                            gst::trace!(CAT, imp = self, "student {u:.4} geometry {g:?}");
+                            f.fuse(u as f64, g)
+                        }
+                        _ => u as f64,
+                    };
+                    (Score::Utility(u), u)
+                }
                 Err(e) => {
                     self.warn_rate_limited(state, out, &e.to_string());
                     (Score::Failed, f64::NAN)
@@ -350,6 +382,7 @@ impl LeanGate {
                 state.gate.drop_reference();
             } else {
                 std::mem::swap(&mut state.reference, &mut state.current);
+                state.tracker.set_reference();
             }
             state.reference_pts = pts;
             self.frames_kept.fetch_add(1, Ordering::Relaxed);
@@ -547,6 +580,17 @@ impl ObjectImpl for LeanGate {
                     .default_value(DEFAULT_STATS_INTERVAL)
                     .mutable_playing()
                     .build(),
+                glib::ParamSpecBoolean::builder("geometry")
+                    .nick("Geometric prior")
+                    .blurb(
+                        "Combine the model's utility with the geometric prior (frame-to-frame \
+                         homographies chained from the reference, scored like the teacher) as \
+                         the model's leangate.geometry metadata says; the embedded model has it. \
+                         Off, or a model without it: the model's utility alone",
+                    )
+                    .default_value(DEFAULT_GEOMETRY)
+                    .mutable_playing()
+                    .build(),
                 glib::ParamSpecString::builder("server")
                     .nick("Inference server")
                     .blurb(
@@ -698,6 +742,10 @@ impl ObjectImpl for LeanGate {
                     settings.stats_interval = value.get().expect("type checked upstream");
                     None
                 }
+                "geometry" => {
+                    settings.geometry = value.get().expect("type checked upstream");
+                    None
+                }
                 "server" => {
                     settings.server = value.get().expect("type checked upstream");
                     None
@@ -752,6 +800,7 @@ impl LeanGate {
             "batch-timeout" => settings.batch_timeout_us.to_value(),
             "max-sessions" => settings.max_sessions.to_value(),
             "stats-interval" => settings.stats_interval.to_value(),
+            "geometry" => settings.geometry.to_value(),
             "server" => settings.server.to_value(),
             "server-model" => settings.server_model.to_value(),
             "server-timeout" => settings.server_timeout_ms.to_value(),
@@ -874,12 +923,14 @@ impl BaseTransformImpl for LeanGate {
         gst::info!(
             CAT,
             imp = self,
-            "model {} ({}x{}, {}), provider {}",
+            "model {} ({}x{}, {}), provider {}, geometric prior {}",
             info.name,
             info.spec.width,
             info.spec.height,
             info.spec.resize.as_str(),
-            scorer.provider()
+            scorer.provider(),
+            info.geometry
+                .map_or("none".to_string(), |f| f.to_metadata())
         );
         let alloc = |what: &str| {
             try_zeroed(info.spec.len()).map_err(|e| {
@@ -905,6 +956,8 @@ impl BaseTransformImpl for LeanGate {
         *lock(&self.state) = Some(State {
             scorer,
             model_threshold: info.threshold,
+            fusion: info.geometry,
+            tracker: Tracker::new(),
             pre: None,
             gate: Gate::new(cfg),
             reference,

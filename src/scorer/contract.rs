@@ -393,6 +393,13 @@ pub(super) fn read_metadata(
         ),
         None => None,
     };
+    let geometry = match get("leangate.geometry") {
+        Some(s) => Some(
+            crate::geometry::Fusion::parse(&s)
+                .map_err(|e| meta_err(format!("leangate.geometry: {e}")))?,
+        ),
+        None => None,
+    };
     let name = get("leangate.name")
         .or_else(|| meta.name())
         .unwrap_or_else(|| model.trim_matches('`').to_string());
@@ -407,6 +414,7 @@ pub(super) fn read_metadata(
         },
         threshold,
         calibration: get("leangate.calibration"),
+        geometry,
         precision: get("leangate.precision").unwrap_or_else(|| "fp32".to_string()),
     })
 }

@@ -215,6 +215,9 @@ pub struct ModelInfo {
     /// `leangate.calibration`: how the model's utility was calibrated to the teacher's units
     /// (informational; the calibration itself is part of the graph).
     pub calibration: Option<String>,
+    /// `leangate.geometry`: how the element combines this model's utility with the geometric
+    /// prior ([`crate::geometry`]); None: the utility is used alone.
+    pub geometry: Option<crate::geometry::Fusion>,
     /// `leangate.precision` (`fp32` when absent): the arithmetic of the graph that runs.
     pub precision: String,
 }

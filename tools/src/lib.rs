@@ -4,6 +4,7 @@
 //! - [`teacher`]: the exact geometric keyframe score (MASt3R-SLAM's `S = min(f_m, f_u)`) from depth
 //!   and poses — the oracle that labels training pairs and judges every gate;
 //! - [`synth`]: procedural RGB-D indoor scenes with human-like camera paths;
+//! - [`geometry`]: the element's geometric prior on labelled pairs (for fitting its fusion);
 //! - [`eval`]: runs the real element and the baselines over a sequence and judges them.
 //!
 //! The `leangate` binary (`synth`, `label`, `eval`) is the command-line face of these modules.
@@ -12,5 +13,6 @@
 
 pub mod dataset;
 pub mod eval;
+pub mod geometry;
 pub mod synth;
 pub mod teacher;

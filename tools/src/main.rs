@@ -2,6 +2,7 @@
 //!
 //! - `leangate synth`: render a synthetic RGB-D sequence (TUM layout) with a human-like camera path;
 //! - `leangate label`: the exact geometric teacher on pairs of a sequence with depth and poses;
+//! - `leangate geometry`: the element's geometric prior (chained homographies) on pairs;
 //! - `leangate eval`: judge gating policies (the model in the real element, the oracle, stride,
 //!   pixel difference) against the teacher.
 
@@ -108,6 +109,26 @@ enum Command {
         /// 3-D distance below which a match is valid, metres.
         #[arg(long, default_value_t = 0.1)]
         max_dist: f64,
+        /// Output CSV (default: standard output).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// The element's geometric prior on pairs of a sequence: frame-to-frame homographies (LK
+    /// on the model-input picture) chained from the reference, scored like the teacher
+    /// (`tau_geo`, `f_m`, `f_u`; empty when the chain is lost). Needs only the colour frames.
+    Geometry {
+        /// Sequence directory (TUM layout, or rgb.txt/images only).
+        #[arg(long)]
+        sequence: PathBuf,
+        /// CSV of pairs `i,j` (current, reference; j < i; a header line is allowed).
+        #[arg(long)]
+        pairs: PathBuf,
+        /// Picture size the tracker runs on: the model's input (the embedded model's 160x120).
+        #[arg(long, default_value = "160x120")]
+        size: String,
+        /// How frames are mapped to that size: short-side-crop (the embedded model's) or stretch.
+        #[arg(long, default_value = "short-side-crop")]
+        resize: String,
         /// Output CSV (default: standard output).
         #[arg(long)]
         out: Option<PathBuf>,
@@ -313,6 +334,51 @@ fn run(cli: Cli) -> Res {
                 }
             }
             sink.flush()?;
+            Ok(())
+        }
+        Command::Geometry {
+            sequence,
+            pairs,
+            size,
+            resize,
+            out,
+        } => {
+            let (w, h) = size
+                .split_once(['x', 'X'])
+                .and_then(|(w, h)| Some((w.trim().parse().ok()?, h.trim().parse().ok()?)))
+                .filter(|&(w, h): &(u32, u32)| (8..=4096).contains(&w) && (8..=4096).contains(&h))
+                .ok_or_else(|| {
+                    format!("--size {size:?}: expected WxH like 160x120, sides 8-4096")
+                })?;
+            let resize = gstleangate::ResizeMode::parse(&resize).ok_or_else(|| {
+                format!("--resize {resize:?}: expected short-side-crop or stretch")
+            })?;
+            let seq = Sequence::open(&sequence)?;
+            let list = read_pairs(&pairs, seq.len())?;
+            if let Some((i, j)) = list.iter().find(|(i, j)| j >= i) {
+                return Err(format!(
+                    "{}: pair {i},{j}: the reference must come before the current frame",
+                    pairs.display()
+                )
+                .into());
+            }
+            let rows = leangate_tools::geometry::pair_geometry(&seq, &list, w, h, resize)?;
+            let mut sink: Box<dyn Write> = match &out {
+                Some(p) => Box::new(std::io::BufWriter::new(
+                    std::fs::File::create(p).map_err(|e| format!("`{}`: {e}", p.display()))?,
+                )),
+                None => Box::new(std::io::BufWriter::new(std::io::stdout().lock())),
+            };
+            writeln!(sink, "i,j,tau_geo,f_m,f_u")?;
+            for ((i, j), r) in list.iter().zip(&rows) {
+                match r {
+                    Some((t, fm, fu)) => writeln!(sink, "{i},{j},{t:.6},{fm:.6},{fu:.6}")?,
+                    None => writeln!(sink, "{i},{j},,,")?,
+                }
+            }
+            sink.flush()?;
+            let lost = rows.iter().filter(|r| r.is_none()).count();
+            eprintln!("{} pairs, chain lost on {lost}", rows.len());
             Ok(())
         }
         Command::Eval {

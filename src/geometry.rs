@@ -1,0 +1,749 @@
+//! The geometric prior: how much of the reference frame the camera has left, measured from the
+//! images by chaining frame-to-frame homographies, in the teacher's own terms.
+//!
+//! MASt3R-SLAM's score S = min(f_m, f_u) is, for a camera that mostly rotates, the overlap of the
+//! two views. This module estimates that overlap without depth:
+//!
+//! 1. every frame is turned into a grey image at the model's input size (the same tensor the
+//!    student sees, [`grey_from_tensor`]) and a 3-level pyramid ([`Pyramid`]);
+//! 2. a grid of points ([`GRID_X`] x [`GRID_Y`]) laid on the previous frame is tracked into the
+//!    current one with sparse pyramidal Lucas-Kanade ([`track`]: 9x9 window, up to 10
+//!    Gauss-Newton iterations per level);
+//! 3. a homography is fitted to the tracks ([`fit_homography`]: RANSAC over 4-point samples with a
+//!    fixed seed, 1-pixel inlier threshold, then a least-squares refit on the inliers);
+//! 4. the frame-to-frame homographies are chained from the reference (the last kept frame) to the
+//!    current frame ([`Tracker`]), so the motion may grow far beyond what one LK step can follow;
+//! 5. the chained homography is scored like the teacher scores a pair ([`raster_tau`]): every
+//!    pixel of the current frame is mapped into the reference and rounded to the nearest pixel;
+//!    `f_m` = the fraction that lands inside, `f_u` = the fraction of the reference's pixels hit at
+//!    least once, `tau_geo = 1 - min(f_m, f_u)`. Rounding matters: under roll the nearest-pixel
+//!    map hits fewer distinct pixels, exactly as in the teacher.
+//!
+//! `tau_geo` ignores depth, so it misses parallax and the teacher's 3-D distance check; the model
+//! says how to combine it with the student's utility ([`Fusion`], metadata `leangate.geometry`).
+//! When tracking fails (too few tracked points or inliers, a degenerate fit) the chain is lost
+//! until the next keep and the element uses the student's utility alone.
+//!
+//! The `motion` baseline of `leangate eval` uses the same pyramid and tracker.
+
+/// Pyramid levels (level 0 = the full image).
+pub const LEVELS: usize = 3;
+const HALF_WIN: i32 = 4;
+const ITERS: usize = 10;
+/// Grid of tracked points per frame.
+pub const GRID_X: usize = 16;
+pub const GRID_Y: usize = 12;
+/// RANSAC iterations and inlier threshold (pixels of the image the tracker runs on).
+const RANSAC_ITERS: usize = 64;
+const INLIER_PX: f64 = 1.0;
+/// Fewest inliers for a usable frame-to-frame homography.
+const MIN_INLIERS: usize = 12;
+
+/// A 3x3 matrix, row-major.
+pub type Mat3 = [[f64; 3]; 3];
+
+pub const IDENTITY: Mat3 = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+
+pub fn mat_mul(a: &Mat3, b: &Mat3) -> Mat3 {
+    let mut c = [[0.0; 3]; 3];
+    for (i, row) in c.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = (0..3).map(|k| a[i][k] * b[k][j]).sum();
+        }
+    }
+    c
+}
+
+/// Inverse of `m`, or None when it is (numerically) singular.
+pub fn mat_inv(m: &Mat3) -> Option<Mat3> {
+    let c = |i: usize, j: usize| {
+        let (i1, i2) = ((i + 1) % 3, (i + 2) % 3);
+        let (j1, j2) = ((j + 1) % 3, (j + 2) % 3);
+        m[i1][j1] * m[i2][j2] - m[i1][j2] * m[i2][j1]
+    };
+    let det = m[0][0] * c(0, 0) + m[0][1] * c(0, 1) + m[0][2] * c(0, 2);
+    let scale = m.iter().flatten().map(|v| v.abs()).fold(0.0, f64::max);
+    if !det.is_finite() || det.abs() <= 1e-12 * scale.powi(3).max(1e-300) {
+        return None;
+    }
+    let mut r = [[0.0; 3]; 3];
+    for (i, row) in r.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = c(j, i) / det;
+        }
+    }
+    Some(r)
+}
+
+fn apply(h: &Mat3, x: f64, y: f64) -> Option<(f64, f64)> {
+    let z = h[2][0] * x + h[2][1] * y + h[2][2];
+    (z > 1e-9).then(|| {
+        (
+            (h[0][0] * x + h[0][1] * y + h[0][2]) / z,
+            (h[1][0] * x + h[1][1] * y + h[1][2]) / z,
+        )
+    })
+}
+
+/// One pyramid level: the image and its central-difference gradients.
+#[derive(Debug, Clone)]
+struct Level {
+    w: usize,
+    h: usize,
+    img: Vec<f32>,
+    gx: Vec<f32>,
+    gy: Vec<f32>,
+}
+
+impl Level {
+    fn new(w: usize, h: usize, img: Vec<f32>) -> Level {
+        let mut gx = vec![0.0; w * h];
+        let mut gy = vec![0.0; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let (xl, xr) = (x.saturating_sub(1), (x + 1).min(w - 1));
+                let (yu, yd) = (y.saturating_sub(1), (y + 1).min(h - 1));
+                gx[y * w + x] = 0.5 * (img[y * w + xr] - img[y * w + xl]);
+                gy[y * w + x] = 0.5 * (img[yd * w + x] - img[yu * w + x]);
+            }
+        }
+        Level { w, h, img, gx, gy }
+    }
+}
+
+fn sample(v: &[f32], w: usize, h: usize, x: f32, y: f32) -> f32 {
+    let x = x.clamp(0.0, (w - 1) as f32);
+    let y = y.clamp(0.0, (h - 1) as f32);
+    let (x0, y0) = (x as usize, y as usize);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+    let a = v[y0 * w + x0] * (1.0 - fx) + v[y0 * w + x1] * fx;
+    let b = v[y1 * w + x0] * (1.0 - fx) + v[y1 * w + x1] * fx;
+    a * (1.0 - fy) + b * fy
+}
+
+/// A grey image pyramid (level 0 = the image), f32, with gradients.
+#[derive(Debug, Clone)]
+pub struct Pyramid {
+    levels: Vec<Level>,
+}
+
+impl Pyramid {
+    /// Pyramid of a `w` x `h` grey image (row-major, any scale of grey values). Each level
+    /// halves the sides (at least 1 pixel). A `grey` whose length is not `w * h` (or an empty
+    /// size) gives a 1x1 black pyramid, which nothing can be tracked in.
+    pub fn new(grey: &[f32], w: usize, h: usize) -> Pyramid {
+        let (w, h, img) = if w == 0 || h == 0 || grey.len() != w * h {
+            (1, 1, vec![0.0])
+        } else {
+            (w, h, grey.to_vec())
+        };
+        let mut levels = vec![Level::new(w, h, img)];
+        for _ in 1..LEVELS {
+            let p = levels.last().unwrap();
+            let (nw, nh) = ((p.w / 2).max(1), (p.h / 2).max(1));
+            let mut img = vec![0.0; nw * nh];
+            for y in 0..nh {
+                for x in 0..nw {
+                    let (x0, y0) = ((2 * x).min(p.w - 1), (2 * y).min(p.h - 1));
+                    let (x1, y1) = ((2 * x + 1).min(p.w - 1), (2 * y + 1).min(p.h - 1));
+                    img[y * nw + x] = 0.25
+                        * (p.img[y0 * p.w + x0]
+                            + p.img[y0 * p.w + x1]
+                            + p.img[y1 * p.w + x0]
+                            + p.img[y1 * p.w + x1]);
+                }
+            }
+            levels.push(Level::new(nw, nh, img));
+        }
+        Pyramid { levels }
+    }
+
+    /// Pyramid of a `u8` grey image.
+    pub fn from_u8(grey: &[u8], w: usize, h: usize) -> Pyramid {
+        let v: Vec<f32> = grey.iter().map(|&g| g as f32).collect();
+        Pyramid::new(&v, w, h)
+    }
+
+    pub fn width(&self) -> usize {
+        self.levels[0].w
+    }
+
+    pub fn height(&self) -> usize {
+        self.levels[0].h
+    }
+}
+
+/// Track point `p` (level-0 coordinates) from `a` to `b` with pyramidal Lucas-Kanade. Returns
+/// the new position, or None when the point is lost (textureless window, divergence, left the
+/// image).
+pub fn track(a: &Pyramid, b: &Pyramid, p: (f32, f32)) -> Option<(f32, f32)> {
+    let mut d = (0.0f32, 0.0f32);
+    let n = ((2 * HALF_WIN + 1) * (2 * HALF_WIN + 1)) as usize;
+    let mut tpl: Vec<(f32, f32, f32)> = Vec::with_capacity(n);
+    for l in (0..a.levels.len().min(b.levels.len())).rev() {
+        let la = &a.levels[l];
+        let lb = &b.levels[l];
+        let s = (1u32 << l) as f32;
+        let (px, py) = (p.0 / s, p.1 / s);
+        if l + 1 < a.levels.len() {
+            d = (d.0 * 2.0, d.1 * 2.0);
+        }
+        tpl.clear();
+        let (mut gxx, mut gxy, mut gyy) = (0.0f32, 0.0f32, 0.0f32);
+        for wy in -HALF_WIN..=HALF_WIN {
+            for wx in -HALF_WIN..=HALF_WIN {
+                let (x, y) = (px + wx as f32, py + wy as f32);
+                let gx = sample(&la.gx, la.w, la.h, x, y);
+                let gy = sample(&la.gy, la.w, la.h, x, y);
+                gxx += gx * gx;
+                gxy += gx * gy;
+                gyy += gy * gy;
+                tpl.push((sample(&la.img, la.w, la.h, x, y), gx, gy));
+            }
+        }
+        let det = gxx * gyy - gxy * gxy;
+        if det.is_nan() || det < 1e-3 * (gxx + gyy).max(1e-6) || gxx + gyy < 1.0 {
+            return None;
+        }
+        for _ in 0..ITERS {
+            let (mut bx, mut by) = (0.0f32, 0.0f32);
+            let mut k = 0;
+            for wy in -HALF_WIN..=HALF_WIN {
+                for wx in -HALF_WIN..=HALF_WIN {
+                    let (x, y) = (px + wx as f32 + d.0, py + wy as f32 + d.1);
+                    let (t, gx, gy) = tpl[k];
+                    let diff = t - sample(&lb.img, lb.w, lb.h, x, y);
+                    bx += diff * gx;
+                    by += diff * gy;
+                    k += 1;
+                }
+            }
+            let dx = (gyy * bx - gxy * by) / det;
+            let dy = (gxx * by - gxy * bx) / det;
+            d = (d.0 + dx, d.1 + dy);
+            if !(d.0.is_finite() && d.1.is_finite()) {
+                return None;
+            }
+            if dx * dx + dy * dy < 1e-4 {
+                break;
+            }
+        }
+    }
+    let q = (p.0 + d.0, p.1 + d.1);
+    let (w, h) = (a.width() as f32, a.height() as f32);
+    (q.0 >= 0.0 && q.1 >= 0.0 && q.0 <= w - 1.0 && q.1 <= h - 1.0).then_some(q)
+}
+
+/// An `nx` x `ny` grid of cell centres over a `w` x `h` image.
+pub fn grid(w: usize, h: usize, nx: usize, ny: usize) -> Vec<(f32, f32)> {
+    let mut pts = Vec::with_capacity(nx * ny);
+    for gy in 0..ny {
+        for gx in 0..nx {
+            pts.push((
+                (gx as f32 + 0.5) * w as f32 / nx as f32,
+                (gy as f32 + 0.5) * h as f32 / ny as f32,
+            ));
+        }
+    }
+    pts
+}
+
+/// Solve the n x n system `a x = b` (row-major `a`, partial pivoting); None when singular.
+fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
+    for c in 0..N {
+        let p = (c..N).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
+        if a[p][c].is_nan() || a[p][c].abs() <= 1e-12 {
+            return None;
+        }
+        a.swap(c, p);
+        b.swap(c, p);
+        let pivot = a[c];
+        for r in c + 1..N {
+            let f = a[r][c] / pivot[c];
+            for (x, p) in a[r][c..].iter_mut().zip(&pivot[c..]) {
+                *x -= f * p;
+            }
+            b[r] -= f * b[c];
+        }
+    }
+    let mut x = [0.0; N];
+    for r in (0..N).rev() {
+        let s: f64 = (r + 1..N).map(|k| a[r][k] * x[k]).sum();
+        x[r] = (b[r] - s) / a[r][r];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// Least-squares homography (h33 = 1) mapping `src[i]` to `dst[i]` over the indices `idx`, in
+/// coordinates normalised by `(c, s)` (centre, scale) for conditioning.
+fn ls_homography(
+    src: &[(f64, f64)],
+    dst: &[(f64, f64)],
+    idx: &[usize],
+    c: (f64, f64),
+    s: f64,
+) -> Option<Mat3> {
+    if idx.len() < 4 {
+        return None;
+    }
+    let mut ata = [[0.0; 8]; 8];
+    let mut atb = [0.0; 8];
+    for &i in idx {
+        let (x, y) = ((src[i].0 - c.0) / s, (src[i].1 - c.1) / s);
+        let (u, v) = ((dst[i].0 - c.0) / s, (dst[i].1 - c.1) / s);
+        let rows = [
+            ([x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y], u),
+            ([0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y], v),
+        ];
+        for (r, t) in rows {
+            for j in 0..8 {
+                atb[j] += r[j] * t;
+                for k in 0..8 {
+                    ata[j][k] += r[j] * r[k];
+                }
+            }
+        }
+    }
+    let h = solve(ata, atb)?;
+    let hn = [[h[0], h[1], h[2]], [h[3], h[4], h[5]], [h[6], h[7], 1.0]];
+    // Undo the normalisation: H = T^-1 Hn T with T = [1/s 0 -cx/s; 0 1/s -cy/s; 0 0 1].
+    let t = [
+        [1.0 / s, 0.0, -c.0 / s],
+        [0.0, 1.0 / s, -c.1 / s],
+        [0.0, 0.0, 1.0],
+    ];
+    let ti = [[s, 0.0, c.0], [0.0, s, c.1], [0.0, 0.0, 1.0]];
+    let m = mat_mul(&ti, &mat_mul(&hn, &t));
+    m.iter().flatten().all(|v| v.is_finite()).then_some(m)
+}
+
+/// Fit a homography mapping `src` to `dst` (RANSAC with a fixed seed, then least squares on
+/// the inliers). None with fewer than [`MIN_INLIERS`] inliers or a degenerate fit.
+pub fn fit_homography(src: &[(f32, f32)], dst: &[(f32, f32)]) -> Option<(Mat3, usize)> {
+    let n = src.len().min(dst.len());
+    if n < MIN_INLIERS {
+        return None;
+    }
+    let s: Vec<(f64, f64)> = src[..n].iter().map(|p| (p.0 as f64, p.1 as f64)).collect();
+    let d: Vec<(f64, f64)> = dst[..n].iter().map(|p| (p.0 as f64, p.1 as f64)).collect();
+    let c = (
+        s.iter().map(|p| p.0).sum::<f64>() / n as f64,
+        s.iter().map(|p| p.1).sum::<f64>() / n as f64,
+    );
+    let scale = (s
+        .iter()
+        .map(|p| ((p.0 - c.0).powi(2) + (p.1 - c.1).powi(2)).sqrt())
+        .sum::<f64>()
+        / n as f64)
+        .max(1e-6);
+    let inliers_of = |h: &Mat3| -> Vec<usize> {
+        (0..n)
+            .filter(|&i| {
+                apply(h, s[i].0, s[i].1).is_some_and(|q| {
+                    (q.0 - d[i].0).powi(2) + (q.1 - d[i].1).powi(2) <= INLIER_PX * INLIER_PX
+                })
+            })
+            .collect()
+    };
+    let mut rng: u64 = 0x9E37_79B9_7F4A_7C15;
+    let mut next = |m: usize| {
+        rng = rng
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((rng >> 33) as usize) % m
+    };
+    let mut best: Vec<usize> = Vec::new();
+    for _ in 0..RANSAC_ITERS {
+        let mut pick = [0usize; 4];
+        for k in 0..4 {
+            loop {
+                let v = next(n);
+                if !pick[..k].contains(&v) {
+                    pick[k] = v;
+                    break;
+                }
+            }
+        }
+        if let Some(h) = ls_homography(&s, &d, &pick, c, scale) {
+            let inl = inliers_of(&h);
+            if inl.len() > best.len() {
+                best = inl;
+            }
+        }
+        if best.len() == n {
+            break;
+        }
+    }
+    if best.len() < MIN_INLIERS {
+        return None;
+    }
+    let h = ls_homography(&s, &d, &best, c, scale)?;
+    let inl = inliers_of(&h);
+    (inl.len() >= MIN_INLIERS).then(|| {
+        // Normalise h33 to 1 for a stable chain.
+        let z = h[2][2];
+        let mut m = h;
+        if z.abs() > 1e-12 {
+            m.iter_mut().flatten().for_each(|v| *v /= z);
+        }
+        (m, inl.len())
+    })
+}
+
+/// The teacher's score of a pure image warp: `h_cur_to_ref` maps pixels of the current frame
+/// (`w` x `h`) into the reference. Each current pixel is mapped and rounded to the nearest pixel;
+/// `f_m` = fraction landing inside the reference, `f_u` = fraction of the reference's pixels hit;
+/// returns `(tau, f_m, f_u)` with `tau = 1 - min(f_m, f_u)`. `hit` is scratch space.
+pub fn raster_tau(h_cur_to_ref: &Mat3, w: usize, h: usize, hit: &mut Vec<bool>) -> (f64, f64, f64) {
+    let total = w * h;
+    if total == 0 {
+        return (1.0, 0.0, 0.0);
+    }
+    hit.clear();
+    hit.resize(total, false);
+    let m = h_cur_to_ref;
+    let (mut inside, mut distinct) = (0usize, 0usize);
+    for y in 0..h {
+        let yf = y as f64;
+        let (bx, by, bz) = (
+            m[0][1] * yf + m[0][2],
+            m[1][1] * yf + m[1][2],
+            m[2][1] * yf + m[2][2],
+        );
+        for x in 0..w {
+            let xf = x as f64;
+            let z = m[2][0] * xf + bz;
+            if z <= 1e-9 {
+                continue;
+            }
+            let u = ((m[0][0] * xf + bx) / z).round();
+            let v = ((m[1][0] * xf + by) / z).round();
+            if u >= 0.0 && v >= 0.0 && u < w as f64 && v < h as f64 {
+                inside += 1;
+                let k = v as usize * w + u as usize;
+                if !hit[k] {
+                    hit[k] = true;
+                    distinct += 1;
+                }
+            }
+        }
+    }
+    let fm = inside as f64 / total as f64;
+    let fu = distinct as f64 / total as f64;
+    (1.0 - fm.min(fu), fm, fu)
+}
+
+/// Grey (0-255, BT.601 luma weights) of a planar normalised RGB tensor `[3, h, w]`:
+/// `(x * std + mean) * 255` per channel, i.e. the picture the student sees.
+pub fn grey_from_tensor(t: &[f32], w: usize, h: usize, mean: [f32; 3], std: [f32; 3]) -> Vec<f32> {
+    let n = w * h;
+    if t.len() < 3 * n {
+        return vec![0.0; n];
+    }
+    let wts = [0.299f32, 0.587, 0.114];
+    let mut g = vec![0.0f32; n];
+    for c in 0..3 {
+        let (a, b) = (wts[c] * std[c] * 255.0, wts[c] * mean[c] * 255.0);
+        for (o, &x) in g.iter_mut().zip(&t[c * n..(c + 1) * n]) {
+            *o += a * x + b;
+        }
+    }
+    for v in g.iter_mut() {
+        if !v.is_finite() {
+            *v = 0.0;
+        }
+    }
+    g
+}
+
+/// Chained frame-to-frame homographies from the reference to the current frame.
+#[derive(Debug, Clone, Default)]
+pub struct Tracker {
+    prev: Option<Pyramid>,
+    /// Homography reference → previous frame; None when the chain is lost (or no reference).
+    chain: Option<Mat3>,
+    hit: Vec<bool>,
+}
+
+impl Tracker {
+    pub fn new() -> Tracker {
+        Tracker::default()
+    }
+
+    /// Forget everything (no reference: start, flush, caps change).
+    pub fn clear(&mut self) {
+        self.prev = None;
+        self.chain = None;
+    }
+
+    /// Feed the next frame's pyramid: extends the chain by the motion from the previous frame.
+    pub fn observe(&mut self, cur: Pyramid) {
+        if let (Some(prev), Some(chain)) = (&self.prev, self.chain) {
+            self.chain = frame_homography(prev, &cur).map(|h| mat_mul(&h, &chain));
+        }
+        self.prev = Some(cur);
+    }
+
+    /// The last observed frame becomes the reference: the chain restarts at the identity.
+    pub fn set_reference(&mut self) {
+        self.chain = self.prev.as_ref().map(|_| IDENTITY);
+    }
+
+    /// Homography reference → last observed frame, if the chain holds.
+    pub fn chain(&self) -> Option<Mat3> {
+        self.chain
+    }
+
+    /// The teacher-like utility of the last observed frame against the reference
+    /// ([`raster_tau`] of the chain), or None when the chain is lost.
+    pub fn tau(&mut self) -> Option<f64> {
+        let chain = self.chain?;
+        let prev = self.prev.as_ref()?;
+        let inv = mat_inv(&chain)?;
+        let (t, _, _) = raster_tau(&inv, prev.width(), prev.height(), &mut self.hit);
+        t.is_finite().then_some(t)
+    }
+}
+
+/// Homography previous → current frame from a tracked [`GRID_X`] x [`GRID_Y`] grid, or None
+/// when too few points track (under a quarter) or no homography fits. The chain of these is
+/// what [`Tracker`] keeps; `leangate geometry` chains them the same way.
+pub fn frame_homography(prev: &Pyramid, cur: &Pyramid) -> Option<Mat3> {
+    if prev.width() != cur.width() || prev.height() != cur.height() {
+        return None;
+    }
+    let pts = grid(prev.width(), prev.height(), GRID_X, GRID_Y);
+    let (mut src, mut dst) = (Vec::with_capacity(pts.len()), Vec::with_capacity(pts.len()));
+    for &p in pts.iter() {
+        if let Some(q) = track(prev, cur, p) {
+            src.push(p);
+            dst.push(q);
+        }
+    }
+    if src.len() * 4 < pts.len() {
+        return None;
+    }
+    fit_homography(&src, &dst).map(|(h, _)| h)
+}
+
+/// How a model combines its utility `s` with `tau_geo` (metadata `leangate.geometry`):
+/// `clip(w0 + w1 tau_geo + w2 tau_geo^2 + w3 s, 0, 1)`, or `s` when the geometry is lost.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fusion {
+    pub w: [f64; 4],
+}
+
+/// The only fusion form understood so far, named first in the metadata value.
+pub const FUSION_FORM: &str = "raster-homography-v1";
+
+impl Fusion {
+    /// Parse `raster-homography-v1: w0, w1, w2, w3`.
+    pub fn parse(s: &str) -> Result<Fusion, String> {
+        let (form, rest) = s.split_once(':').ok_or_else(|| {
+            format!("{s:?} is not `{FUSION_FORM}: w0, w1, w2, w3` (no `:` after the form)")
+        })?;
+        if form.trim() != FUSION_FORM {
+            return Err(format!(
+                "form {:?} is not understood (only `{FUSION_FORM}`)",
+                form.trim()
+            ));
+        }
+        let v: Vec<f64> = rest
+            .split(',')
+            .map(|t| t.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| format!("{rest:?}: {e}"))?;
+        if v.len() != 4 || !v.iter().all(|x| x.is_finite()) {
+            return Err(format!(
+                "{rest:?} must be four finite numbers w0, w1, w2, w3"
+            ));
+        }
+        Ok(Fusion {
+            w: [v[0], v[1], v[2], v[3]],
+        })
+    }
+
+    /// The fused utility; `s` itself when `geo` is None or `s` is not finite.
+    pub fn fuse(&self, s: f64, geo: Option<f64>) -> f64 {
+        match geo {
+            Some(g) if s.is_finite() && g.is_finite() => {
+                let w = &self.w;
+                (w[0] + w[1] * g + w[2] * g * g + w[3] * s).clamp(0.0, 1.0)
+            }
+            _ => s,
+        }
+    }
+
+    pub fn to_metadata(&self) -> String {
+        format!(
+            "{FUSION_FORM}: {}, {}, {}, {}",
+            self.w[0], self.w[1], self.w[2], self.w[3]
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const W: usize = 160;
+    const H: usize = 120;
+
+    /// A smooth texture seen through the homography `m` (pixel of the picture → texture coords).
+    fn texture(m: &Mat3) -> Vec<f32> {
+        let mut v = vec![0.0f32; W * H];
+        for y in 0..H {
+            for x in 0..W {
+                let (u, t) = apply(m, x as f64, y as f64).unwrap_or((0.0, 0.0));
+                let (u, t) = (u as f32, t as f32);
+                let f = 128.0
+                    + 50.0 * (u * 0.21).sin() * (t * 0.17).cos()
+                    + 40.0 * ((u + t) * 0.09).sin()
+                    + 30.0 * (u * 0.05 - t * 0.11).cos();
+                v[y * W + x] = f.clamp(0.0, 255.0);
+            }
+        }
+        v
+    }
+
+    fn shift(dx: f64, dy: f64) -> Mat3 {
+        [[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]]
+    }
+
+    fn rot(deg: f64) -> Mat3 {
+        let (s, c) = deg.to_radians().sin_cos();
+        let (cx, cy) = (W as f64 / 2.0, H as f64 / 2.0);
+        mat_mul(
+            &shift(cx, cy),
+            &mat_mul(
+                &[[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]],
+                &shift(-cx, -cy),
+            ),
+        )
+    }
+
+    #[test]
+    fn raster_tau_of_known_warps() {
+        let mut hit = Vec::new();
+        let (t, fm, fu) = raster_tau(&IDENTITY, W, H, &mut hit);
+        assert_eq!((t, fm, fu), (0.0, 1.0, 1.0));
+        // A shift of a quarter of the width leaves 3/4 of both views.
+        let (t, fm, fu) = raster_tau(&shift(40.0, 0.0), W, H, &mut hit);
+        assert!((fm - 0.75).abs() < 1e-9 && (fu - 0.75).abs() < 1e-9 && (t - 0.25).abs() < 1e-9);
+        // Entirely outside: nothing left.
+        assert_eq!(raster_tau(&shift(500.0, 0.0), W, H, &mut hit).0, 1.0);
+        // Under a roll the nearest-pixel map hits fewer distinct pixels than it maps inside.
+        let (_, fm, fu) = raster_tau(&rot(20.0), W, H, &mut hit);
+        assert!(fu < fm, "f_u {fu} f_m {fm}");
+        // A zoom-in by 2 (current pixels cover half the reference's span) hits a quarter.
+        let zoom = [[0.5, 0.0, 40.0], [0.0, 0.5, 30.0], [0.0, 0.0, 1.0]];
+        let (_, fm, fu) = raster_tau(&zoom, W, H, &mut hit);
+        assert!(
+            (fm - 1.0).abs() < 1e-9 && (fu - 0.25).abs() < 0.01,
+            "{fm} {fu}"
+        );
+    }
+
+    #[test]
+    fn homography_fit_recovers_a_warp_despite_outliers() {
+        let h = mat_mul(&rot(7.0), &shift(3.0, -2.0));
+        let src = grid(W, H, 12, 9);
+        let mut dst: Vec<(f32, f32)> = src
+            .iter()
+            .map(|p| {
+                let q = apply(&h, p.0 as f64, p.1 as f64).unwrap();
+                (q.0 as f32, q.1 as f32)
+            })
+            .collect();
+        for k in (0..dst.len()).step_by(5) {
+            dst[k].0 += 25.0;
+        }
+        let (f, inl) = fit_homography(&src, &dst).expect("fit");
+        assert_eq!(inl, src.len() - src.len().div_ceil(5));
+        for p in &src {
+            let a = apply(&h, p.0 as f64, p.1 as f64).unwrap();
+            let b = apply(&f, p.0 as f64, p.1 as f64).unwrap();
+            assert!((a.0 - b.0).abs() < 0.05 && (a.1 - b.1).abs() < 0.05);
+        }
+        assert!(fit_homography(&src[..5], &dst[..5]).is_none());
+    }
+
+    #[test]
+    fn tracks_a_known_shift() {
+        let a = Pyramid::new(&texture(&IDENTITY), W, H);
+        let b = Pyramid::new(&texture(&shift(-3.0, 2.0)), W, H);
+        let mut errs = Vec::new();
+        for p in grid(W, H, 12, 9)
+            .into_iter()
+            .filter(|p| p.0 > 15.0 && p.0 < 145.0 && p.1 > 15.0 && p.1 < 105.0)
+        {
+            let q = track(&a, &b, p).expect("tracked");
+            errs.push(((q.0 - p.0 - 3.0).abs()).max((q.1 - p.1 + 2.0).abs()));
+        }
+        errs.sort_by(|a, b| a.total_cmp(b));
+        assert!(
+            errs[errs.len() / 2] < 0.2,
+            "median {}",
+            errs[errs.len() / 2]
+        );
+    }
+
+    #[test]
+    fn chained_tracker_follows_a_pan_beyond_one_step() {
+        // A pan of 2.5 px per frame over 24 frames: 60 px in all, far more than one LK step.
+        let mut t = Tracker::new();
+        t.observe(Pyramid::new(&texture(&IDENTITY), W, H));
+        assert_eq!(t.tau(), None, "no reference yet");
+        t.set_reference();
+        assert_eq!(t.tau(), Some(0.0));
+        for k in 1..=24 {
+            t.observe(Pyramid::new(&texture(&shift(2.5 * k as f64, 0.0)), W, H));
+        }
+        let tau = t.tau().expect("chain holds");
+        assert!((tau - 60.0 / W as f64).abs() < 0.02, "tau {tau}");
+        // A frame of another size loses the chain; a new reference restores it.
+        t.observe(Pyramid::new(&vec![0.0; 80 * 60], 80, 60));
+        assert_eq!(t.tau(), None);
+        t.set_reference();
+        assert_eq!(t.tau(), Some(0.0));
+        // A malformed picture is a 1x1 pyramid, not a panic.
+        assert_eq!(Pyramid::new(&[1.0, 2.0], 5, 5).width(), 1);
+        // A textureless frame cannot be tracked: the chain is lost, not guessed.
+        t.observe(Pyramid::new(&vec![10.0; 80 * 60], 80, 60));
+        assert_eq!(t.tau(), None);
+        t.clear();
+        assert_eq!(t.tau(), None);
+    }
+
+    #[test]
+    fn grey_inverts_the_normalisation() {
+        let (mean, std) = ([0.485, 0.456, 0.406], [0.229, 0.224, 0.225]);
+        let px = [0.2f32, 0.6, 0.9];
+        let t: Vec<f32> = (0..3).map(|c| (px[c] - mean[c]) / std[c]).collect();
+        let g = grey_from_tensor(&t, 1, 1, mean, std);
+        let want = 255.0 * (0.299 * 0.2 + 0.587 * 0.6 + 0.114 * 0.9);
+        assert!((g[0] - want).abs() < 1e-3, "{} vs {want}", g[0]);
+        assert_eq!(grey_from_tensor(&[f32::NAN; 3], 1, 1, mean, std), vec![0.0]);
+    }
+
+    #[test]
+    fn fusion_parses_fuses_and_falls_back() {
+        let f = Fusion::parse("raster-homography-v1: 0.1, 0.5, 0.25, 0.5").unwrap();
+        assert_eq!(f.w, [0.1, 0.5, 0.25, 0.5]);
+        assert_eq!(Fusion::parse(&f.to_metadata()).unwrap(), f);
+        assert!((f.fuse(0.4, Some(0.2)) - (0.1 + 0.1 + 0.01 + 0.2)).abs() < 1e-12);
+        assert_eq!(f.fuse(0.4, None), 0.4);
+        assert!(f.fuse(f64::NAN, Some(0.2)).is_nan());
+        assert_eq!(f.fuse(3.0, Some(1.0)), 1.0);
+        for bad in [
+            "0.1, 0.5, 0.25, 0.5",
+            "other: 1, 2, 3, 4",
+            "raster-homography-v1: 1, 2, 3",
+            "raster-homography-v1: 1, 2, x, 4",
+            "raster-homography-v1: 1, 2, inf, 4",
+        ] {
+            assert!(Fusion::parse(bad).is_err(), "{bad}");
+        }
+    }
+}

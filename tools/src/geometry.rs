@@ -1,0 +1,88 @@
+//! The element's geometric prior ([`gstleangate::geometry`]) on pairs of a sequence, computed
+//! exactly as the element computes it: each colour frame goes through the element's
+//! preprocessing to the model's input size, becomes a grey pyramid, consecutive frames give a
+//! homography, and a pair (current `i`, reference `j`) chains those of `j → j+1 → … → i` in the
+//! element's order before [`raster_tau`] scores it. `training/fuse.py` fits the model's
+//! `leangate.geometry` fusion on these numbers.
+
+use gstleangate::geometry::{
+    frame_homography, mat_inv, mat_mul, raster_tau, Mat3, Pyramid, IDENTITY,
+};
+use gstleangate::{PixelFormat, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix};
+
+use crate::dataset::Sequence;
+
+/// Grey picture of frame `i` at `w` x `h` as the element's tracker sees it.
+fn grey(seq: &Sequence, i: usize, w: u32, h: u32, resize: ResizeMode) -> Result<Vec<f32>, String> {
+    let rgb = seq.load_rgb(i).map_err(|e| format!("frame {i}: {e}"))?;
+    let spec = TensorSpec {
+        width: w,
+        height: h,
+        resize,
+        mean: [0.0; 3],
+        std: [1.0 / 255.0; 3],
+    };
+    let pre = Preprocessor::new(
+        PixelFormat::Rgb,
+        rgb.width(),
+        rgb.height(),
+        YuvMatrix::BT601,
+        spec,
+    )
+    .map_err(|e| format!("frame {i}: {e}"))?;
+    let mut t = vec![0.0f32; pre.spec().len()];
+    let frame = RawFrame {
+        format: PixelFormat::Rgb,
+        width: rgb.width(),
+        height: rgb.height(),
+        planes: [rgb.as_raw(), &[], &[]],
+        strides: [3 * rgb.width() as isize, 0, 0],
+    };
+    pre.run(&frame, &mut t)
+        .map_err(|e| format!("frame {i}: {e}"))?;
+    Ok(gstleangate::geometry::grey_from_tensor(
+        &t,
+        w as usize,
+        h as usize,
+        [0.0; 3],
+        [1.0 / 255.0; 3],
+    ))
+}
+
+/// `(tau_geo, f_m, f_u)` of one pair.
+pub type PairGeometry = (f64, f64, f64);
+
+/// `(tau_geo, f_m, f_u)` of each pair `(current i, reference j)`, `j < i`; None where the chain
+/// is lost. Frames are read once, in order.
+pub fn pair_geometry(
+    seq: &Sequence,
+    pairs: &[(usize, usize)],
+    w: u32,
+    h: u32,
+    resize: ResizeMode,
+) -> Result<Vec<Option<PairGeometry>>, String> {
+    let Some(last) = pairs.iter().map(|p| p.0).max() else {
+        return Ok(Vec::new());
+    };
+    let first = pairs.iter().map(|p| p.1).min().unwrap_or(0);
+    // steps[k - first] = homography k → k+1
+    let mut steps: Vec<Option<Mat3>> = Vec::with_capacity(last - first);
+    let mut prev = Pyramid::new(&grey(seq, first, w, h, resize)?, w as usize, h as usize);
+    for k in first + 1..=last {
+        let cur = Pyramid::new(&grey(seq, k, w, h, resize)?, w as usize, h as usize);
+        steps.push(frame_homography(&prev, &cur));
+        prev = cur;
+    }
+    let mut hit = Vec::new();
+    Ok(pairs
+        .iter()
+        .map(|&(i, j)| {
+            let mut chain = IDENTITY;
+            for s in &steps[j - first..i - first] {
+                chain = mat_mul(s.as_ref()?, &chain);
+            }
+            let inv = mat_inv(&chain)?;
+            Some(raster_tau(&inv, w as usize, h as usize, &mut hit))
+        })
+        .collect())
+}
