@@ -661,3 +661,51 @@ fn geometric_prior_follows_the_pan_and_can_be_switched_off() {
     let e = element("");
     assert!(e.property::<bool>("geometry"), "on by default");
 }
+
+#[test]
+fn geometric_prior_restarts_at_the_next_keep_after_being_switched_back_on() {
+    // While `geometry` is off the chain is not kept up; switched back on, the element uses the
+    // model alone until the next keep, then the prior again (measured from that keep).
+    let (w, h) = (160, 120);
+    let mut hs = harness(
+        &format!(
+            "model={} mode=annotate threshold=0.99",
+            fixture("mad_geometry.onnx")
+        ),
+        &rgb_caps(w, h),
+    );
+    let e = hs.element().unwrap();
+    let force = || gst::Structure::new_empty(gstleangate::FORCE_KEYFRAME_EVENT);
+    let mut k = 0u64;
+    let mut push = |hs: &mut gst_check::Harness| {
+        hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
+            .unwrap();
+        k += 1;
+    };
+    for _ in 0..4 {
+        push(&mut hs); // frames 0-3: prior on
+    }
+    e.set_property("geometry", false);
+    push(&mut hs); // 4: off
+    e.set_property("geometry", true);
+    push(&mut hs); // 5: on, but no chain until the next keep
+    hs.push_event(gst::event::CustomDownstream::new(force()));
+    push(&mut hs); // 6: forced keep: the new reference
+    push(&mut hs); // 7: 2 px from frame 6
+    push(&mut hs); // 8: 4 px
+    let m: Vec<_> = drain(&mut hs).iter().map(meta).collect();
+    assert_eq!(m.len(), 9);
+    let geo = |px: f64| px / w as f64;
+    assert!((m[3].utility - geo(6.0)).abs() < 0.02, "{}", m[3].utility);
+    // Off and just back on: the model's own MAD, which differs from the prior here.
+    for i in [4, 5] {
+        assert!(
+            (m[i].utility - geo(2.0 * i as f64)).abs() > 0.05,
+            "frame {i}: {} should be the model alone",
+            m[i].utility
+        );
+    }
+    assert_eq!(m[6].reason, Reason::Forced);
+    assert!((m[7].utility - geo(2.0)).abs() < 0.02, "{}", m[7].utility);
+    assert!((m[8].utility - geo(4.0)).abs() < 0.02, "{}", m[8].utility);
+}
