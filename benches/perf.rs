@@ -336,6 +336,70 @@ fn section_preprocess(reps: usize) {
     }
 }
 
+/// The geometric prior's cost per frame at the embedded model's 160x120 input (one core): the
+/// pyramid, the frame-to-frame homography (LK on the grid + RANSAC) and the raster score of the
+/// chain, on a panning texture (every point tracks, the slow case).
+fn section_geometry(reps: usize) {
+    use gstleangate::geometry::{frame_homography, raster_tau, Pyramid, Tracker, IDENTITY};
+    let (w, h) = (160usize, 120usize);
+    let frames: Vec<Vec<f32>> = (0..100)
+        .map(|k| {
+            let dx = 1.5 * k as f32;
+            let mut v = vec![0.0f32; w * h];
+            for y in 0..h {
+                for x in 0..w {
+                    let (u, t) = (x as f32 + dx, y as f32);
+                    v[y * w + x] = 128.0
+                        + 50.0 * (u * 0.21).sin() * (t * 0.17).cos()
+                        + 40.0 * ((u + t) * 0.09).sin()
+                        + 30.0 * (u * 0.05 - t * 0.11).cos();
+                }
+            }
+            v
+        })
+        .collect();
+    let per_frame_us = |f: &mut dyn FnMut()| -> f64 {
+        let mut v = Vec::new();
+        for _ in 0..reps {
+            let t0 = Instant::now();
+            f();
+            v.push(t0.elapsed().as_secs_f64() * 1e6 / frames.len() as f64);
+        }
+        median(&v)
+    };
+    let pyr: Vec<Pyramid> = frames.iter().map(|g| Pyramid::new(g, w, h)).collect();
+    let t_pyr = per_frame_us(&mut || {
+        for g in &frames {
+            std::hint::black_box(Pyramid::new(g, w, h));
+        }
+    });
+    let t_step = per_frame_us(&mut || {
+        for k in 1..pyr.len() {
+            std::hint::black_box(frame_homography(&pyr[k - 1], &pyr[k]));
+        }
+    });
+    let mut hit = Vec::new();
+    let t_raster = per_frame_us(&mut || {
+        for _ in 0..frames.len() {
+            std::hint::black_box(raster_tau(&IDENTITY, w, h, &mut hit));
+        }
+    });
+    let t_all = per_frame_us(&mut || {
+        let mut tr = Tracker::new();
+        for (k, g) in frames.iter().enumerate() {
+            tr.observe(Pyramid::new(g, w, h));
+            if k % 15 == 0 {
+                tr.set_reference();
+            }
+            std::hint::black_box(tr.tau());
+        }
+    });
+    println!("## geometric prior at 160x120, per frame (one core, medians of {reps})");
+    println!("| pyramid | frame homography (LK + fit) | raster score | tracker in all |");
+    println!("|---|---|---|---|");
+    println!("| {t_pyr:.0} µs | {t_step:.0} µs | {t_raster:.0} µs | {t_all:.0} µs |");
+}
+
 fn main() {
     if let Some(arg) =
         std::env::args().find_map(|a| a.strip_prefix(streams::CHILD_FLAG).map(str::to_string))
@@ -373,6 +437,9 @@ fn main() {
     }
     if wanted("streams") {
         streams::section(reps);
+    }
+    if wanted("geometry") {
+        section_geometry(reps);
     }
     let _ = Duration::ZERO;
 }

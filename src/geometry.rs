@@ -179,8 +179,8 @@ impl Pyramid {
 /// image).
 pub fn track(a: &Pyramid, b: &Pyramid, p: (f32, f32)) -> Option<(f32, f32)> {
     let mut d = (0.0f32, 0.0f32);
-    let n = ((2 * HALF_WIN + 1) * (2 * HALF_WIN + 1)) as usize;
-    let mut tpl: Vec<(f32, f32, f32)> = Vec::with_capacity(n);
+    let (mut ti, mut tgx, mut tgy, mut cur) =
+        ([0.0f32; WIN_N], [0.0; WIN_N], [0.0; WIN_N], [0.0; WIN_N]);
     for l in (0..a.levels.len().min(b.levels.len())).rev() {
         let la = &a.levels[l];
         let lb = &b.levels[l];
@@ -189,35 +189,26 @@ pub fn track(a: &Pyramid, b: &Pyramid, p: (f32, f32)) -> Option<(f32, f32)> {
         if l + 1 < a.levels.len() {
             d = (d.0 * 2.0, d.1 * 2.0);
         }
-        tpl.clear();
+        window(&la.img, la.w, la.h, px, py, &mut ti);
+        window(&la.gx, la.w, la.h, px, py, &mut tgx);
+        window(&la.gy, la.w, la.h, px, py, &mut tgy);
         let (mut gxx, mut gxy, mut gyy) = (0.0f32, 0.0f32, 0.0f32);
-        for wy in -HALF_WIN..=HALF_WIN {
-            for wx in -HALF_WIN..=HALF_WIN {
-                let (x, y) = (px + wx as f32, py + wy as f32);
-                let gx = sample(&la.gx, la.w, la.h, x, y);
-                let gy = sample(&la.gy, la.w, la.h, x, y);
-                gxx += gx * gx;
-                gxy += gx * gy;
-                gyy += gy * gy;
-                tpl.push((sample(&la.img, la.w, la.h, x, y), gx, gy));
-            }
+        for k in 0..WIN_N {
+            gxx += tgx[k] * tgx[k];
+            gxy += tgx[k] * tgy[k];
+            gyy += tgy[k] * tgy[k];
         }
         let det = gxx * gyy - gxy * gxy;
         if det.is_nan() || det < 1e-3 * (gxx + gyy).max(1e-6) || gxx + gyy < 1.0 {
             return None;
         }
         for _ in 0..ITERS {
+            window(&lb.img, lb.w, lb.h, px + d.0, py + d.1, &mut cur);
             let (mut bx, mut by) = (0.0f32, 0.0f32);
-            let mut k = 0;
-            for wy in -HALF_WIN..=HALF_WIN {
-                for wx in -HALF_WIN..=HALF_WIN {
-                    let (x, y) = (px + wx as f32 + d.0, py + wy as f32 + d.1);
-                    let (t, gx, gy) = tpl[k];
-                    let diff = t - sample(&lb.img, lb.w, lb.h, x, y);
-                    bx += diff * gx;
-                    by += diff * gy;
-                    k += 1;
-                }
+            for k in 0..WIN_N {
+                let diff = ti[k] - cur[k];
+                bx += diff * tgx[k];
+                by += diff * tgy[k];
             }
             let dx = (gyy * bx - gxy * by) / det;
             let dy = (gxx * by - gxy * bx) / det;
@@ -233,6 +224,36 @@ pub fn track(a: &Pyramid, b: &Pyramid, p: (f32, f32)) -> Option<(f32, f32)> {
     let q = (p.0 + d.0, p.1 + d.1);
     let (w, h) = (a.width() as f32, a.height() as f32);
     (q.0 >= 0.0 && q.1 >= 0.0 && q.0 <= w - 1.0 && q.1 <= h - 1.0).then_some(q)
+}
+
+/// Samples in an LK window.
+const WIN_N: usize = ((2 * HALF_WIN + 1) * (2 * HALF_WIN + 1)) as usize;
+
+/// Bilinear samples of `v` on the (2 HALF_WIN + 1)^2 window centred at `(cx, cy)`, row by row.
+/// Every sample of a window shares one fractional offset, so inside the image the weights are
+/// computed once; windows that touch the border are sampled one by one with clamping.
+fn window(v: &[f32], w: usize, h: usize, cx: f32, cy: f32, out: &mut [f32; WIN_N]) {
+    let side = (2 * HALF_WIN + 1) as usize;
+    let (x, y) = (cx - HALF_WIN as f32, cy - HALF_WIN as f32);
+    if x >= 0.0 && y >= 0.0 && (x as usize) + side < w && (y as usize) + side < h {
+        let (x0, y0) = (x as usize, y as usize);
+        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+        for r in 0..side {
+            let top = &v[(y0 + r) * w + x0..(y0 + r) * w + x0 + side + 1];
+            let bot = &v[(y0 + r + 1) * w + x0..(y0 + r + 1) * w + x0 + side + 1];
+            for c in 0..side {
+                let a = top[c] * (1.0 - fx) + top[c + 1] * fx;
+                let b = bot[c] * (1.0 - fx) + bot[c + 1] * fx;
+                out[r * side + c] = a * (1.0 - fy) + b * fy;
+            }
+        }
+    } else {
+        for r in 0..side {
+            for c in 0..side {
+                out[r * side + c] = sample(v, w, h, x + c as f32, y + r as f32);
+            }
+        }
+    }
 }
 
 /// An `nx` x `ny` grid of cell centres over a `w` x `h` image.
