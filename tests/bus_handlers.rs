@@ -222,3 +222,36 @@ run('videotestsrc num-buffers=300 pattern=ball ! video/x-raw,width=64,height=48 
         assert!(count(&out, "leangate-stats") >= 300, "{out}");
     }
 }
+
+#[test]
+fn geometry_toggled_from_a_sync_handler_and_a_thread_while_streaming() {
+    // The geometric prior's state lives under the state lock; switching it from a bus handler
+    // (on the streaming thread) and from another thread at once must neither deadlock nor fail.
+    let body = format!(
+        r#"
+stop = threading.Event()
+def setup(p, lg, bus):
+    def on(bus, m):
+        if m.get_structure() is not None and m.get_structure().get_name() == 'leangate-stats':
+            lg.set_property('geometry', not lg.get_property('geometry'))
+    bus.connect('sync-message::element', on)
+    def setter():
+        while not stop.is_set():
+            lg.set_property('geometry', True)
+            lg.set_property('geometry', False)
+    t = threading.Thread(target=setter, daemon=True)
+    t.start()
+    def done():
+        stop.set()
+        t.join(10)
+        assert not t.is_alive()
+    return done
+run('videotestsrc num-buffers=300 pattern=ball ! video/x-raw,width=320,height=240 ! '
+    'leangate name=lg model={} stats-interval=1 ! fakesink', setup)
+"#,
+        fixture("mad_geometry.onnx")
+    );
+    if let Some(out) = scenario(&body) {
+        assert!(count(&out, "leangate-stats") >= 300, "{out}");
+    }
+}

@@ -7,7 +7,7 @@ use std::sync::Once;
 use gst::prelude::*;
 
 /// Every property the issue asks the element to have.
-pub const PROPERTIES: [&str; 12] = [
+pub const PROPERTIES: [&str; 13] = [
     "model",
     "threshold",
     "warmup",
@@ -18,6 +18,7 @@ pub const PROPERTIES: [&str; 12] = [
     "device-id",
     "threads",
     "stats-interval",
+    "geometry",
     "frames-in",
     "frames-kept",
 ];
