@@ -158,7 +158,7 @@ enum Command {
         #[arg(long)]
         contact_sheet: Option<PathBuf>,
         /// Also run the equal-budget sweep: the model at each of --sweep-thresholds (one pipeline
-        /// run each), the oracle at the same threshold, stride, pixel_diff and motion at the model's
+        /// run each), the oracle at the same threshold, stride, pixel_diff, motion and overlap at the model's
         /// budget; written into the JSON (`sweep`) and printed. Needs depth and poses.
         #[arg(long)]
         sweep: bool,
@@ -610,8 +610,8 @@ fn print_reconstruction(r: &eval::EvalReport) {
 fn print_sweep(points: &[eval::SweepPoint]) {
     println!("equal-budget sweep (late keeps / breaks / min pair S at each model threshold):");
     println!(
-        "{:>6} {:>12} {:>12} {:>12} {:>12} {:>12}",
-        "T", "model", "oracle", "stride", "pixel_diff", "motion"
+        "{:>6} {:>12} {:>12} {:>12} {:>12} {:>12} {:>12}",
+        "T", "model", "oracle", "stride", "pixel_diff", "motion", "overlap"
     );
     let mut thresholds: Vec<f64> = points.iter().map(|p| p.threshold).collect();
     thresholds.dedup();
@@ -624,13 +624,14 @@ fn print_sweep(points: &[eval::SweepPoint]) {
                 .unwrap_or_else(|| "-".into())
         };
         println!(
-            "{:>6.3} {:>12} {:>12} {:>12} {:>12} {:>12}",
+            "{:>6.3} {:>12} {:>12} {:>12} {:>12} {:>12} {:>12}",
             t,
             cell("model"),
             cell("oracle"),
             cell("stride"),
             cell("pixel_diff"),
-            cell("motion")
+            cell("motion"),
+            cell("overlap")
         );
     }
 }

@@ -8,7 +8,10 @@
 //! - `pixel_diff`: an mpdecimate-like gate (8x8 block SADs against the last kept frame, on a
 //!   160x120 grey thumbnail), its thresholds scaled so the kept count matches `model`'s;
 //! - `motion`: mean sparse pyramidal Lucas-Kanade displacement since the last keep above a pixel
-//!   threshold (DROID-SLAM's motion filter, DSO), the threshold chosen for `model`'s budget.
+//!   threshold (DROID-SLAM's motion filter, DSO), the threshold chosen for `model`'s budget;
+//! - `overlap`: the view overlap since the last keep from chained frame-to-frame homographies (the
+//!   element's geometric prior, no depth), scored like the teacher; keep below a threshold chosen
+//!   for `model`'s budget (the classical tracked-overlap keyframe rule).
 //!
 //! `--sweep` ([`sweep`]) repeats this over a range of model thresholds: every policy at every
 //! budget the model reaches, the honest equal-budget comparison.
@@ -32,6 +35,7 @@ mod baselines;
 mod judge;
 mod model_run;
 pub mod motion;
+pub mod overlap;
 pub mod reconstruct;
 mod report;
 
@@ -41,6 +45,7 @@ pub use baselines::{
 pub use judge::{judge, PolicyReport, TeacherCache};
 pub use model_run::{init_gstreamer, run_model, GateModel, ModelRun};
 pub use motion::{motion_for_budget, motion_gate};
+pub use overlap::{overlap_for_budget, overlap_gate};
 pub use report::{contact_sheet, plot, plot_sweep};
 
 /// S below which MASt3R-SLAM's tracking breaks.
@@ -246,6 +251,11 @@ pub fn evaluate(
     let (mo, _) = motion_for_budget(&motion::pyramids(&run.thumbs), budget);
     progress("motion", n, n);
     add("motion", judge(&mo, cache.as_mut(), t, false, None), &mo);
+    progress("overlap", 0, n);
+    let pyr = motion::pyramids(&run.thumbs);
+    let (ov, _) = overlap_for_budget(&overlap::steps(&pyr), budget);
+    progress("overlap", n, n);
+    add("overlap", judge(&ov, cache.as_mut(), t, false, None), &ov);
 
     let refs = model_trace.references();
     let teacher_tau = refs
@@ -294,8 +304,8 @@ pub struct SweepPoint {
 }
 
 /// Equal-budget curves: the model at each threshold (the real element, one pipeline run per
-/// threshold), the oracle at the same threshold, and `stride`, `pixel_diff` and `motion` each at
-/// the model's budget. Needs depth and poses (the teacher judges every point).
+/// threshold), the oracle at the same threshold, and `stride`, `pixel_diff`, `motion` and
+/// `overlap` each at the model's budget. Needs depth and poses (the teacher judges every point).
 pub fn sweep(
     path: &Path,
     model: GateModel<'_>,
@@ -322,6 +332,7 @@ pub fn sweep(
     let mut points = Vec::new();
     let mut pyramids = None;
     let mut thumbs = None;
+    let mut steps = None;
     let mut point = |policy: &str, t: f64, trace: &Trace, cache: &mut TeacherCache| {
         let r = judge(trace, Some(cache), t, false, None);
         points.push(SweepPoint {
@@ -366,6 +377,8 @@ pub fn sweep(
         );
         let pyr = pyramids.get_or_insert_with(|| motion::pyramids(th));
         point("motion", t, &motion_for_budget(pyr, budget).0, &mut cache);
+        let st = steps.get_or_insert_with(|| overlap::steps(pyr));
+        point("overlap", t, &overlap_for_budget(st, budget).0, &mut cache);
     }
     progress("sweep", thresholds.len(), thresholds.len());
     Ok(points)

@@ -1,0 +1,106 @@
+//! The `overlap` baseline: keep a frame when the view overlap since the last keep, measured from
+//! the images alone, falls below a threshold — the classical tracked-overlap keyframe rule (as in
+//! ORB-SLAM's "fewer than x % of the reference's points still tracked"), here in the teacher's own
+//! terms.
+//!
+//! Method (README): the element's geometric prior ([`gstleangate::geometry`]) on the grey
+//! 160x120 thumbnails every policy sees: frame-to-frame homographies from sparse pyramidal
+//! Lucas-Kanade on a 16x12 grid (RANSAC), chained from the last kept frame and scored like the
+//! teacher scores a pair (`tau_geo = 1 - min(f_m, f_u)` of the nearest-pixel warp). A frame is kept
+//! when `tau_geo` reaches the threshold, or when the chain is lost (the view has changed); it then
+//! becomes the new reference. Depth is not used, so parallax and the teacher's 3-D check are
+//! invisible to it.
+
+use gstleangate::geometry::{
+    frame_homography, mat_inv, mat_mul, raster_tau, Mat3, Pyramid, IDENTITY,
+};
+
+use super::{Trace, THUMB_H, THUMB_W};
+
+/// Frame-to-frame homographies (`steps[k]`: frame k → k+1; None where tracking failed), computed
+/// once and shared by every threshold tried.
+pub fn steps(pyr: &[Pyramid]) -> Vec<Option<Mat3>> {
+    pyr.windows(2)
+        .map(|w| frame_homography(&w[0], &w[1]))
+        .collect()
+}
+
+/// The overlap gate at `threshold` (in tau_geo). The trace's utility is `tau_geo` (not
+/// calibrated to the teacher, so not judged for MAE/RMSE).
+pub fn overlap_gate(steps: &[Option<Mat3>], threshold: f64) -> Trace {
+    let n = steps.len() + 1;
+    let (w, h) = (THUMB_W as usize, THUMB_H as usize);
+    let mut keep = Vec::with_capacity(n);
+    let mut chain = Some(IDENTITY);
+    let mut hit = Vec::new();
+    for i in 0..n {
+        let k = if i == 0 {
+            true
+        } else {
+            chain = chain.and_then(|c| steps[i - 1].map(|s| mat_mul(&s, &c)));
+            match chain.as_ref().and_then(mat_inv) {
+                Some(inv) => raster_tau(&inv, w, h, &mut hit).0 >= threshold,
+                None => true,
+            }
+        };
+        if k {
+            chain = Some(IDENTITY);
+        }
+        keep.push(k);
+    }
+    Trace {
+        utility: vec![None; n],
+        keep,
+    }
+}
+
+/// The overlap gate with its threshold chosen so the kept count is as close as possible to
+/// `target`. Returns the trace and the threshold.
+pub fn overlap_for_budget(steps: &[Option<Mat3>], target: usize) -> (Trace, f64) {
+    super::baselines::fit_budget(target, (1e-3, 1.0), 24, |t| overlap_gate(steps, t))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A smooth texture shifted by `dx` thumbnail pixels.
+    fn texture(dx: f32) -> Vec<u8> {
+        let (w, h) = (THUMB_W as usize, THUMB_H as usize);
+        let mut v = vec![0u8; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let (u, t) = (x as f32 + dx, y as f32);
+                let f = 128.0
+                    + 50.0 * (u * 0.21).sin() * (t * 0.17).cos()
+                    + 40.0 * ((u + t) * 0.09).sin()
+                    + 30.0 * (u * 0.05 - t * 0.11).cos();
+                v[y * w + x] = f.clamp(0.0, 255.0) as u8;
+            }
+        }
+        v
+    }
+
+    #[test]
+    fn keeps_when_the_view_has_moved_by_the_threshold() {
+        // 2 thumbnail px per frame: tau_geo grows by 2/160 a frame, so at 0.25 a keep every 20.
+        let pyr: Vec<Pyramid> = (0..61)
+            .map(|k| Pyramid::from_u8(&texture(2.0 * k as f32), THUMB_W as usize, THUMB_H as usize))
+            .collect();
+        let st = steps(&pyr);
+        assert!(st.iter().all(|s| s.is_some()), "a textured pan tracks");
+        let t = overlap_gate(&st, 0.25);
+        let kept: Vec<usize> = (0..t.keep.len()).filter(|&i| t.keep[i]).collect();
+        assert_eq!(kept, vec![0, 20, 40, 60]);
+        let still: Vec<Option<Mat3>> = vec![Some(IDENTITY); 30];
+        assert_eq!(overlap_gate(&still, 0.1).kept(), 1);
+        // A lost chain keeps (the view has changed) and restarts from there.
+        let mut lost = still.clone();
+        lost[10] = None;
+        let t = overlap_gate(&lost, 0.1);
+        assert_eq!(t.kept(), 2);
+        assert!(t.keep[11]);
+        let (b, th) = overlap_for_budget(&st, 7);
+        assert_eq!(b.kept(), 7, "threshold {th}");
+    }
+}
