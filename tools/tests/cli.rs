@@ -126,7 +126,14 @@ fn synth_label_eval_end_to_end() {
     assert_eq!(oracle["overdue_drops"], 0);
     assert_eq!(oracle["utility_mae"], 0.0);
     assert_eq!(oracle["utility_rmse"], 0.0);
-    for name in ["model", "oracle", "stride", "pixel_diff"] {
+    for name in [
+        "model",
+        "oracle",
+        "stride",
+        "pixel_diff",
+        "motion",
+        "overlap",
+    ] {
         let p = &v["policies"][name];
         for k in [
             "kept",
@@ -147,18 +154,18 @@ fn synth_label_eval_end_to_end() {
     let png = std::fs::read(&plot).unwrap();
     assert_eq!(&png[1..4], b"PNG");
 
-    // motion: judged at the model's budget like stride and pixel_diff.
+    // motion and overlap: judged at the model's budget like stride and pixel_diff.
     let kept = v["policies"]["model"]["kept"].as_i64().unwrap();
-    let motion = v["policies"]["motion"]["kept"].as_i64().unwrap();
-    assert!(
-        (motion - kept).abs() <= 2,
-        "motion kept {motion}, model {kept}"
-    );
+    for p in ["motion", "overlap"] {
+        let k = v["policies"][p]["kept"].as_i64().unwrap();
+        assert!((k - kept).abs() <= 2, "{p} kept {k}, model {kept}");
+        assert!(v["policies"][p].get("utility_rmse").is_none());
+    }
 
     // --sweep: every policy at every threshold; the model point at 0.05 is the main run; the
     // baselines sit at the model's budget; more frames kept at a lower threshold.
     let sweep = v["sweep"].as_array().expect("sweep in the JSON");
-    assert_eq!(sweep.len(), 3 * 5);
+    assert_eq!(sweep.len(), 3 * 6);
     let point = |policy: &str, t: f64| {
         sweep
             .iter()
@@ -175,7 +182,7 @@ fn synth_label_eval_end_to_end() {
             .map(|s| (40 + s - 1) / s)
             .min_by_key(|k| (k - budget).abs());
         assert_eq!(Some(stride), best, "stride at budget {budget}");
-        for p in ["pixel_diff", "motion"] {
+        for p in ["pixel_diff", "motion", "overlap"] {
             let k = point(p, t)["kept"].as_i64().unwrap();
             assert!((k - budget).abs() <= 2, "{p} kept {k} at budget {budget}");
         }
