@@ -585,8 +585,9 @@ impl ObjectImpl for LeanGate {
                     .blurb(
                         "Combine the model's utility with the geometric prior (frame-to-frame \
                          homographies chained from the reference, scored like the teacher) as \
-                         the model's leangate.geometry metadata says; the embedded model has it. \
-                         Off, or a model without it: the model's utility alone",
+                         the model's leangate.geometry metadata says (training/fuse.py writes \
+                         it; the embedded model does not carry it). Off, or a model without it: \
+                         the model's utility alone",
                     )
                     .default_value(DEFAULT_GEOMETRY)
                     .mutable_playing()
