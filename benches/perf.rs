@@ -367,10 +367,13 @@ fn section_geometry(reps: usize) {
         }
         median(&v)
     };
-    let pyr: Vec<Pyramid> = frames.iter().map(|g| Pyramid::new(g, w, h)).collect();
+    let pyr: Vec<Pyramid> = frames
+        .iter()
+        .map(|g| Pyramid::new(g.clone(), w, h))
+        .collect();
     let t_pyr = per_frame_us(&mut || {
         for g in &frames {
-            std::hint::black_box(Pyramid::new(g, w, h));
+            std::hint::black_box(Pyramid::new(g.clone(), w, h));
         }
     });
     let t_step = per_frame_us(&mut || {
@@ -387,7 +390,7 @@ fn section_geometry(reps: usize) {
     let t_all = per_frame_us(&mut || {
         let mut tr = Tracker::new();
         for (k, g) in frames.iter().enumerate() {
-            tr.observe(Pyramid::new(g, w, h));
+            tr.observe(Pyramid::new(g.clone(), w, h));
             if k % 15 == 0 {
                 tr.set_reference();
             }

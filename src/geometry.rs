@@ -12,7 +12,8 @@
 //! 3. a homography is fitted to the tracks ([`fit_homography`]: RANSAC over 4-point samples with a
 //!    fixed seed, 1-pixel inlier threshold, then a least-squares refit on the inliers);
 //! 4. the frame-to-frame homographies are chained from the reference (the last kept frame) to the
-//!    current frame ([`Tracker`]), so the motion may grow far beyond what one LK step can follow;
+//!    current frame ([`Chain`], kept by the element's [`Tracker`]), so the motion may grow far
+//!    beyond what one LK step can follow;
 //! 5. the chained homography is scored like the teacher scores a pair ([`raster_tau`]): every
 //!    pixel of the current frame is mapped into the reference and rounded to the nearest pixel;
 //!    `f_m` = the fraction that lands inside, `f_u` = the fraction of the reference's pixels hit at
@@ -24,7 +25,8 @@
 //! When tracking fails (too few tracked points or inliers, a degenerate fit) the chain is lost
 //! until the next keep and the element uses the student's utility alone.
 //!
-//! The `motion` baseline of `leangate eval` uses the same pyramid and tracker.
+//! `leangate eval`'s `motion` baseline uses the same pyramid and LK tracker, its `overlap` baseline
+//! and `leangate geometry` the same [`Chain`].
 
 /// Pyramid levels (level 0 = the full image).
 pub const LEVELS: usize = 3;
@@ -132,11 +134,11 @@ impl Pyramid {
     /// Pyramid of a `w` x `h` grey image (row-major, any scale of grey values). Each level
     /// halves the sides (at least 1 pixel). A `grey` whose length is not `w * h` (or an empty
     /// size) gives a 1x1 black pyramid, which nothing can be tracked in.
-    pub fn new(grey: &[f32], w: usize, h: usize) -> Pyramid {
+    pub fn new(grey: Vec<f32>, w: usize, h: usize) -> Pyramid {
         let (w, h, img) = if w == 0 || h == 0 || grey.len() != w * h {
             (1, 1, vec![0.0])
         } else {
-            (w, h, grey.to_vec())
+            (w, h, grey)
         };
         let mut levels = vec![Level::new(w, h, img)];
         for _ in 1..LEVELS {
@@ -161,8 +163,7 @@ impl Pyramid {
 
     /// Pyramid of a `u8` grey image.
     pub fn from_u8(grey: &[u8], w: usize, h: usize) -> Pyramid {
-        let v: Vec<f32> = grey.iter().map(|&g| g as f32).collect();
-        Pyramid::new(&v, w, h)
+        Pyramid::new(grey.iter().map(|&g| g as f32).collect(), w, h)
     }
 
     pub fn width(&self) -> usize {
@@ -478,13 +479,58 @@ pub fn grey_from_tensor(t: &[f32], w: usize, h: usize, mean: [f32; 3], std: [f32
     g
 }
 
-/// Chained frame-to-frame homographies from the reference to the current frame.
+/// Frame-to-frame homographies chained from the reference, and the teacher-like score of the
+/// chain: the one implementation that the element's [`Tracker`], `leangate geometry` and the
+/// `overlap` baseline of `leangate eval` share.
+#[derive(Debug, Clone, Default)]
+pub struct Chain {
+    /// Homography reference → the last frame pushed; None when lost (or never started).
+    h: Option<Mat3>,
+    hit: Vec<bool>,
+}
+
+impl Chain {
+    /// The last frame becomes the reference: the chain restarts at the identity.
+    pub fn start(&mut self) {
+        self.h = Some(IDENTITY);
+    }
+
+    /// Lose the chain (until the next [`Chain::start`]).
+    pub fn lose(&mut self) {
+        self.h = None;
+    }
+
+    pub fn is_live(&self) -> bool {
+        self.h.is_some()
+    }
+
+    /// Extend the chain by the homography previous → next frame; a failed step (None) loses it.
+    pub fn push(&mut self, step: Option<Mat3>) {
+        self.h = match (self.h, step) {
+            (Some(c), Some(s)) => Some(mat_mul(&s, &c)),
+            _ => None,
+        };
+    }
+
+    /// Homography reference → the last frame pushed, if the chain holds.
+    pub fn homography(&self) -> Option<Mat3> {
+        self.h
+    }
+
+    /// `(tau, f_m, f_u)` of the last frame against the reference on a `w` x `h` picture
+    /// ([`raster_tau`] of the chain), or None when the chain is lost or not invertible.
+    pub fn score(&mut self, w: usize, h: usize) -> Option<(f64, f64, f64)> {
+        let inv = mat_inv(&self.h?)?;
+        let r = raster_tau(&inv, w, h, &mut self.hit);
+        r.0.is_finite().then_some(r)
+    }
+}
+
+/// The element's tracker: the previous frame's pyramid and the [`Chain`] from the reference.
 #[derive(Debug, Clone, Default)]
 pub struct Tracker {
     prev: Option<Pyramid>,
-    /// Homography reference → previous frame; None when the chain is lost (or no reference).
-    chain: Option<Mat3>,
-    hit: Vec<bool>,
+    chain: Chain,
 }
 
 impl Tracker {
@@ -495,35 +541,34 @@ impl Tracker {
     /// Forget everything (no reference: start, flush, caps change).
     pub fn clear(&mut self) {
         self.prev = None;
-        self.chain = None;
+        self.chain.lose();
     }
 
-    /// Feed the next frame's pyramid: extends the chain by the motion from the previous frame.
+    /// Feed the next frame's pyramid: extends a live chain by the motion from the previous frame.
     pub fn observe(&mut self, cur: Pyramid) {
-        if let (Some(prev), Some(chain)) = (&self.prev, self.chain) {
-            self.chain = frame_homography(prev, &cur).map(|h| mat_mul(&h, &chain));
+        if let Some(prev) = self.prev.as_ref().filter(|_| self.chain.is_live()) {
+            self.chain.push(frame_homography(prev, &cur));
         }
         self.prev = Some(cur);
     }
 
     /// The last observed frame becomes the reference: the chain restarts at the identity.
     pub fn set_reference(&mut self) {
-        self.chain = self.prev.as_ref().map(|_| IDENTITY);
+        if self.prev.is_some() {
+            self.chain.start();
+        }
     }
 
     /// Homography reference → last observed frame, if the chain holds.
     pub fn chain(&self) -> Option<Mat3> {
-        self.chain
+        self.chain.homography()
     }
 
-    /// The teacher-like utility of the last observed frame against the reference
-    /// ([`raster_tau`] of the chain), or None when the chain is lost.
+    /// The teacher-like utility of the last observed frame against the reference, or None when
+    /// the chain is lost.
     pub fn tau(&mut self) -> Option<f64> {
-        let chain = self.chain?;
         let prev = self.prev.as_ref()?;
-        let inv = mat_inv(&chain)?;
-        let (t, _, _) = raster_tau(&inv, prev.width(), prev.height(), &mut self.hit);
-        t.is_finite().then_some(t)
+        self.chain.score(prev.width(), prev.height()).map(|r| r.0)
     }
 }
 
@@ -692,8 +737,8 @@ mod tests {
 
     #[test]
     fn tracks_a_known_shift() {
-        let a = Pyramid::new(&texture(&IDENTITY), W, H);
-        let b = Pyramid::new(&texture(&shift(-3.0, 2.0)), W, H);
+        let a = Pyramid::new(texture(&IDENTITY), W, H);
+        let b = Pyramid::new(texture(&shift(-3.0, 2.0)), W, H);
         let mut errs = Vec::new();
         for p in grid(W, H, 12, 9)
             .into_iter()
@@ -714,24 +759,24 @@ mod tests {
     fn chained_tracker_follows_a_pan_beyond_one_step() {
         // A pan of 2.5 px per frame over 24 frames: 60 px in all, far more than one LK step.
         let mut t = Tracker::new();
-        t.observe(Pyramid::new(&texture(&IDENTITY), W, H));
+        t.observe(Pyramid::new(texture(&IDENTITY), W, H));
         assert_eq!(t.tau(), None, "no reference yet");
         t.set_reference();
         assert_eq!(t.tau(), Some(0.0));
         for k in 1..=24 {
-            t.observe(Pyramid::new(&texture(&shift(2.5 * k as f64, 0.0)), W, H));
+            t.observe(Pyramid::new(texture(&shift(2.5 * k as f64, 0.0)), W, H));
         }
         let tau = t.tau().expect("chain holds");
         assert!((tau - 60.0 / W as f64).abs() < 0.02, "tau {tau}");
         // A frame of another size loses the chain; a new reference restores it.
-        t.observe(Pyramid::new(&vec![0.0; 80 * 60], 80, 60));
+        t.observe(Pyramid::new(vec![0.0; 80 * 60], 80, 60));
         assert_eq!(t.tau(), None);
         t.set_reference();
         assert_eq!(t.tau(), Some(0.0));
         // A malformed picture is a 1x1 pyramid, not a panic.
-        assert_eq!(Pyramid::new(&[1.0, 2.0], 5, 5).width(), 1);
+        assert_eq!(Pyramid::new(vec![1.0, 2.0], 5, 5).width(), 1);
         // A textureless frame cannot be tracked: the chain is lost, not guessed.
-        t.observe(Pyramid::new(&vec![10.0; 80 * 60], 80, 60));
+        t.observe(Pyramid::new(vec![10.0; 80 * 60], 80, 60));
         assert_eq!(t.tau(), None);
         t.clear();
         assert_eq!(t.tau(), None);

@@ -332,10 +332,10 @@ impl LeanGate {
             if !state.gate.has_reference() {
                 state.tracker.clear();
             }
-            let spec = state.scorer.info().spec.clone();
+            let spec = &state.scorer.info().spec;
             let (w, h) = (spec.width as usize, spec.height as usize);
             let grey = grey_from_tensor(&state.current, w, h, spec.mean, spec.std);
-            state.tracker.observe(Pyramid::new(&grey, w, h));
+            state.tracker.observe(Pyramid::new(grey, w, h));
         } else {
             state.tracker.clear();
         }

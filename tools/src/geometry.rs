@@ -2,12 +2,10 @@
 //! exactly as the element computes it: each colour frame goes through the element's
 //! preprocessing to the model's input size, becomes a grey pyramid, consecutive frames give a
 //! homography, and a pair (current `i`, reference `j`) chains those of `j → j+1 → … → i` in the
-//! element's order before [`raster_tau`] scores it. `training/fuse.py` fits the model's
+//! element's order (a [`Chain`], as the element's tracker keeps) before it is scored. `training/fuse.py` fits the model's
 //! `leangate.geometry` fusion on these numbers.
 
-use gstleangate::geometry::{
-    frame_homography, mat_inv, mat_mul, raster_tau, Mat3, Pyramid, IDENTITY,
-};
+use gstleangate::geometry::{frame_homography, Chain, Mat3, Pyramid};
 use gstleangate::{PixelFormat, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix};
 
 use crate::dataset::Sequence;
@@ -67,22 +65,21 @@ pub fn pair_geometry(
     let first = pairs.iter().map(|p| p.1).min().unwrap_or(0);
     // steps[k - first] = homography k → k+1
     let mut steps: Vec<Option<Mat3>> = Vec::with_capacity(last - first);
-    let mut prev = Pyramid::new(&grey(seq, first, w, h, resize)?, w as usize, h as usize);
+    let mut prev = Pyramid::new(grey(seq, first, w, h, resize)?, w as usize, h as usize);
     for k in first + 1..=last {
-        let cur = Pyramid::new(&grey(seq, k, w, h, resize)?, w as usize, h as usize);
+        let cur = Pyramid::new(grey(seq, k, w, h, resize)?, w as usize, h as usize);
         steps.push(frame_homography(&prev, &cur));
         prev = cur;
     }
-    let mut hit = Vec::new();
+    let mut chain = Chain::default();
     Ok(pairs
         .iter()
         .map(|&(i, j)| {
-            let mut chain = IDENTITY;
+            chain.start();
             for s in &steps[j - first..i - first] {
-                chain = mat_mul(s.as_ref()?, &chain);
+                chain.push(*s);
             }
-            let inv = mat_inv(&chain)?;
-            Some(raster_tau(&inv, w as usize, h as usize, &mut hit))
+            chain.score(w as usize, h as usize)
         })
         .collect())
 }

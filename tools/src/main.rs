@@ -609,10 +609,8 @@ fn print_reconstruction(r: &eval::EvalReport) {
 
 fn print_sweep(points: &[eval::SweepPoint]) {
     println!("equal-budget sweep (late keeps / breaks / min pair S at each model threshold):");
-    println!(
-        "{:>6} {:>12} {:>12} {:>12} {:>12} {:>12} {:>12}",
-        "T", "model", "oracle", "stride", "pixel_diff", "motion", "overlap"
-    );
+    let header: String = eval::POLICIES.iter().map(|p| format!(" {p:>12}")).collect();
+    println!("{:>6}{header}", "T");
     let mut thresholds: Vec<f64> = points.iter().map(|p| p.threshold).collect();
     thresholds.dedup();
     for t in thresholds {
@@ -623,16 +621,11 @@ fn print_sweep(points: &[eval::SweepPoint]) {
                 .map(|p| format!("{}k {}l {}b", p.kept, p.late_keeps, p.breaks))
                 .unwrap_or_else(|| "-".into())
         };
-        println!(
-            "{:>6.3} {:>12} {:>12} {:>12} {:>12} {:>12} {:>12}",
-            t,
-            cell("model"),
-            cell("oracle"),
-            cell("stride"),
-            cell("pixel_diff"),
-            cell("motion"),
-            cell("overlap")
-        );
+        let row: String = eval::POLICIES
+            .iter()
+            .map(|p| format!(" {:>12}", cell(p)))
+            .collect();
+        println!("{t:>6.3}{row}");
     }
 }
 

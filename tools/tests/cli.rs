@@ -126,14 +126,7 @@ fn synth_label_eval_end_to_end() {
     assert_eq!(oracle["overdue_drops"], 0);
     assert_eq!(oracle["utility_mae"], 0.0);
     assert_eq!(oracle["utility_rmse"], 0.0);
-    for name in [
-        "model",
-        "oracle",
-        "stride",
-        "pixel_diff",
-        "motion",
-        "overlap",
-    ] {
+    for name in leangate_tools::eval::POLICIES {
         let p = &v["policies"][name];
         for k in [
             "kept",

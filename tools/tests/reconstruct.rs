@@ -272,15 +272,11 @@ fn eval_reconstruct_reports_every_policy_and_a_dense_reference() {
     assert_eq!(info["dense_every"], 6);
     assert!(info["engine"].as_str().unwrap().contains("pycolmap"));
     let policies = v["policies"].as_object().unwrap();
-    for name in [
-        "model",
-        "oracle",
-        "stride",
-        "pixel_diff",
-        "motion",
-        "overlap",
-        "dense",
-    ] {
+    for name in leangate_tools::eval::POLICIES
+        .iter()
+        .copied()
+        .chain(["dense"])
+    {
         let p = &policies[name];
         let kept = p["kept"].as_u64().unwrap();
         let reg = p["registered"]

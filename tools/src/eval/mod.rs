@@ -48,6 +48,16 @@ pub use motion::{motion_for_budget, motion_gate};
 pub use overlap::{overlap_for_budget, overlap_gate};
 pub use report::{contact_sheet, plot, plot_sweep};
 
+/// Every policy `evaluate` runs and `sweep` samples, in report order.
+pub const POLICIES: [&str; 6] = [
+    "model",
+    "oracle",
+    "stride",
+    "pixel_diff",
+    "motion",
+    "overlap",
+];
+
 /// S below which MASt3R-SLAM's tracking breaks.
 pub const BREAK_S: f64 = 0.05;
 /// MASt3R-SLAM's keyframe threshold on S.

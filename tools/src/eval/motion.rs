@@ -80,11 +80,11 @@ pub fn motion_for_budget(pyr: &[Pyramid], target: usize) -> (Trace, f64) {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    /// A smooth texture shifted by (dx, dy) thumbnail pixels.
-    fn texture(dx: f32, dy: f32) -> Vec<u8> {
+    /// A smooth texture shifted by (dx, dy) thumbnail pixels (also the `overlap` tests').
+    pub(crate) fn texture(dx: f32, dy: f32) -> Vec<u8> {
         let (w, h) = (THUMB_W as usize, THUMB_H as usize);
         let mut v = vec![0u8; w * h];
         for y in 0..h {

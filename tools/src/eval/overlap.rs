@@ -11,9 +11,7 @@
 //! becomes the new reference. Depth is not used, so parallax and the teacher's 3-D check are
 //! invisible to it.
 
-use gstleangate::geometry::{
-    frame_homography, mat_inv, mat_mul, raster_tau, Mat3, Pyramid, IDENTITY,
-};
+use gstleangate::geometry::{frame_homography, Chain, Mat3, Pyramid};
 
 use super::{Trace, THUMB_H, THUMB_W};
 
@@ -25,26 +23,21 @@ pub fn steps(pyr: &[Pyramid]) -> Vec<Option<Mat3>> {
         .collect()
 }
 
-/// The overlap gate at `threshold` (in tau_geo). The trace's utility is `tau_geo` (not
-/// calibrated to the teacher, so not judged for MAE/RMSE).
+/// The overlap gate at `threshold` (in tau_geo). The trace carries no utility: tau_geo is not
+/// calibrated to the teacher, so it is not judged for MAE/RMSE.
 pub fn overlap_gate(steps: &[Option<Mat3>], threshold: f64) -> Trace {
     let n = steps.len() + 1;
     let (w, h) = (THUMB_W as usize, THUMB_H as usize);
     let mut keep = Vec::with_capacity(n);
-    let mut chain = Some(IDENTITY);
-    let mut hit = Vec::new();
+    let mut chain = Chain::default();
     for i in 0..n {
-        let k = if i == 0 {
-            true
-        } else {
-            chain = chain.and_then(|c| steps[i - 1].map(|s| mat_mul(&s, &c)));
-            match chain.as_ref().and_then(mat_inv) {
-                Some(inv) => raster_tau(&inv, w, h, &mut hit).0 >= threshold,
-                None => true,
-            }
+        let k = i == 0 || {
+            chain.push(steps[i - 1]);
+            // A lost chain keeps: the view has changed.
+            chain.score(w, h).is_none_or(|(tau, _, _)| tau >= threshold)
         };
         if k {
-            chain = Some(IDENTITY);
+            chain.start();
         }
         keep.push(k);
     }
@@ -63,29 +56,20 @@ pub fn overlap_for_budget(steps: &[Option<Mat3>], target: usize) -> (Trace, f64)
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A smooth texture shifted by `dx` thumbnail pixels.
-    fn texture(dx: f32) -> Vec<u8> {
-        let (w, h) = (THUMB_W as usize, THUMB_H as usize);
-        let mut v = vec![0u8; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let (u, t) = (x as f32 + dx, y as f32);
-                let f = 128.0
-                    + 50.0 * (u * 0.21).sin() * (t * 0.17).cos()
-                    + 40.0 * ((u + t) * 0.09).sin()
-                    + 30.0 * (u * 0.05 - t * 0.11).cos();
-                v[y * w + x] = f.clamp(0.0, 255.0) as u8;
-            }
-        }
-        v
-    }
+    use crate::eval::motion::tests::texture;
+    use gstleangate::geometry::IDENTITY;
 
     #[test]
     fn keeps_when_the_view_has_moved_by_the_threshold() {
         // 2 thumbnail px per frame: tau_geo grows by 2/160 a frame, so at 0.25 a keep every 20.
         let pyr: Vec<Pyramid> = (0..61)
-            .map(|k| Pyramid::from_u8(&texture(2.0 * k as f32), THUMB_W as usize, THUMB_H as usize))
+            .map(|k| {
+                Pyramid::from_u8(
+                    &texture(2.0 * k as f32, 0.0),
+                    THUMB_W as usize,
+                    THUMB_H as usize,
+                )
+            })
             .collect();
         let st = steps(&pyr);
         assert!(st.iter().all(|s| s.is_some()), "a textured pan tracks");
