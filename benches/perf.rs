@@ -6,7 +6,8 @@
 //!     cargo bench --bench perf                 # everything
 //!     cargo bench --bench perf -- threads pre  # only the sections whose name contains a filter
 //!
-//! Sections: `threads`, `pipeline`, `mpdecimate`, `preprocess`, `streams`. Environment:
+//! Sections: `threads`, `pipeline`, `mpdecimate`, `preprocess`, `streams`, `geometry`,
+//! `scoring` (everything the element runs per frame, on real frames in memory). Environment:
 //! LEANGATE_BENCH_REPS (repetitions, default 5; medians, A/B runs interleaved so that the load
 //! of a shared machine hits both alike), LEANGATE_BENCH_FRAMES (frames per synthetic run,
 //! default 200). The model is the embedded default student `leangate-s`.
@@ -403,6 +404,89 @@ fn section_geometry(reps: usize) {
     println!("| {t_pyr:.0} µs | {t_step:.0} µs | {t_raster:.0} µs | {t_all:.0} µs |");
 }
 
+/// Everything the element runs per frame, on real video in memory, one core: preprocessing of a
+/// 640x480 RGB frame, the embedded student (its INT8 build, as on the CPU by default), the
+/// geometric prior and the fusion ([`gstleangate::Utility`]), the gate. `model alone` is the
+/// same with `geometry=false`. The frames are tum_fr1_desk's first 300 (decoded beforehand).
+fn section_scoring(reps: usize) {
+    use gstleangate::{
+        default_model, Gate, GateConfig, Score, Scorer, ScorerOptions, Utility,
+    };
+    println!("\n## The element's scoring per frame, one core (preprocessing 640x480 RGB, the embedded student, the prior, the gate): frames/s, median of {reps}, interleaved");
+    let dir = PathBuf::from(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../shared/data/tum_fr1_desk/rgb"
+    ));
+    let Ok(rd) = std::fs::read_dir(&dir) else {
+        println!("SKIPPED: {} absent", dir.display());
+        return;
+    };
+    let mut files: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).collect();
+    files.sort();
+    let frames: Vec<image::RgbImage> = files
+        .iter()
+        .take(300)
+        .filter_map(|p| image::open(p).ok().map(|i| i.to_rgb8()))
+        .collect();
+    let Some((w, h)) = frames.first().map(|f| f.dimensions()) else {
+        println!("SKIPPED: no readable frame in {}", dir.display());
+        return;
+    };
+    let mut scorer = Scorer::load(&default_model(), &ScorerOptions::default()).unwrap();
+    let info = scorer.info().clone();
+    let pre = Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT709, info.spec.clone()).unwrap();
+    let mut run = |geometry: bool| -> f64 {
+        let mut utility = Utility::new(info.geometry);
+        let mut gate = Gate::new(GateConfig {
+            threshold: info.threshold.unwrap_or(0.5),
+            ..Default::default()
+        });
+        let (mut reference, mut current) = (vec![0f32; info.spec.len()], vec![0f32; info.spec.len()]);
+        let t0 = Instant::now();
+        for f in &frames {
+            let raw = RawFrame {
+                format: PixelFormat::Rgb,
+                width: w,
+                height: h,
+                planes: [f.as_raw(), &[], &[]],
+                strides: [3 * w as isize, 0, 0],
+            };
+            pre.run(&raw, &mut current).unwrap();
+            let has_reference = gate.has_reference();
+            utility.observe(Some((&current[..], &info.spec)), has_reference, geometry);
+            let score = if has_reference {
+                let s = scorer.score(&reference, &current).unwrap() as f64;
+                Score::Utility(utility.compose(s, geometry).0)
+            } else {
+                Score::NoReference
+            };
+            if gate.decide(score).keep {
+                scorer.on_keep(has_reference);
+                std::mem::swap(&mut reference, &mut current);
+                utility.on_keep();
+            }
+        }
+        frames.len() as f64 / t0.elapsed().as_secs_f64()
+    };
+    let (mut alone, mut fused) = (Vec::new(), Vec::new());
+    for _ in 0..reps {
+        alone.push(run(false));
+        fused.push(run(true));
+    }
+    let (a, b) = (median(&alone), median(&fused));
+    println!(
+        "model {} ({}), {} frames {w}x{h}, fusion: {}",
+        info.name,
+        info.precision,
+        frames.len(),
+        info.geometry.map_or("none".to_string(), |f| f.to_metadata())
+    );
+    println!("| configuration | frames/s | ms per frame |");
+    println!("|---|---|---|");
+    println!("| model alone (`geometry=false`) | {a:.0} | {:.2} |", 1e3 / a);
+    println!("| model + geometric prior (the default) | {b:.0} | {:.2} |", 1e3 / b);
+}
+
 fn main() {
     if let Some(arg) =
         std::env::args().find_map(|a| a.strip_prefix(streams::CHILD_FLAG).map(str::to_string))
@@ -443,6 +527,9 @@ fn main() {
     }
     if wanted("geometry") {
         section_geometry(reps);
+    }
+    if wanted("scoring") {
+        section_scoring(reps);
     }
     let _ = Duration::ZERO;
 }

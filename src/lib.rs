@@ -16,6 +16,7 @@
 //! - remote scoring on a KServe V2 server: [`RemoteScorer`], [`RemoteOptions`], [`Backend`]
 //!   (module [`remote`], its HTTP client in [`remote::client`]);
 //! - the geometric prior (chained homographies → the teacher's overlap): module [`geometry`];
+//! - what a frame's utility is made of (the model's score fused with the prior): [`Utility`];
 //! - the element type [`LeanGate`] and its property enums.
 
 use gst::glib;
@@ -30,6 +31,7 @@ pub mod remote;
 mod runtime;
 mod scorer;
 mod stats;
+mod utility;
 
 pub use default_model::{source as default_model, NAME as DEFAULT_MODEL_NAME};
 pub use leangate::{
@@ -47,6 +49,7 @@ pub use scorer::{
     ScorerError, ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
 };
 pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};
+pub use utility::Utility;
 
 fn plugin_init(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     meta::register();

@@ -663,6 +663,49 @@ fn geometric_prior_follows_the_pan_and_can_be_switched_off() {
 }
 
 #[test]
+fn the_default_element_fuses_the_embedded_student_with_the_prior() {
+    // No properties: the embedded leangate-s, whose leangate.geometry the element applies. On a
+    // 2 px/frame pan the prior is 2k/160, so the default utility is the fusion of the student's
+    // own utility (geometry=false) with it.
+    let fusion = gstleangate::Scorer::load(
+        &gstleangate::default_model(),
+        &gstleangate::ScorerOptions::default(),
+    )
+    .unwrap()
+    .info()
+    .geometry
+    .expect("the embedded student carries leangate.geometry");
+    let (w, h) = (160, 120);
+    let run = |props: &str| -> Vec<gstleangate::GateMeta> {
+        let mut hs = harness(
+            &format!("mode=annotate threshold=0.99 {props}"),
+            &rgb_caps(w, h),
+        );
+        for k in 0..20u64 {
+            hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
+                .unwrap();
+        }
+        drain(&mut hs).iter().map(meta).collect()
+    };
+    let (on, off) = (run(""), run("geometry=false"));
+    assert_eq!((on.len(), off.len()), (20, 20));
+    for k in 1..20 {
+        let g = 2.0 * k as f64 / w as f64;
+        let want = fusion.fuse(off[k].utility, Some(g));
+        assert!(
+            (on[k].utility - want).abs() < 0.02,
+            "frame {k}: default {} vs fusion of student {} and prior {g}: {want}",
+            on[k].utility,
+            off[k].utility
+        );
+    }
+    assert!(
+        (on[19].utility - off[19].utility).abs() > 0.02,
+        "the prior changes the default's utility"
+    );
+}
+
+#[test]
 fn geometric_prior_restarts_at_the_next_keep_after_being_switched_back_on() {
     // While `geometry` is off the chain is not kept up; switched back on, the element uses the
     // model alone until the next keep, then the prior again (measured from that keep).

@@ -48,6 +48,21 @@ TUM_SPLIT = {
     "test": (575, 717),  # never used for fitting or selection: reported only
 }
 
+# The second real sequence, tum_fr1_desk (572 frames, fast handheld sweeps over office desks): never
+# trained on by the student. `fit` is where cross-sequence fusions and calibrations may be fitted;
+# `test` is reported only. A 14-frame guard gap, as above.
+DESK_SEQ = "tum_fr1_desk"
+DESK_SPLIT = {
+    "fit": (0, 285),
+    "test": (300, 571),
+}
+# Every real labelled sequence and its documented split (training.fuse reports each part).
+REAL_SPLITS = {TUM_SEQ: TUM_SPLIT, DESK_SEQ: DESK_SPLIT}
+# Where the element's fusion of the student with the geometric prior is fitted (training.fuse):
+# tum_fr1_rpy's cal part (not its train part: the student was trained there, so its utility is
+# in-sample) and tum_fr1_desk's fit part. The test parts are reported only.
+FUSION_FIT_PARTS = {TUM_SEQ: ["cal"], DESK_SEQ: ["fit"]}
+
 # -------------------------------------------------------------------------- synthetic data
 MOTIONS = ["static", "pan", "shaky", "walk", "rotate", "bursts", "mixed", "mixed", "mixed", "walk", "shaky"]
 # photos whose names start with these are held out of training (validation homographies, eval textures)

@@ -18,7 +18,7 @@ import subprocess
 
 import numpy as np
 
-from .config import LEANGATE, SHARED, TUM_SEQ, TUM_SPLIT
+from .config import LEANGATE, REAL_SPLITS, SHARED, TUM_SEQ, TUM_SPLIT
 from .preprocess import load_resized, read_list
 
 
@@ -32,11 +32,13 @@ def _rows(path):
     return head, rows
 
 
-def make_part(root, part, src=None):
-    """Write <root>/tum/<part>/ for one part of the split; returns its path."""
-    src = src or os.path.join(SHARED, TUM_SEQ)
-    a, b = TUM_SPLIT[part]
-    out = os.path.join(root, "tum", part)
+def make_part(root, part, src=None, seq=TUM_SEQ):
+    """Write one part of a real sequence's documented split (`config.REAL_SPLITS`) as a TUM-layout
+    directory: <root>/tum/<part>/ for tum_fr1_rpy (the training pipeline's layout), else
+    <root>/<seq>/<part>/; returns its path."""
+    src = src or os.path.join(SHARED, seq)
+    a, b = REAL_SPLITS[seq][part]
+    out = os.path.join(root, "tum" if seq == TUM_SEQ else seq, part)
     os.makedirs(out, exist_ok=True)
     for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
         head, rows = _rows(os.path.join(src, name))
@@ -46,7 +48,7 @@ def make_part(root, part, src=None):
         if name != "groundtruth.txt":
             sel = [f"{r.split()[0]} {os.path.join(os.path.abspath(src), r.split()[1])}" for r in sel]
         with open(os.path.join(out, name), "w") as f:
-            f.write("\n".join(head + [f"# {TUM_SEQ} frames {a}-{b} ({part} part of the LeanGate split)"] + sel) + "\n")
+            f.write("\n".join(head + [f"# {seq} frames {a}-{b} ({part} part of the LeanGate split)"] + sel) + "\n")
     with open(os.path.join(src, "intrinsics.txt")) as f, open(os.path.join(out, "intrinsics.txt"), "w") as g:
         g.write(f.read())
     return out

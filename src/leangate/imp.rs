@@ -11,7 +11,7 @@ use gst_base::subclass::prelude::*;
 use super::{
     ExecutionProviderChoice, GateMode, PrecisionChoice, FORCE_KEYFRAME_EVENT, RESET_EVENT,
 };
-use crate::geometry::{grey_from_tensor, Fusion, Pyramid, Tracker};
+use crate::utility::Utility;
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
 use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
@@ -139,10 +139,9 @@ impl From<&Settings> for FrameSettings {
 struct State {
     scorer: Backend,
     model_threshold: Option<f64>,
-    /// The model's `leangate.geometry` fusion, if it has one.
-    fusion: Option<Fusion>,
-    /// Chained homographies from the reference to the current frame (only with `fusion`).
-    tracker: Tracker,
+    /// How the frame's utility is composed: the model's score, fused with the geometric prior
+    /// when the model has a `leangate.geometry` fusion.
+    utility: Utility,
     pre: Option<(gst_video::VideoInfo, Preprocessor)>,
     gate: Gate,
     reference: Vec<f32>,
@@ -327,34 +326,22 @@ impl LeanGate {
         let t0 = Instant::now();
         let pre = self.preprocess(state, buf);
         let frame_readable = pre.is_ok();
-        let use_geometry = fs.geometry && state.fusion.is_some();
-        if use_geometry && frame_readable {
-            if !state.gate.has_reference() {
-                state.tracker.clear();
-            }
-            let spec = &state.scorer.info().spec;
-            let (w, h) = (spec.width as usize, spec.height as usize);
-            let grey = grey_from_tensor(&state.current, w, h, spec.mean, spec.std);
-            state.tracker.observe(Pyramid::new(grey, w, h));
-        } else {
-            state.tracker.clear();
-        }
+        let has_reference = state.gate.has_reference();
+        let spec = &state.scorer.info().spec;
+        let frame = frame_readable.then_some((&state.current[..], spec));
+        state.utility.observe(frame, has_reference, fs.geometry);
         let (score, utility) = match pre {
             Err(e) => {
                 self.warn_rate_limited(state, out, &format!("cannot read frame: {e}"));
                 (Score::Failed, f64::NAN)
             }
-            Ok(()) if !state.gate.has_reference() => (Score::NoReference, f64::NAN),
+            Ok(()) if !has_reference => (Score::NoReference, f64::NAN),
             Ok(()) => match state.scorer.score(&state.reference, &state.current) {
-                Ok(u) => {
-                    let u = match (use_geometry, state.fusion) {
-                        (true, Some(f)) => {
-                            let g = state.tracker.tau();
-                            gst::trace!(CAT, imp = self, "student {u:.4} geometry {g:?}");
-                            f.fuse(u as f64, g)
-                        }
-                        _ => u as f64,
-                    };
+                Ok(s) => {
+                    let (u, g) = state.utility.compose(s as f64, fs.geometry);
+                    if let Some(g) = g {
+                        gst::trace!(CAT, imp = self, "student {s:.4} geometry {g:.4}");
+                    }
                     (Score::Utility(u), u)
                 }
                 Err(e) => {
@@ -382,7 +369,7 @@ impl LeanGate {
                 state.gate.drop_reference();
             } else {
                 std::mem::swap(&mut state.reference, &mut state.current);
-                state.tracker.set_reference();
+                state.utility.on_keep();
             }
             state.reference_pts = pts;
             self.frames_kept.fetch_add(1, Ordering::Relaxed);
@@ -585,9 +572,9 @@ impl ObjectImpl for LeanGate {
                     .blurb(
                         "Combine the model's utility with the geometric prior (frame-to-frame \
                          homographies chained from the reference, scored like the teacher) as \
-                         the model's leangate.geometry metadata says (training/fuse.py writes \
-                         it; the embedded model does not carry it). Off, or a model without it: \
-                         the model's utility alone",
+                         the model's leangate.geometry metadata says (training/fuse.py fits and \
+                         writes it; the embedded leangate-s carries it, so this is the default \
+                         gate). Off, or a model without it: the model's utility alone",
                     )
                     .default_value(DEFAULT_GEOMETRY)
                     .mutable_playing()
@@ -957,8 +944,7 @@ impl BaseTransformImpl for LeanGate {
         *lock(&self.state) = Some(State {
             scorer,
             model_threshold: info.threshold,
-            fusion: info.geometry,
-            tracker: Tracker::new(),
+            utility: Utility::new(info.geometry),
             pre: None,
             gate: Gate::new(cfg),
             reference,

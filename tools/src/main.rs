@@ -135,9 +135,11 @@ enum Command {
     },
     /// Run the gating policies over a sequence or video and judge them against the teacher.
     Eval {
-        /// Sequence directory (TUM layout, or rgb.txt/images only) or a video file.
-        #[arg(long)]
-        sequence: PathBuf,
+        /// Sequence directory (TUM layout, or rgb.txt/images only) or a video file. Repeat it
+        /// (`--sequence A --sequence B`) for one table per sequence and the sums per policy over
+        /// all of them (JSON: `sequences`, `sums`, and `sweep_sums` with --sweep).
+        #[arg(long, required = true)]
+        sequence: Vec<PathBuf>,
         /// LeanGate model (.onnx, pair model or split encoder); default: the embedded leangate-s.
         #[arg(long)]
         model: Option<PathBuf>,
@@ -151,10 +153,11 @@ enum Command {
         /// Write the JSON report here.
         #[arg(long)]
         json: Option<PathBuf>,
-        /// Write the plot (PNG) here.
+        /// Write the plot (PNG) here (with several sequences, one per sequence: `NAME-K-SEQ.png`).
         #[arg(long)]
         plot: Option<PathBuf>,
-        /// Write a contact sheet (PNG) of the frames the model kept here.
+        /// Write a contact sheet (PNG) of the frames the model kept here (with several sequences,
+        /// one per sequence, named like --plot's).
         #[arg(long)]
         contact_sheet: Option<PathBuf>,
         /// Also run the equal-budget sweep: the model at each of --sweep-thresholds (one pipeline
@@ -165,7 +168,8 @@ enum Command {
         /// Thresholds for --sweep (comma-separated).
         #[arg(long, value_delimiter = ',', default_values_t = eval::SWEEP_THRESHOLDS)]
         sweep_thresholds: Vec<f64>,
-        /// Write the sweep plot (PNG: late keeps and min pair S against frames kept) here.
+        /// Write the sweep plot (PNG: late keeps and min pair S against frames kept) here; with
+        /// several sequences, of the sums over them.
         #[arg(long)]
         sweep_plot: Option<PathBuf>,
         #[arg(long, default_value_t = 160)]
@@ -401,7 +405,7 @@ fn run(cli: Cli) -> Res {
             sfm_matcher,
             sfm_max_features,
         } => eval_cmd(
-            &sequence,
+            &sequence[..],
             eval::GateModel {
                 path: model.as_deref(),
                 precision: precision.as_deref().map(|p| match p {
@@ -446,7 +450,7 @@ struct EvalOutputs {
 }
 
 fn eval_cmd(
-    sequence: &Path,
+    sequences: &[PathBuf],
     model: eval::GateModel<'_>,
     threshold: Option<f64>,
     out: EvalOutputs,
@@ -463,6 +467,11 @@ fn eval_cmd(
     if let Some(sfm) = &reconstruct {
         eval::reconstruct::preflight(sfm)?; // before the long part: a missing pycolmap fails now
     }
+    for s in sequences {
+        if !s.exists() {
+            return Err(format!("`{}`: no such sequence directory or video file", s.display()).into());
+        }
+    }
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
         indicatif::ProgressStyle::with_template("{msg:>8} [{bar:40}] {pos}/{len} frames")
@@ -476,56 +485,110 @@ fn eval_cmd(
         }
         bar.set_position(done as u64);
     };
-    let (mut report, data) = eval::evaluate(sequence, model, threshold, &cfg, &mut show)?;
-    if let Some(thresholds) = &sweep {
-        report.sweep = Some(eval::sweep(sequence, model, thresholds, &cfg, &mut show)?);
+    let several = sequences.len() > 1;
+    let mut reports = Vec::with_capacity(sequences.len());
+    for (k, sequence) in sequences.iter().enumerate() {
+        let (mut report, data) = eval::evaluate(sequence, model, threshold, &cfg, &mut show)?;
+        if let Some(thresholds) = &sweep {
+            report.sweep = Some(eval::sweep(sequence, model, thresholds, &cfg, &mut show)?);
+        }
+        if let Some(sfm) = &reconstruct {
+            eval::reconstruct::add_reconstruction(sequence, &mut report, &data, sfm, &mut show)?;
+        }
+        bar.finish_and_clear();
+        let name = sequence
+            .file_name()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_default();
+        // One file per sequence when there are several: NAME-K-SEQ.ext beside the given path.
+        let per_sequence = |p: &Path| -> PathBuf {
+            if !several {
+                return p.to_path_buf();
+            }
+            let stem = p.file_stem().map(|s| s.to_string_lossy()).unwrap_or_default();
+            let ext = p.extension().map(|s| format!(".{}", s.to_string_lossy())).unwrap_or_default();
+            p.with_file_name(format!("{stem}-{}-{name}{ext}", k + 1))
+        };
+        print_summary(&report);
+        if report.reconstruction.is_some() {
+            print_reconstruction(&report);
+        }
+        if let Some(points) = &report.sweep {
+            print_sweep(points);
+        }
+        if let (Some(points), Some(p), false) = (&report.sweep, &sweep_plot, several) {
+            eval::plot_sweep(points, &format!("{name}: equal-budget curves"), p)?;
+            eprintln!("sweep plot written to {}", p.display());
+        }
+        if let Some(p) = plot.as_deref().map(per_sequence) {
+            let title = format!("{name} — threshold {:.3}", report.threshold);
+            eval::plot(&data, &title, &p)?;
+            eprintln!("plot written to {}", p.display());
+        }
+        if let Some(p) = contact_sheet.as_deref().map(per_sequence) {
+            eval::contact_sheet(&data.kept_thumbs, 64, &p)?;
+            eprintln!("contact sheet of the kept frames written to {}", p.display());
+        }
+        if several {
+            println!();
+        }
+        reports.push(report);
     }
-    if let Some(sfm) = &reconstruct {
-        eval::reconstruct::add_reconstruction(sequence, &mut report, &data, sfm, &mut show)?;
-    }
-    bar.finish_and_clear();
-    let text = serde_json::to_string_pretty(&report)?;
+    let text = if several {
+        let sweeps: Option<Vec<Vec<eval::SweepPoint>>> =
+            reports.iter().map(|r| r.sweep.clone()).collect();
+        let multi = eval::MultiReport {
+            sums: eval::sum_policies(&reports),
+            sweep_sums: sweeps.map(|s| eval::sum_sweeps(&s)),
+            sequences: reports,
+        };
+        print_sums(&multi.sums);
+        if let Some(points) = &multi.sweep_sums {
+            println!("summed over the {} sequences:", multi.sequences.len());
+            print_sweep(points);
+            if let Some(p) = &sweep_plot {
+                let title = format!("{} sequences: summed equal-budget curves", multi.sequences.len());
+                eval::plot_sweep(points, &title, p)?;
+                eprintln!("sweep plot of the sums written to {}", p.display());
+            }
+        }
+        serde_json::to_string_pretty(&multi)?
+    } else {
+        serde_json::to_string_pretty(&reports[0])?
+    };
     if let Some(p) = &json {
         std::fs::write(p, &text).map_err(|e| format!("`{}`: {e}", p.display()))?;
     }
-    print_summary(&report);
-    if report.reconstruction.is_some() {
-        print_reconstruction(&report);
-    }
-    if let Some(points) = &report.sweep {
-        print_sweep(points);
-        if let Some(p) = &sweep_plot {
-            let title = format!(
-                "{}: equal-budget curves",
-                sequence
-                    .file_name()
-                    .map(|s| s.to_string_lossy().to_string())
-                    .unwrap_or_default()
-            );
-            eval::plot_sweep(points, &title, p)?;
-            eprintln!("sweep plot written to {}", p.display());
-        }
-    }
-    if let Some(p) = &plot {
-        let title = format!(
-            "{} — threshold {:.3}",
-            sequence
-                .file_name()
-                .map(|s| s.to_string_lossy().to_string())
-                .unwrap_or_default(),
-            report.threshold
-        );
-        eval::plot(&data, &title, p)?;
-        eprintln!("plot written to {}", p.display());
-    }
-    if let Some(p) = &contact_sheet {
-        eval::contact_sheet(&data.kept_thumbs, 64, p)?;
-        eprintln!(
-            "contact sheet of the kept frames written to {}",
-            p.display()
-        );
-    }
     Ok(())
+}
+
+/// The table of sums per policy over several sequences.
+fn print_sums(sums: &[eval::PolicySum]) {
+    let Some(first) = sums.first() else {
+        return;
+    };
+    println!(
+        "sums over {} sequences ({} frames):",
+        first.sequences, first.frames
+    );
+    println!(
+        "{:<11} {:>5} {:>8} {:>11} {:>6} {:>6} {:>7}",
+        "policy", "kept", "oracle", "kept/oracle", "late", "breaks", "min S"
+    );
+    let u = |v: Option<usize>| v.map_or("-".to_string(), |x| x.to_string());
+    let f = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.3}"));
+    for s in sums {
+        println!(
+            "{:<11} {:>5} {:>8} {:>11} {:>6} {:>6} {:>7}",
+            s.policy,
+            s.kept,
+            u(s.oracle_kept),
+            f(s.kept_over_oracle),
+            u(s.late_keeps),
+            u(s.breaks),
+            f(s.min_pair_s)
+        );
+    }
 }
 
 fn print_summary(r: &eval::EvalReport) {

@@ -344,3 +344,108 @@ fn synth_replays_a_real_trajectory_with_sensor_realism() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("/no/such/trajectory.txt"), "{err}");
 }
+
+/// `leangate eval --sequence A --sequence B`: one report per sequence, and the sums per policy
+/// (kept, kept / oracle, late keeps, breaks, min pair S) equal to what the per-sequence reports
+/// add up to; `--sweep` sums every policy point by point; plots come one per sequence.
+#[test]
+fn eval_over_several_sequences_reports_each_and_the_sums() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    synth(&a, 30, "pan", 11);
+    synth(&b, 24, "shaky", 12);
+    let json = dir.path().join("multi.json");
+    let plot = dir.path().join("u.png");
+    let sweep_plot = dir.path().join("sweep.png");
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&a)
+        .arg("--sequence")
+        .arg(&b)
+        .args(["--model", &fixture("mad.onnx"), "--threshold", "0.05"])
+        .args(["--sweep", "--sweep-thresholds", "0.03,0.05"])
+        .arg("--json")
+        .arg(&json)
+        .arg("--plot")
+        .arg(&plot)
+        .arg("--sweep-plot")
+        .arg(&sweep_plot)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("sums over 2 sequences (54 frames)"), "{stdout}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let seqs = v["sequences"].as_array().unwrap();
+    assert_eq!(seqs.len(), 2);
+    assert_eq!((seqs[0]["frames"].as_u64(), seqs[1]["frames"].as_u64()), (Some(30), Some(24)));
+    let sums = v["sums"].as_array().unwrap();
+    let names: Vec<&str> = sums.iter().map(|s| s["policy"].as_str().unwrap()).collect();
+    assert_eq!(names, leangate_tools::eval::POLICIES);
+    let per = |policy: &str, key: &str| -> Vec<serde_json::Value> {
+        seqs.iter().map(|s| s["policies"][policy][key].clone()).collect()
+    };
+    for s in sums {
+        let p = s["policy"].as_str().unwrap();
+        let add = |key: &str| per(p, key).iter().map(|x| x.as_u64().unwrap()).sum::<u64>();
+        assert_eq!(s["kept"].as_u64().unwrap(), add("kept"), "{p}");
+        assert_eq!(s["late_keeps"].as_u64().unwrap(), add("late_keeps"), "{p}");
+        assert_eq!(s["breaks"].as_u64().unwrap(), add("breaks"), "{p}");
+        let min = per(p, "min_pair_S")
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .fold(f64::INFINITY, f64::min);
+        assert_eq!(s["min_pair_S"].as_f64().unwrap(), min, "{p}");
+        let oracle = per("oracle", "kept").iter().map(|x| x.as_u64().unwrap()).sum::<u64>();
+        assert_eq!(s["oracle_kept"].as_u64().unwrap(), oracle);
+        let ratio = s["kept_over_oracle"].as_f64().unwrap();
+        assert!((ratio - add("kept") as f64 / oracle as f64).abs() < 1e-12);
+    }
+    // The sweep: each sequence's points, and their sums at each (threshold, policy).
+    let sweep_sums = v["sweep_sums"].as_array().unwrap();
+    assert_eq!(sweep_sums.len(), 2 * leangate_tools::eval::POLICIES.len());
+    for p in sweep_sums {
+        let (policy, t) = (p["policy"].as_str().unwrap(), p["threshold"].as_f64().unwrap());
+        let kept: u64 = seqs
+            .iter()
+            .map(|s| {
+                s["sweep"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .find(|q| q["policy"] == policy && q["threshold"].as_f64() == Some(t))
+                    .unwrap()["kept"]
+                    .as_u64()
+                    .unwrap()
+            })
+            .sum();
+        assert_eq!(p["kept"].as_u64().unwrap(), kept, "{policy} at {t}");
+    }
+    assert_eq!(&std::fs::read(&sweep_plot).unwrap()[1..4], b"PNG");
+    for k in ["u-1-a.png", "u-2-b.png"] {
+        assert_eq!(&std::fs::read(dir.path().join(k)).unwrap()[1..4], b"PNG", "{k}");
+    }
+    assert!(!plot.exists(), "several sequences write one plot each, not the given name");
+}
+
+#[test]
+fn eval_over_several_sequences_names_a_missing_one_before_running() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a");
+    synth(&a, 10, "pan", 3);
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&a)
+        .args(["--sequence", "/nonexistent/seq", "--model", &fixture("mad.onnx")])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("/nonexistent/seq"), "{err}");
+    assert!(String::from_utf8_lossy(&out.stdout).is_empty(), "failed before evaluating a");
+}

@@ -35,6 +35,7 @@ mod baselines;
 mod judge;
 mod model_run;
 pub mod motion;
+mod multi;
 pub mod overlap;
 pub mod reconstruct;
 mod report;
@@ -45,6 +46,7 @@ pub use baselines::{
 pub use judge::{judge, PolicyReport, TeacherCache};
 pub use model_run::{init_gstreamer, run_model, GateModel, ModelRun};
 pub use motion::{motion_for_budget, motion_gate};
+pub use multi::{sum_policies, sum_sweeps, MultiReport, PolicySum};
 pub use overlap::{overlap_for_budget, overlap_gate};
 pub use report::{contact_sheet, plot, plot_sweep};
 

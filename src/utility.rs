@@ -1,0 +1,172 @@
+//! What a frame's utility is made of: the model's score `s`, fused with the geometric prior
+//! (`tau_geo` of the homographies chained from the reference, [`crate::geometry`]) when the model
+//! carries a [`Fusion`] (metadata `leangate.geometry`, the embedded `leangate-s` among them) and
+//! the `geometry` property is on. The one place that composes it: the element calls it for every
+//! frame, and the tests drive it without a pipeline.
+
+use crate::geometry::{grey_from_tensor, Fusion, Pyramid, Tracker};
+use crate::preprocess::TensorSpec;
+
+/// The per-stream state behind a frame's utility (the tracker) and how it is combined.
+#[derive(Debug, Clone, Default)]
+pub struct Utility {
+    fusion: Option<Fusion>,
+    tracker: Tracker,
+}
+
+impl Utility {
+    /// `fusion`: the model's `leangate.geometry`, if it has one.
+    pub fn new(fusion: Option<Fusion>) -> Utility {
+        Utility {
+            fusion,
+            tracker: Tracker::new(),
+        }
+    }
+
+    pub fn fusion(&self) -> Option<Fusion> {
+        self.fusion
+    }
+
+    /// Whether the prior is in use for this frame: the model has a fusion and `enabled`.
+    pub fn uses_geometry(&self, enabled: bool) -> bool {
+        enabled && self.fusion.is_some()
+    }
+
+    /// Feed the next frame, the model's input tensor (`None`: it could not be read). The tracker
+    /// restarts when there is no reference, and forgets everything while the prior is off or the
+    /// frame is unreadable (the chain cannot bridge a gap).
+    pub fn observe(
+        &mut self,
+        frame: Option<(&[f32], &TensorSpec)>,
+        has_reference: bool,
+        enabled: bool,
+    ) {
+        match frame {
+            Some((tensor, spec)) if self.uses_geometry(enabled) => {
+                if !has_reference {
+                    self.tracker.clear();
+                }
+                let (w, h) = (spec.width as usize, spec.height as usize);
+                let grey = grey_from_tensor(tensor, w, h, spec.mean, spec.std);
+                self.tracker.observe(Pyramid::new(grey, w, h));
+            }
+            _ => self.tracker.clear(),
+        }
+    }
+
+    /// The utility of the last observed frame given the model's score `s`, and the prior's
+    /// `tau_geo` when it was used (`None`: the model's score alone: no fusion, the prior off, or
+    /// the chain lost until the next keep).
+    pub fn compose(&mut self, s: f64, enabled: bool) -> (f64, Option<f64>) {
+        match self.fusion.filter(|_| enabled) {
+            Some(f) => {
+                let g = self.tracker.tau();
+                (f.fuse(s, g), g.filter(|_| s.is_finite()))
+            }
+            None => (s, None),
+        }
+    }
+
+    /// The last observed frame was kept and is the new reference.
+    pub fn on_keep(&mut self) {
+        self.tracker.set_reference();
+    }
+
+    /// Forget the stream (start, flush, caps change).
+    pub fn clear(&mut self) {
+        self.tracker.clear();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::preprocess::ResizeMode;
+
+    const W: usize = 160;
+    const H: usize = 120;
+
+    fn spec() -> TensorSpec {
+        TensorSpec {
+            width: W as u32,
+            height: H as u32,
+            resize: ResizeMode::ShortSideCrop,
+            mean: [0.0; 3],
+            std: [1.0; 3],
+        }
+    }
+
+    /// A textured picture shifted right by `dx` pixels, as the model's input tensor.
+    fn frame(dx: f32) -> Vec<f32> {
+        let mut t = vec![0.0; 3 * W * H];
+        for y in 0..H {
+            for x in 0..W {
+                let u = x as f32 - dx;
+                let v = y as f32;
+                let g = 0.5
+                    + 0.2 * (u * 0.21).sin() * (v * 0.17).cos()
+                    + 0.15 * ((u + 2.0 * v) * 0.09).sin()
+                    + 0.1 * ((3.0 * u - v) * 0.05).cos();
+                for c in 0..3 {
+                    t[c * W * H + y * W + x] = g;
+                }
+            }
+        }
+        t
+    }
+
+    #[test]
+    fn without_fusion_the_score_passes_through() {
+        let mut u = Utility::new(None);
+        u.observe(Some((&frame(0.0), &spec())), false, true);
+        assert!(!u.uses_geometry(true));
+        assert_eq!(u.compose(0.37, true), (0.37, None));
+    }
+
+    #[test]
+    fn fuses_the_prior_of_a_pan_and_falls_back_when_off() {
+        // weights 0, 1, 0, 0: the utility is tau_geo itself.
+        let f = Fusion::parse("raster-homography-v1: 0, 1, 0, 0").unwrap();
+        let mut u = Utility::new(Some(f));
+        let sp = spec();
+        u.observe(Some((&frame(0.0), &sp)), false, true);
+        u.on_keep();
+        let mut last = 0.0;
+        for k in 1..=10 {
+            u.observe(Some((&frame(2.0 * k as f32), &sp)), true, true);
+            let (v, g) = u.compose(0.9, true);
+            let g = g.expect("the chain holds on a smooth pan");
+            assert_eq!(v, g);
+            // A pan of d pixels loses about d / W of the view.
+            let expected = 2.0 * k as f64 / W as f64;
+            assert!((g - expected).abs() < 0.02, "step {k}: tau_geo {g} vs {expected}");
+            assert!(g >= last);
+            last = g;
+        }
+        // The prior switched off: the model's score alone, and the chain is forgotten.
+        u.observe(Some((&frame(30.0), &sp)), true, false);
+        assert_eq!(u.compose(0.9, false), (0.9, None));
+        u.observe(Some((&frame(32.0), &sp)), true, true);
+        assert_eq!(u.compose(0.9, true), (0.9, None), "lost until the next keep");
+        u.on_keep();
+        u.observe(Some((&frame(34.0), &sp)), true, true);
+        let (v, g) = u.compose(0.9, true);
+        assert!(g.is_some() && v < 0.05, "restarted at the keep: {v}");
+    }
+
+    #[test]
+    fn an_unreadable_frame_or_a_failed_score_loses_nothing() {
+        let f = Fusion::parse("raster-homography-v1: 0.1, 0.8, 0, 0.2").unwrap();
+        let mut u = Utility::new(Some(f));
+        let sp = spec();
+        u.observe(Some((&frame(0.0), &sp)), false, true);
+        u.on_keep();
+        u.observe(None, true, true);
+        assert_eq!(u.compose(0.4, true), (0.4, None));
+        // NaN from the model stays NaN (the gate keeps the frame: fail open).
+        u.observe(Some((&frame(1.0), &sp)), false, true);
+        u.on_keep();
+        u.observe(Some((&frame(2.0), &sp)), true, true);
+        assert!(u.compose(f64::NAN, true).0.is_nan());
+    }
+}

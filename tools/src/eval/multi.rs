@@ -1,0 +1,202 @@
+//! `leangate eval --sequence A --sequence B ...`: one evaluation per sequence and the sums per
+//! policy over all of them (the cross-sequence report of the model card), with the equal-budget
+//! sweep summed threshold by threshold.
+
+use serde::Serialize;
+
+use super::{EvalReport, SweepPoint, POLICIES};
+
+/// One policy summed over several sequences. Teacher-judged fields are `None` when a sequence
+/// had no ground truth for them (the sum would not mean what it says).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct PolicySum {
+    pub policy: String,
+    pub sequences: usize,
+    pub frames: usize,
+    pub kept: usize,
+    /// The oracle's kept frames over the same sequences.
+    pub oracle_kept: Option<usize>,
+    /// `kept / oracle_kept`.
+    pub kept_over_oracle: Option<f64>,
+    pub late_keeps: Option<usize>,
+    pub breaks: Option<usize>,
+    /// The smallest teacher S between consecutive keeps over all the sequences.
+    #[serde(rename = "min_pair_S")]
+    pub min_pair_s: Option<f64>,
+}
+
+/// Every sequence's report and the sums per policy: the JSON of a multi-sequence eval.
+#[derive(Debug, Clone, Serialize)]
+pub struct MultiReport {
+    pub sequences: Vec<EvalReport>,
+    pub sums: Vec<PolicySum>,
+    /// The equal-budget sweep summed over the sequences at each model threshold (`--sweep`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sweep_sums: Option<Vec<SweepPoint>>,
+}
+
+fn field_u(r: &EvalReport, policy: &str, key: &str) -> Option<usize> {
+    r.policies.get(policy)?.get(key)?.as_u64().map(|v| v as usize)
+}
+
+fn field_f(r: &EvalReport, policy: &str, key: &str) -> Option<f64> {
+    r.policies.get(policy)?.get(key)?.as_f64()
+}
+
+/// Sum an optional field: `None` as soon as one sequence lacks it.
+fn sum_opt(values: impl Iterator<Item = Option<usize>>) -> Option<usize> {
+    values.sum()
+}
+
+/// Sums per policy over `reports`, in [`POLICIES`] order; a policy missing from every report
+/// (the oracle without ground truth) is left out.
+pub fn sum_policies(reports: &[EvalReport]) -> Vec<PolicySum> {
+    let oracle_kept = sum_opt(reports.iter().map(|r| field_u(r, "oracle", "kept")));
+    POLICIES
+        .iter()
+        .filter(|p| reports.iter().any(|r| r.policies.contains_key(**p)))
+        .map(|&policy| {
+            let kept: usize = reports
+                .iter()
+                .filter_map(|r| field_u(r, policy, "kept"))
+                .sum();
+            let mins: Option<Vec<f64>> = reports
+                .iter()
+                .map(|r| field_f(r, policy, "min_pair_S"))
+                .collect();
+            PolicySum {
+                policy: policy.to_string(),
+                sequences: reports.len(),
+                frames: reports.iter().map(|r| r.frames).sum(),
+                kept,
+                oracle_kept,
+                kept_over_oracle: oracle_kept.filter(|&o| o > 0).map(|o| kept as f64 / o as f64),
+                late_keeps: sum_opt(reports.iter().map(|r| field_u(r, policy, "late_keeps"))),
+                breaks: sum_opt(reports.iter().map(|r| field_u(r, policy, "breaks"))),
+                min_pair_s: mins.and_then(|m| m.into_iter().reduce(f64::min)),
+            }
+        })
+        .collect()
+}
+
+/// The sweeps of several sequences summed at each (threshold, policy): kept, late keeps and
+/// breaks added, min pair S the smallest; the median is not summable and left out. Points present
+/// in only some sequences are dropped.
+pub fn sum_sweeps(sweeps: &[Vec<SweepPoint>]) -> Vec<SweepPoint> {
+    let Some(first) = sweeps.first() else {
+        return Vec::new();
+    };
+    first
+        .iter()
+        .filter_map(|p| {
+            let same: Vec<&SweepPoint> = sweeps
+                .iter()
+                .map(|s| {
+                    s.iter()
+                        .find(|q| q.policy == p.policy && q.threshold == p.threshold)
+                })
+                .collect::<Option<_>>()?;
+            Some(SweepPoint {
+                policy: p.policy.clone(),
+                threshold: p.threshold,
+                kept: same.iter().map(|q| q.kept).sum(),
+                late_keeps: same.iter().map(|q| q.late_keeps).sum(),
+                breaks: same.iter().map(|q| q.breaks).sum(),
+                min_pair_s: same
+                    .iter()
+                    .map(|q| q.min_pair_s)
+                    .collect::<Option<Vec<f64>>>()
+                    .and_then(|v| v.into_iter().reduce(f64::min)),
+                median_pair_s: None,
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn report(name: &str, frames: usize, rows: &[(&str, serde_json::Value)]) -> EvalReport {
+        EvalReport {
+            sequence: name.into(),
+            frames,
+            threshold: 0.5,
+            model: "m".into(),
+            model_precision: "int8".into(),
+            execution_provider: "cpu".into(),
+            policies: rows
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.clone()))
+                .collect(),
+            sweep: None,
+            reconstruction: None,
+        }
+    }
+
+    fn row(kept: usize, late: Option<usize>, min_s: Option<f64>) -> serde_json::Value {
+        serde_json::json!({"kept": kept, "late_keeps": late, "breaks": late.map(|_| 0), "min_pair_S": min_s})
+    }
+
+    #[test]
+    fn sums_policies_over_sequences() {
+        let a = report(
+            "a",
+            100,
+            &[
+                ("model", row(8, Some(1), Some(0.4))),
+                ("oracle", row(10, Some(0), Some(0.5))),
+                ("motion", row(8, Some(2), Some(0.2))),
+            ],
+        );
+        let b = report(
+            "b",
+            50,
+            &[
+                ("model", row(9, Some(0), Some(0.3))),
+                ("oracle", row(10, Some(0), Some(0.45))),
+                ("motion", row(9, Some(1), Some(0.35))),
+            ],
+        );
+        let s = sum_policies(&[a, b]);
+        let names: Vec<&str> = s.iter().map(|p| p.policy.as_str()).collect();
+        assert_eq!(names, ["model", "oracle", "motion"]);
+        let m = &s[0];
+        assert_eq!((m.sequences, m.frames, m.kept), (2, 150, 17));
+        assert_eq!(m.oracle_kept, Some(20));
+        assert_eq!(m.kept_over_oracle, Some(17.0 / 20.0));
+        assert_eq!((m.late_keeps, m.breaks, m.min_pair_s), (Some(1), Some(0), Some(0.3)));
+        assert_eq!(s[2].late_keeps, Some(3));
+        assert_eq!(s[2].min_pair_s, Some(0.2));
+    }
+
+    #[test]
+    fn a_sequence_without_ground_truth_leaves_teacher_sums_empty() {
+        let a = report("a", 100, &[("model", row(8, Some(1), Some(0.4)))]);
+        let b = report("video", 60, &[("model", row(5, None, None))]);
+        let s = sum_policies(&[a, b]);
+        assert_eq!(s.len(), 1);
+        assert_eq!(s[0].kept, 13);
+        assert_eq!((s[0].late_keeps, s[0].oracle_kept, s[0].min_pair_s), (None, None, None));
+    }
+
+    #[test]
+    fn sums_sweeps_point_by_point() {
+        let p = |policy: &str, t: f64, kept, late, min_s| SweepPoint {
+            policy: policy.into(),
+            threshold: t,
+            kept,
+            late_keeps: late,
+            breaks: 0,
+            min_pair_s: Some(min_s),
+            median_pair_s: Some(0.5),
+        };
+        let a = vec![p("model", 0.4, 10, 1, 0.3), p("motion", 0.4, 10, 2, 0.2)];
+        let b = vec![p("model", 0.4, 5, 0, 0.4), p("motion", 0.4, 5, 1, 0.1)];
+        let s = sum_sweeps(&[a, b]);
+        assert_eq!(s.len(), 2);
+        assert_eq!((s[0].kept, s[0].late_keeps, s[0].min_pair_s), (15, 1, Some(0.3)));
+        assert_eq!((s[1].kept, s[1].late_keeps, s[1].min_pair_s), (15, 3, Some(0.1)));
+        assert_eq!(s[0].median_pair_s, None);
+    }
+}
