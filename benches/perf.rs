@@ -409,9 +409,7 @@ fn section_geometry(reps: usize) {
 /// geometric prior and the fusion ([`gstleangate::Utility`]), the gate. `model alone` is the
 /// same with `geometry=false`. The frames are tum_fr1_desk's first 300 (decoded beforehand).
 fn section_scoring(reps: usize) {
-    use gstleangate::{
-        default_model, Gate, GateConfig, Score, Scorer, ScorerOptions, Utility,
-    };
+    use gstleangate::{default_model, Gate, GateConfig, Score, Scorer, ScorerOptions, Utility};
     println!("\n## The element's scoring per frame, one core (preprocessing 640x480 RGB, the embedded student, the prior, the gate): frames/s, median of {reps}, interleaved");
     let dir = PathBuf::from(concat!(
         env!("CARGO_MANIFEST_DIR"),
@@ -434,14 +432,16 @@ fn section_scoring(reps: usize) {
     };
     let mut scorer = Scorer::load(&default_model(), &ScorerOptions::default()).unwrap();
     let info = scorer.info().clone();
-    let pre = Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT709, info.spec.clone()).unwrap();
+    let pre =
+        Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT709, info.spec.clone()).unwrap();
     let mut run = |geometry: bool| -> f64 {
         let mut utility = Utility::new(info.geometry);
         let mut gate = Gate::new(GateConfig {
             threshold: info.threshold.unwrap_or(0.5),
             ..Default::default()
         });
-        let (mut reference, mut current) = (vec![0f32; info.spec.len()], vec![0f32; info.spec.len()]);
+        let (mut reference, mut current) =
+            (vec![0f32; info.spec.len()], vec![0f32; info.spec.len()]);
         let t0 = Instant::now();
         for f in &frames {
             let raw = RawFrame {
@@ -479,12 +479,19 @@ fn section_scoring(reps: usize) {
         info.name,
         info.precision,
         frames.len(),
-        info.geometry.map_or("none".to_string(), |f| f.to_metadata())
+        info.geometry
+            .map_or("none".to_string(), |f| f.to_metadata())
     );
     println!("| configuration | frames/s | ms per frame |");
     println!("|---|---|---|");
-    println!("| model alone (`geometry=false`) | {a:.0} | {:.2} |", 1e3 / a);
-    println!("| model + geometric prior (the default) | {b:.0} | {:.2} |", 1e3 / b);
+    println!(
+        "| model alone (`geometry=false`) | {a:.0} | {:.2} |",
+        1e3 / a
+    );
+    println!(
+        "| model + geometric prior (the default) | {b:.0} | {:.2} |",
+        1e3 / b
+    );
 }
 
 fn main() {

@@ -139,7 +139,10 @@ mod tests {
             assert_eq!(v, g);
             // A pan of d pixels loses about d / W of the view.
             let expected = 2.0 * k as f64 / W as f64;
-            assert!((g - expected).abs() < 0.02, "step {k}: tau_geo {g} vs {expected}");
+            assert!(
+                (g - expected).abs() < 0.02,
+                "step {k}: tau_geo {g} vs {expected}"
+            );
             assert!(g >= last);
             last = g;
         }
@@ -147,7 +150,11 @@ mod tests {
         u.observe(Some((&frame(30.0), &sp)), true, false);
         assert_eq!(u.compose(0.9, false), (0.9, None));
         u.observe(Some((&frame(32.0), &sp)), true, true);
-        assert_eq!(u.compose(0.9, true), (0.9, None), "lost until the next keep");
+        assert_eq!(
+            u.compose(0.9, true),
+            (0.9, None),
+            "lost until the next keep"
+        );
         u.on_keep();
         u.observe(Some((&frame(34.0), &sp)), true, true);
         let (v, g) = u.compose(0.9, true);

@@ -159,7 +159,10 @@ fn embedded_default_is_a_split_model_with_its_metadata() {
     assert!(cal.contains("tum_fr1_rpy"), "{cal}");
     // Fused with the geometric prior by default (training/fuse.py, fitted across the two real
     // sequences): increasing in the prior and in the student, no quadratic term.
-    let f = s.info().geometry.expect("the default student carries leangate.geometry");
+    let f = s
+        .info()
+        .geometry
+        .expect("the default student carries leangate.geometry");
     assert!(f.w[1] > 0.0 && f.w[3] > 0.0 && f.w[2] == 0.0, "{f:?}");
     assert!((0.0..0.3).contains(&f.fuse(0.0, Some(0.0))), "{f:?}");
     assert!(f.fuse(1.0, Some(1.0)) > 0.9, "{f:?}");

@@ -11,13 +11,13 @@ use gst_base::subclass::prelude::*;
 use super::{
     ExecutionProviderChoice, GateMode, PrecisionChoice, FORCE_KEYFRAME_EVENT, RESET_EVENT,
 };
-use crate::utility::Utility;
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
 use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
 use crate::remote::{Backend, RemoteOptions, RemoteScorer};
 use crate::scorer::{ModelSource, Scorer, ScorerError, ScorerOptions};
 use crate::stats::{InferenceStats, StatsMessage};
+use crate::utility::Utility;
 
 static CAT: LazyLock<gst::DebugCategory> = LazyLock::new(|| {
     gst::DebugCategory::new(

@@ -469,7 +469,11 @@ fn eval_cmd(
     }
     for s in sequences {
         if !s.exists() {
-            return Err(format!("`{}`: no such sequence directory or video file", s.display()).into());
+            return Err(format!(
+                "`{}`: no such sequence directory or video file",
+                s.display()
+            )
+            .into());
         }
     }
     let bar = indicatif::ProgressBar::new(0);
@@ -505,8 +509,14 @@ fn eval_cmd(
             if !several {
                 return p.to_path_buf();
             }
-            let stem = p.file_stem().map(|s| s.to_string_lossy()).unwrap_or_default();
-            let ext = p.extension().map(|s| format!(".{}", s.to_string_lossy())).unwrap_or_default();
+            let stem = p
+                .file_stem()
+                .map(|s| s.to_string_lossy())
+                .unwrap_or_default();
+            let ext = p
+                .extension()
+                .map(|s| format!(".{}", s.to_string_lossy()))
+                .unwrap_or_default();
             p.with_file_name(format!("{stem}-{}-{name}{ext}", k + 1))
         };
         print_summary(&report);
@@ -527,7 +537,10 @@ fn eval_cmd(
         }
         if let Some(p) = contact_sheet.as_deref().map(per_sequence) {
             eval::contact_sheet(&data.kept_thumbs, 64, &p)?;
-            eprintln!("contact sheet of the kept frames written to {}", p.display());
+            eprintln!(
+                "contact sheet of the kept frames written to {}",
+                p.display()
+            );
         }
         if several {
             println!();
@@ -547,7 +560,10 @@ fn eval_cmd(
             println!("summed over the {} sequences:", multi.sequences.len());
             print_sweep(points);
             if let Some(p) = &sweep_plot {
-                let title = format!("{} sequences: summed equal-budget curves", multi.sequences.len());
+                let title = format!(
+                    "{} sequences: summed equal-budget curves",
+                    multi.sequences.len()
+                );
                 eval::plot_sweep(points, &title, p)?;
                 eprintln!("sweep plot of the sums written to {}", p.display());
             }

@@ -378,17 +378,25 @@ fn eval_over_several_sequences_reports_each_and_the_sums() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert!(stdout.contains("sums over 2 sequences (54 frames)"), "{stdout}");
+    assert!(
+        stdout.contains("sums over 2 sequences (54 frames)"),
+        "{stdout}"
+    );
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let seqs = v["sequences"].as_array().unwrap();
     assert_eq!(seqs.len(), 2);
-    assert_eq!((seqs[0]["frames"].as_u64(), seqs[1]["frames"].as_u64()), (Some(30), Some(24)));
+    assert_eq!(
+        (seqs[0]["frames"].as_u64(), seqs[1]["frames"].as_u64()),
+        (Some(30), Some(24))
+    );
     let sums = v["sums"].as_array().unwrap();
     let names: Vec<&str> = sums.iter().map(|s| s["policy"].as_str().unwrap()).collect();
     assert_eq!(names, leangate_tools::eval::POLICIES);
     let per = |policy: &str, key: &str| -> Vec<serde_json::Value> {
-        seqs.iter().map(|s| s["policies"][policy][key].clone()).collect()
+        seqs.iter()
+            .map(|s| s["policies"][policy][key].clone())
+            .collect()
     };
     for s in sums {
         let p = s["policy"].as_str().unwrap();
@@ -401,7 +409,10 @@ fn eval_over_several_sequences_reports_each_and_the_sums() {
             .map(|x| x.as_f64().unwrap())
             .fold(f64::INFINITY, f64::min);
         assert_eq!(s["min_pair_S"].as_f64().unwrap(), min, "{p}");
-        let oracle = per("oracle", "kept").iter().map(|x| x.as_u64().unwrap()).sum::<u64>();
+        let oracle = per("oracle", "kept")
+            .iter()
+            .map(|x| x.as_u64().unwrap())
+            .sum::<u64>();
         assert_eq!(s["oracle_kept"].as_u64().unwrap(), oracle);
         let ratio = s["kept_over_oracle"].as_f64().unwrap();
         assert!((ratio - add("kept") as f64 / oracle as f64).abs() < 1e-12);
@@ -410,7 +421,10 @@ fn eval_over_several_sequences_reports_each_and_the_sums() {
     let sweep_sums = v["sweep_sums"].as_array().unwrap();
     assert_eq!(sweep_sums.len(), 2 * leangate_tools::eval::POLICIES.len());
     for p in sweep_sums {
-        let (policy, t) = (p["policy"].as_str().unwrap(), p["threshold"].as_f64().unwrap());
+        let (policy, t) = (
+            p["policy"].as_str().unwrap(),
+            p["threshold"].as_f64().unwrap(),
+        );
         let kept: u64 = seqs
             .iter()
             .map(|s| {
@@ -428,9 +442,16 @@ fn eval_over_several_sequences_reports_each_and_the_sums() {
     }
     assert_eq!(&std::fs::read(&sweep_plot).unwrap()[1..4], b"PNG");
     for k in ["u-1-a.png", "u-2-b.png"] {
-        assert_eq!(&std::fs::read(dir.path().join(k)).unwrap()[1..4], b"PNG", "{k}");
+        assert_eq!(
+            &std::fs::read(dir.path().join(k)).unwrap()[1..4],
+            b"PNG",
+            "{k}"
+        );
     }
-    assert!(!plot.exists(), "several sequences write one plot each, not the given name");
+    assert!(
+        !plot.exists(),
+        "several sequences write one plot each, not the given name"
+    );
 }
 
 #[test]
@@ -441,11 +462,19 @@ fn eval_over_several_sequences_names_a_missing_one_before_running() {
     let out = leangate()
         .args(["eval", "--sequence"])
         .arg(&a)
-        .args(["--sequence", "/nonexistent/seq", "--model", &fixture("mad.onnx")])
+        .args([
+            "--sequence",
+            "/nonexistent/seq",
+            "--model",
+            &fixture("mad.onnx"),
+        ])
         .output()
         .unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("/nonexistent/seq"), "{err}");
-    assert!(String::from_utf8_lossy(&out.stdout).is_empty(), "failed before evaluating a");
+    assert!(
+        String::from_utf8_lossy(&out.stdout).is_empty(),
+        "failed before evaluating a"
+    );
 }

@@ -36,7 +36,11 @@ pub struct MultiReport {
 }
 
 fn field_u(r: &EvalReport, policy: &str, key: &str) -> Option<usize> {
-    r.policies.get(policy)?.get(key)?.as_u64().map(|v| v as usize)
+    r.policies
+        .get(policy)?
+        .get(key)?
+        .as_u64()
+        .map(|v| v as usize)
 }
 
 fn field_f(r: &EvalReport, policy: &str, key: &str) -> Option<f64> {
@@ -70,7 +74,9 @@ pub fn sum_policies(reports: &[EvalReport]) -> Vec<PolicySum> {
                 frames: reports.iter().map(|r| r.frames).sum(),
                 kept,
                 oracle_kept,
-                kept_over_oracle: oracle_kept.filter(|&o| o > 0).map(|o| kept as f64 / o as f64),
+                kept_over_oracle: oracle_kept
+                    .filter(|&o| o > 0)
+                    .map(|o| kept as f64 / o as f64),
                 late_keeps: sum_opt(reports.iter().map(|r| field_u(r, policy, "late_keeps"))),
                 breaks: sum_opt(reports.iter().map(|r| field_u(r, policy, "breaks"))),
                 min_pair_s: mins.and_then(|m| m.into_iter().reduce(f64::min)),
@@ -165,7 +171,10 @@ mod tests {
         assert_eq!((m.sequences, m.frames, m.kept), (2, 150, 17));
         assert_eq!(m.oracle_kept, Some(20));
         assert_eq!(m.kept_over_oracle, Some(17.0 / 20.0));
-        assert_eq!((m.late_keeps, m.breaks, m.min_pair_s), (Some(1), Some(0), Some(0.3)));
+        assert_eq!(
+            (m.late_keeps, m.breaks, m.min_pair_s),
+            (Some(1), Some(0), Some(0.3))
+        );
         assert_eq!(s[2].late_keeps, Some(3));
         assert_eq!(s[2].min_pair_s, Some(0.2));
     }
@@ -177,7 +186,10 @@ mod tests {
         let s = sum_policies(&[a, b]);
         assert_eq!(s.len(), 1);
         assert_eq!(s[0].kept, 13);
-        assert_eq!((s[0].late_keeps, s[0].oracle_kept, s[0].min_pair_s), (None, None, None));
+        assert_eq!(
+            (s[0].late_keeps, s[0].oracle_kept, s[0].min_pair_s),
+            (None, None, None)
+        );
     }
 
     #[test]
@@ -195,8 +207,14 @@ mod tests {
         let b = vec![p("model", 0.4, 5, 0, 0.4), p("motion", 0.4, 5, 1, 0.1)];
         let s = sum_sweeps(&[a, b]);
         assert_eq!(s.len(), 2);
-        assert_eq!((s[0].kept, s[0].late_keeps, s[0].min_pair_s), (15, 1, Some(0.3)));
-        assert_eq!((s[1].kept, s[1].late_keeps, s[1].min_pair_s), (15, 3, Some(0.1)));
+        assert_eq!(
+            (s[0].kept, s[0].late_keeps, s[0].min_pair_s),
+            (15, 1, Some(0.3))
+        );
+        assert_eq!(
+            (s[1].kept, s[1].late_keeps, s[1].min_pair_s),
+            (15, 3, Some(0.1))
+        );
         assert_eq!(s[0].median_pair_s, None);
     }
 }
