@@ -11,6 +11,12 @@
 //!   and fails open the same way;
 //! - start errors name the URL and what failed: unreachable, unknown model, wrong contract,
 //!   unsupported scheme.
+//!
+//! Hostile servers (a scripted V2 server, tests/v2server/scripted.rs, with the fixture models;
+//! these always run): credentials in the URL are sent but never shown; one in-flight bound per
+//! server however its URL is spelled, the smallest when elements disagree; out-of-range
+//! utilities and impossible feature shapes fail open; an answered error is not "unreachable";
+//! a redirected inference is an error, never a GET.
 
 mod common;
 mod v2server;
@@ -20,6 +26,8 @@ use std::time::{Duration, Instant};
 use common::*;
 use gst::prelude::*;
 use gstleangate::{Reason, StatsMessage};
+use serde_json::json;
+use v2server::scripted::{Reply, Scripted, Served};
 use v2server::V2Server;
 
 const W: u32 = 320;
@@ -439,4 +447,420 @@ fn server_properties_are_documented_and_refused_while_running() {
     assert_eq!(el.property::<Option<String>>("server"), None);
     let stats = el.property::<u64>("frames-in");
     assert_eq!(stats, 1);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Hostile servers (tests/v2server/scripted.rs: a real HTTP server on loopback answering as each
+// test says), with the fixture models: no Triton needed, so these always run, in seconds.
+
+/// `e` started in a harness for 64x48 RGB.
+fn started(e: &gst::Element) -> gst_check::Harness {
+    let mut h = gst_check::Harness::with_element(e, Some("sink"), Some("src"));
+    h.set_src_caps_str(&rgb_caps(64, 48));
+    h.play();
+    h
+}
+
+/// Push `n` textured 64x48 frames (annotate mode), `gap` apart; every frame's metadata.
+fn push_frames(h: &mut gst_check::Harness, n: usize, gap: Duration) -> Vec<gstleangate::GateMeta> {
+    let mut metas = Vec::new();
+    for i in 0..n {
+        h.push(buffer(texture(64, 48, i as u32 % 7), i as u64 * 33))
+            .expect("the element takes every frame");
+        metas.extend(drain(h).iter().map(meta));
+        std::thread::sleep(gap);
+    }
+    assert_eq!(metas.len(), n, "annotate mode: every frame leaves");
+    metas
+}
+
+fn bus_warnings(bus: &gst::Bus) -> Vec<String> {
+    std::iter::from_fn(|| bus.pop())
+        .filter_map(|m| match m.view() {
+            gst::MessageView::Warning(w) => Some(w.error().to_string()),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Every log line of the `leangate*` categories (down to DEBUG) from the first call on, for the
+/// whole test process; the default stderr log goes, or DEBUG lines would flood it.
+fn leangate_logs() -> Vec<String> {
+    static LOGS: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        init();
+        gst::log::remove_default_log_function();
+        gst::log::add_log_function(|cat, _, _, _, _, _, msg| {
+            if cat.name().starts_with("leangate") {
+                if let Some(m) = msg.get() {
+                    LOGS.lock().unwrap().push(m.to_string());
+                }
+            }
+        });
+        gst::log::set_active(true);
+        gst::log::set_threshold_for_name("leangate*", gst::DebugLevel::Debug);
+    });
+    LOGS.lock().unwrap().clone()
+}
+
+#[test]
+fn credentials_in_the_url_are_used_but_never_shown() {
+    const SECRET: &str = "s3cret-pw";
+    let _ = leangate_logs();
+    let served = Served::mad();
+    // "user:s3cret-pw" (percent-decoding: a unit test of src/remote/url.rs).
+    let expected = "Basic dXNlcjpzM2NyZXQtcHc=";
+    let server = Scripted::start(move |req, n| {
+        if req.header("authorization") != Some(expected) {
+            return Reply::json(401, &json!({"error": "who are you"}));
+        }
+        // The dry run and two frames, then the server fails.
+        served.route(req, || match n {
+            0..=2 => served.answer(0.9),
+            _ => Reply::json(500, &json!({"error": "boom"})),
+        })
+    });
+    let port = server.port();
+    let url = format!("http://user:{SECRET}@127.0.0.1:{port}");
+    let shown = format!("http://***@127.0.0.1:{port}");
+    init();
+    let bus = gst::Bus::new();
+    let e = element(&format!(
+        "mode=annotate model={} server={url}",
+        fixture("mad.onnx")
+    ));
+    e.set_bus(Some(&bus));
+    let mut h = started(&e);
+    let metas = push_frames(&mut h, 6, Duration::ZERO);
+    // The credentials were used: the server let the element in.
+    assert_eq!(metas[1].reason, Reason::Score, "{:?}", metas[1]);
+    assert!(metas[4..].iter().all(|m| m.reason == Reason::Error));
+    assert!(server
+        .seen()
+        .iter()
+        .all(|r| r.header("authorization") == Some(expected)));
+    // Refused while running: the warning names what stays, without the password.
+    e.set_property("server", "http://127.0.0.1:1");
+    let warnings = bus_warnings(&bus);
+    assert!(warnings.len() >= 2, "{warnings:?}");
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.contains(&shown) && w.contains("boom")),
+        "{warnings:?}"
+    );
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.contains("it stays") && w.contains(&shown)),
+        "{warnings:?}"
+    );
+    let stats = stats_now(&e, &bus).server.unwrap();
+    assert_eq!(stats.server, shown);
+    drop(h);
+    // Start errors: unknown model, unreachable, refused URL.
+    let free = v2server::free_port();
+    let mut texts: Vec<String> = [
+        format!(
+            "model={} server={url} server-model=nope",
+            fixture("mad.onnx")
+        ),
+        format!("server=http://user:{SECRET}@127.0.0.1:{free} server-timeout=2000"),
+        format!("server=ftp://user:{SECRET}@127.0.0.1:{free}"),
+    ]
+    .iter()
+    .map(|p| error_of(p))
+    .collect();
+    assert!(
+        texts[0].contains(&shown) && texts[0].contains("nope"),
+        "{}",
+        texts[0]
+    );
+    assert!(
+        texts[1].contains("***@127.0.0.1") && texts[1].contains("unreachable"),
+        "{}",
+        texts[1]
+    );
+    assert!(texts[2].contains("ftp://***@127.0.0.1"), "{}", texts[2]);
+    texts.extend(warnings);
+    // And the debug log: the property set, the start, the failures.
+    let logs: Vec<String> = leangate_logs()
+        .into_iter()
+        .filter(|l| l.contains(&format!("127.0.0.1:{port}")) || l.contains(SECRET))
+        .collect();
+    assert!(
+        logs.iter().any(|l| l.contains("scoring on server")),
+        "the log saw the start: {logs:?}"
+    );
+    texts.extend(logs);
+    for t in &texts {
+        assert!(!t.contains(SECRET), "leaked: {t}");
+    }
+}
+
+#[test]
+fn one_in_flight_bound_per_server_however_its_url_is_spelled() {
+    // Every inference takes 40 ms; the server counts how many it holds at once.
+    let served = Served::mad();
+    let server = Scripted::start(move |req, _| {
+        served.route(req, || {
+            std::thread::sleep(Duration::from_millis(40));
+            served.answer(0.9)
+        })
+    });
+    let p = server.port();
+    // All elements started (each start's dry run counted), then the count restarts and every
+    // element streams at once: the bound that applies is that of all of them.
+    let run = |urls: Vec<(String, u32)>, server: &Scripted| {
+        let barrier = std::sync::Arc::new(std::sync::Barrier::new(urls.len() + 1));
+        let threads: Vec<_> = urls
+            .into_iter()
+            .map(|(url, bound)| {
+                let barrier = barrier.clone();
+                std::thread::spawn(move || {
+                    let e = element(&format!(
+                        "mode=annotate model={} server={url} server-max-in-flight={bound} \
+                         server-timeout=10000",
+                        fixture("mad.onnx")
+                    ));
+                    let mut h = started(&e);
+                    barrier.wait();
+                    barrier.wait();
+                    push_frames(&mut h, 10, Duration::ZERO)
+                })
+            })
+            .collect();
+        barrier.wait();
+        server.reset_max_in_flight();
+        barrier.wait();
+        for t in threads {
+            let metas = t.join().unwrap();
+            assert!(metas.iter().all(|m| m.reason != Reason::Error), "{metas:?}");
+        }
+    };
+    // Four elements, four spellings of one server, a bound of 2.
+    run(
+        vec![
+            (format!("http://127.0.0.1:{p}"), 2),
+            (format!("http://localhost:{p}/"), 2),
+            (format!("http://LOCALHOST:{p}"), 2),
+            (format!("http://127.0.0.1:{p}/"), 2),
+        ],
+        &server,
+    );
+    assert_eq!(server.max_in_flight(), 2, "in flight at once, bound 2");
+    // Elements that disagree: the smallest bound applies to all of them.
+    let server2 = Scripted::start(move |req, _| {
+        let served = Served::mad();
+        served.route(req, || {
+            std::thread::sleep(Duration::from_millis(40));
+            served.answer(0.9)
+        })
+    });
+    let p = server2.port();
+    run(
+        vec![
+            (format!("http://127.0.0.1:{p}"), 1),
+            (format!("http://localhost:{p}"), 4),
+            (format!("http://127.0.0.1:{p}/"), 0),
+        ],
+        &server2,
+    );
+    assert_eq!(server2.max_in_flight(), 1, "the smallest bound, 1, for all");
+}
+
+#[test]
+fn out_of_range_utilities_fail_open() {
+    // Dry run fine, then a bad utility every other request (frames 1, 3, ...).
+    let bad = [5.0f32, -3.0, 1e38, f32::INFINITY, -0.0001];
+    let served = Served::mad();
+    let server = Scripted::start(move |req, n| {
+        served.route(req, || match n {
+            n if n % 2 == 0 => served.answer(0.9),
+            n => served.answer(bad[(n as usize / 2) % bad.len()]),
+        })
+    });
+    init();
+    let bus = gst::Bus::new();
+    let e = element(&format!(
+        "mode=annotate model={} server={}",
+        fixture("mad.onnx"),
+        server.url()
+    ));
+    e.set_bus(Some(&bus));
+    // 150 ms apart: the backoff after a failure (100 ms) is over by the next frame.
+    let metas = push_frames(
+        &mut started(&e),
+        1 + 2 * bad.len(),
+        Duration::from_millis(150),
+    );
+    for (i, m) in metas.iter().enumerate().skip(1) {
+        if i % 2 == 0 {
+            assert_eq!(
+                (m.keep, m.reason),
+                (true, Reason::Score),
+                "frame {i}: {m:?}"
+            );
+        } else {
+            assert_eq!(
+                (m.keep, m.reason),
+                (true, Reason::Error),
+                "frame {i}: {m:?}"
+            );
+            assert!(m.utility.is_nan(), "frame {i}: {m:?}");
+        }
+    }
+    let w = bus_warnings(&bus);
+    assert!(
+        w.first()
+            .is_some_and(|w| w.contains("`utility` 5 is not in [0, 1]")),
+        "{w:?}"
+    );
+    // Out of range at the dry run: a start error.
+    let server = Scripted::start(move |req, _| {
+        let served = Served::mad();
+        served.route(req, || served.answer(2.0))
+    });
+    let err = error_of(&format!(
+        "model={} server={}",
+        fixture("mad.onnx"),
+        server.url()
+    ));
+    assert!(
+        err.contains("dry run") && err.contains("not in [0, 1]"),
+        "{err}"
+    );
+}
+
+#[test]
+fn impossible_feature_shapes_fail_open_before_onnx_runtime() {
+    let _ = leangate_logs();
+    // A split model: the dry run's two encodings fine, then every other answer a shape the
+    // head cannot take: one whose element count overflows, one with an empty dimension, one of
+    // the wrong rank, one with batch 2.
+    let served = Served::split_encoder();
+    let server = Scripted::start(move |req, n| {
+        served.route(req, || match n {
+            0..=1 => served.answer(0.0),
+            n if n % 2 == 0 => served.answer(0.0),
+            n => match (n / 2) % 4 {
+                1 => Reply::tensor("features", &[1 << 32, 1 << 32, 1], &[]),
+                2 => Reply::tensor("features", &[1, 3, 0, 16], &[]),
+                3 => Reply::tensor("features", &[1, 768], &[0.0; 768]),
+                _ => Reply::tensor("features", &[2, 3, 16, 8], &[0.0; 768]),
+            },
+        })
+    });
+    init();
+    let bus = gst::Bus::new();
+    let e = element(&format!(
+        "mode=annotate model={} server={}",
+        fixture("split_encoder.onnx"),
+        server.url()
+    ));
+    e.set_bus(Some(&bus));
+    let metas = push_frames(&mut started(&e), 12, Duration::from_millis(150));
+    let errors = metas.iter().filter(|m| m.reason == Reason::Error).count();
+    assert!(errors >= 4, "{metas:?}");
+    assert!(metas.iter().all(|m| m.keep), "fail open: {metas:?}");
+    // Each failure says what the shape was, and none comes from inside ONNX Runtime.
+    let port = format!("127.0.0.1:{}", server.port());
+    let logged: Vec<String> = leangate_logs()
+        .into_iter()
+        .filter(|l| l.contains(&port))
+        .collect();
+    for want in [
+        "impossible shape",
+        "[1, 3, 0, 16]",
+        "[1, 768]",
+        "[2, 3, 16, 8]",
+    ] {
+        assert!(
+            logged.iter().any(|l| l.contains(want)),
+            "{want}: {logged:?}"
+        );
+    }
+    for l in logged.iter().chain(&bus_warnings(&bus)) {
+        assert!(!l.contains("onnxruntime") && !l.contains(".cc"), "{l}");
+    }
+}
+
+#[test]
+fn server_errors_say_what_the_server_answered() {
+    // The server answers the metadata with 500: it is not "unreachable".
+    let server = Scripted::start(|req, _| {
+        let served = Served::mad();
+        served.route(req, || served.answer(0.9))
+    });
+    let broken = Scripted::start(|_, _| Reply::json(500, &json!({"error": "boom"})));
+    let mad = fixture("mad.onnx");
+    let e = error_of(&format!("model={mad} server={}", broken.url()));
+    assert!(
+        e.contains("answered the model metadata request")
+            && e.contains("HTTP status 500 (Internal Server Error): boom")
+            && !e.contains("unreachable"),
+        "{e}"
+    );
+    // The URL as written.
+    let e = error_of("server=http://");
+    assert!(e.contains("`http://`") && e.contains("no host"), "{e}");
+    let e = error_of("server=http://127.0.0.1:99999");
+    assert!(
+        e.contains("port 99999 is not a valid TCP port") && !e.contains("refused"),
+        "{e}"
+    );
+    // Schemes are case-insensitive.
+    let msgs = run_pipeline(
+        &format!(
+            "videotestsrc num-buffers=3 ! video/x-raw,format=RGB,width=64,height=48 ! \
+             leangate model={mad} server=HTTP://127.0.0.1:{} ! fakesink",
+            server.port()
+        ),
+        60,
+    );
+    assert_eq!(error_text(&msgs), None);
+    drop(server);
+}
+
+#[test]
+fn an_inference_redirect_is_an_error_not_a_get() {
+    let served = Served::mad();
+    let server = Scripted::start(move |req, n| {
+        if req.method == "GET" && req.path.ends_with("/elsewhere") {
+            // What following the redirect as a GET would find.
+            return served.answer(0.9);
+        }
+        served.route(req, || match n {
+            0 => served.answer(0.9),
+            _ => Reply::redirect(302, "/v2/models/fixture-mad/elsewhere"),
+        })
+    });
+    init();
+    let bus = gst::Bus::new();
+    let e = element(&format!(
+        "mode=annotate model={} server={}",
+        fixture("mad.onnx"),
+        server.url()
+    ));
+    e.set_bus(Some(&bus));
+    let metas = push_frames(&mut started(&e), 3, Duration::from_millis(150));
+    assert!(
+        metas[1..]
+            .iter()
+            .all(|m| m.keep && m.reason == Reason::Error),
+        "{metas:?}"
+    );
+    let w = bus_warnings(&bus);
+    assert!(
+        w.first()
+            .is_some_and(|w| w.contains("HTTP status 302 (Found)")
+                && w.contains("`/v2/models/fixture-mad/elsewhere`")
+                && w.contains("not followed")),
+        "{w:?}"
+    );
+    assert!(
+        !server.seen().iter().any(|r| r.path.ends_with("/elsewhere")),
+        "the redirect was followed"
+    );
 }

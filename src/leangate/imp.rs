@@ -179,6 +179,14 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// A property value for a message or a log: the server URL without its credentials.
+fn shown(name: &str, value: &glib::Value) -> String {
+    match (name, value.get::<Option<String>>()) {
+        ("server", Ok(Some(url))) => format!("{:?}", crate::remote::display_url(&url)),
+        _ => format!("{value:?}"),
+    }
+}
+
 /// What one frame turned into.
 struct Verdict {
     keep: bool,
@@ -584,7 +592,8 @@ impl ObjectImpl for LeanGate {
                     .blurb(
                         "Score on a KServe V2 / Open Inference Protocol server (Triton, KServe, \
                          MLServer) at http://host:port or https://host:port instead of locally; \
-                         unset = local ONNX Runtime. The local model still fixes the \
+                         unset = local ONNX Runtime. user:password@ in the URL is sent as HTTP \
+                         basic authentication and never shown. The local model still fixes the \
                          preprocessing and the contract; a split model's head runs locally. \
                          Set it before the element starts",
                     )
@@ -613,8 +622,11 @@ impl ObjectImpl for LeanGate {
                     .nick("Server requests in flight")
                     .blurb(
                         "Most requests in flight to the server from this process, all elements \
-                         together (0 = no bound); a frame that waits longer than server-timeout \
-                         for a slot is kept (fail open)",
+                         together (0 = no bound from this element). One server however its URL \
+                         is spelled (scheme, host in any case or loopback alias, port, prefix); \
+                         when elements disagree, the smallest bound among those running applies \
+                         to all. A frame that waits longer than server-timeout for a slot is \
+                         kept (fail open)",
                     )
                     .default_value(DEFAULT_SERVER_MAX_IN_FLIGHT)
                     .mutable_ready()
@@ -657,8 +669,8 @@ impl ObjectImpl for LeanGate {
                 {
                     Some(format!(
                         "`{name}` cannot change while the element runs (set it in the NULL or \
-                         READY state); it stays {:?}",
-                        self.property_value(&settings, name)
+                         READY state); it stays {}",
+                        shown(name, &self.property_value(&settings, name))
                     ))
                 }
                 "model" => {
@@ -760,7 +772,7 @@ impl ObjectImpl for LeanGate {
                 gst::warning!(CAT, imp = self, "{why}");
                 gst::element_imp_warning!(self, gst::CoreError::StateChange, ("{}", why));
             }
-            None => gst::debug!(CAT, imp = self, "{name} set to {:?}", value),
+            None => gst::debug!(CAT, imp = self, "{name} set to {}", shown(name, value)),
         }
     }
 

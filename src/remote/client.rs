@@ -10,6 +10,8 @@ use std::time::Duration;
 
 use serde_json::{json, Value};
 
+use super::url::{display_url, ServerUrl};
+
 /// Header carrying the length of the JSON part of a binary-extension body.
 const HEADER_LEN: &str = "Inference-Header-Content-Length";
 /// Largest response body accepted (the JSON header and the output tensors).
@@ -22,6 +24,9 @@ pub enum ClientError {
     Transport(String),
     /// The server answered with an HTTP error status (and its `error` text, when it gave one).
     Status { code: u16, message: String },
+    /// The server answered with a redirect (3xx), which is never followed: a POST must not
+    /// turn into a GET elsewhere. `location` is shown with its userinfo hidden.
+    Redirect { code: u16, location: String },
     /// The server answered something that is not a valid V2 response.
     Protocol(String),
 }
@@ -30,11 +35,20 @@ impl std::fmt::Display for ClientError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             ClientError::Transport(e) => write!(f, "{e}"),
-            ClientError::Status { code, message } if message.is_empty() => {
-                write!(f, "HTTP status {code}")
+            ClientError::Status { code, message } => {
+                write!(f, "HTTP status {}", status_text(*code))?;
+                if !message.is_empty() {
+                    write!(f, ": {message}")?;
+                }
+                Ok(())
             }
-            ClientError::Status { code, message } => write!(f, "HTTP status {code}: {message}"),
-            ClientError::Protocol(e) => write!(f, "invalid V2 response: {e}"),
+            ClientError::Redirect { code, location } => write!(
+                f,
+                "HTTP status {}, a redirect to `{location}`, not followed (set `server` to \
+                 the server's own address)",
+                status_text(*code)
+            ),
+            ClientError::Protocol(e) => write!(f, "an invalid V2 response: {e}"),
         }
     }
 }
@@ -72,33 +86,64 @@ pub struct OutputTensor {
     pub data: Vec<f32>,
 }
 
+/// `404 (Not Found)`, or the bare code when it has no standard reason.
+fn status_text(code: u16) -> String {
+    match ureq::http::StatusCode::from_u16(code)
+        .ok()
+        .and_then(|s| s.canonical_reason())
+    {
+        Some(reason) => format!("{code} ({reason})"),
+        None => code.to_string(),
+    }
+}
+
 /// A V2 HTTP client for one server (`http://host:port` or `https://host:port`, optionally with
-/// a path prefix). Keeps its connections alive between requests.
-#[derive(Debug, Clone)]
+/// a path prefix). Keeps its connections alive between requests. The URL's userinfo, if any,
+/// goes in an `Authorization: Basic` header, never in the request's URI (so no transport
+/// error can show it). Redirects are not followed.
+#[derive(Clone)]
 pub struct V2Client {
     agent: ureq::Agent,
     base: String,
+    authorization: Option<String>,
+}
+
+impl std::fmt::Debug for V2Client {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("V2Client")
+            .field("base", &self.base)
+            .finish()
+    }
 }
 
 impl V2Client {
     /// `timeout` bounds each whole request (connect, send, wait, receive).
-    pub fn new(base: &str, timeout: Duration) -> V2Client {
+    pub fn new(server: &ServerUrl, timeout: Duration) -> V2Client {
         let config = ureq::Agent::config_builder()
             .timeout_global(Some(timeout))
             .timeout_connect(Some(timeout))
             .http_status_as_error(false)
+            .max_redirects(0)
             .no_delay(true)
             .max_idle_connections_per_host(4)
             .user_agent(concat!("leangate/", env!("CARGO_PKG_VERSION")))
             .build();
         V2Client {
             agent: config.into(),
-            base: base.trim_end_matches('/').to_string(),
+            base: server.base(),
+            authorization: server.authorization(),
         }
     }
 
-    pub fn base(&self) -> &str {
-        &self.base
+    fn get(&self, url: &str) -> Result<ureq::http::Response<ureq::Body>, ClientError> {
+        let mut req = self.agent.get(url);
+        if let Some(a) = &self.authorization {
+            req = req.header("Authorization", a);
+        }
+        let resp = req
+            .call()
+            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        refuse_redirect(resp)
     }
 
     fn model_url(&self, model: &str, tail: &str) -> String {
@@ -106,11 +151,7 @@ impl V2Client {
     }
 
     fn get_json(&self, url: &str) -> Result<Value, ClientError> {
-        let mut resp = self
-            .agent
-            .get(url)
-            .call()
-            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        let mut resp = self.get(url)?;
         let status = resp.status().as_u16();
         let body = resp
             .body_mut()
@@ -126,11 +167,7 @@ impl V2Client {
 
     /// `GET /v2/models/{name}/ready`: Ok(true) when ready, Ok(false) for any other status.
     pub fn model_ready(&self, model: &str) -> Result<bool, ClientError> {
-        let resp = self
-            .agent
-            .get(&self.model_url(model, "/ready"))
-            .call()
-            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        let resp = self.get(&self.model_url(model, "/ready"))?;
         Ok(resp.status().as_u16() == 200)
     }
 
@@ -154,13 +191,18 @@ impl V2Client {
         outputs: &[&str],
     ) -> Result<Vec<OutputTensor>, ClientError> {
         let (body, json_len) = encode_request(inputs, outputs)?;
-        let mut resp = self
+        let mut req = self
             .agent
             .post(&self.model_url(model, "/infer"))
             .header("Content-Type", "application/octet-stream")
-            .header(HEADER_LEN, json_len.to_string())
+            .header(HEADER_LEN, json_len.to_string());
+        if let Some(a) = &self.authorization {
+            req = req.header("Authorization", a);
+        }
+        let resp = req
             .send(&body[..])
             .map_err(|e| ClientError::Transport(e.to_string()))?;
+        let mut resp = refuse_redirect(resp)?;
         let status = resp.status().as_u16();
         let header_len = resp
             .headers()
@@ -180,6 +222,22 @@ impl V2Client {
         }
         decode_response(&body, header_len, outputs)
     }
+}
+
+/// A 3xx answer as an error naming the status and where it points.
+fn refuse_redirect(
+    resp: ureq::http::Response<ureq::Body>,
+) -> Result<ureq::http::Response<ureq::Body>, ClientError> {
+    let code = resp.status().as_u16();
+    if !(300..400).contains(&code) {
+        return Ok(resp);
+    }
+    let location = resp
+        .headers()
+        .get("location")
+        .map(|l| display_url(&String::from_utf8_lossy(l.as_bytes())))
+        .unwrap_or_else(|| "(no Location)".into());
+    Err(ClientError::Redirect { code, location })
 }
 
 fn status_error(code: u16, body: &[u8]) -> ClientError {
@@ -345,7 +403,12 @@ pub(crate) fn decode_response(
                     ClientError::Protocol(format!("output `{name}` has neither binary nor data"))
                 })?,
         };
-        let n: usize = shape.iter().product();
+        let n = shape
+            .iter()
+            .try_fold(1usize, |n, &d| n.checked_mul(d))
+            .ok_or_else(|| {
+                ClientError::Protocol(format!("output `{name}` has an impossible shape {shape:?}"))
+            })?;
         if n != data.len() {
             return Err(ClientError::Protocol(format!(
                 "output `{name}` has shape {shape:?} but {} values",
@@ -403,6 +466,13 @@ mod tests {
         assert_eq!(got[1].data, vec![0.25]);
         assert!(decode_response(&body, Some(header.len()), &["c"]).is_err());
         assert!(decode_response(&body[..body.len() - 1], Some(header.len()), &["a"]).is_err());
+    }
+
+    #[test]
+    fn impossible_shape_is_a_protocol_error() {
+        let header = br#"{"outputs":[{"name":"f","datatype":"FP32","shape":[4294967296,4294967296,1],"data":[]}]}"#;
+        let e = decode_response(header, None, &["f"]).unwrap_err();
+        assert!(e.to_string().contains("impossible shape"), "{e}");
     }
 
     #[test]

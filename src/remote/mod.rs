@@ -17,10 +17,15 @@
 //! and posts a rate-limited warning naming the server and the error), and further requests wait
 //! for an exponential backoff (100 ms doubling to 2 s) so that frames keep flowing without each
 //! one waiting for a timeout while the server is away; the first request that succeeds resets it.
-//! Requests in flight to one server are bounded process-wide (`server-max-in-flight`).
+//! Requests in flight to one server are bounded process-wide (`server-max-in-flight`): one bound
+//! per server however its URL is spelled ([`url::ServerUrl::server_key`]), the smallest bound of
+//! the elements using it.
+//!
+//! A server URL is shown (errors, warnings, logs, stats) by [`display_url`] only: any
+//! credentials in it are sent as HTTP basic authentication and never shown.
 
 use std::collections::HashMap;
-use std::sync::{Arc, Condvar, LazyLock, Mutex};
+use std::sync::{Arc, Condvar, LazyLock, Mutex, Weak};
 use std::time::{Duration, Instant};
 
 use crate::scorer::{ModelInfo, Scorer, ScorerError};
@@ -28,9 +33,11 @@ use crate::stats::{Histogram, ServerStats};
 
 mod backend;
 pub mod client;
+pub mod url;
 
 pub use backend::Backend;
 use client::{ClientError, InputTensor, ModelMetadata, TensorMeta, V2Client};
+pub use url::{display_url, ServerUrl};
 
 static CAT: LazyLock<gst::DebugCategory> = LazyLock::new(|| {
     gst::DebugCategory::new(
@@ -48,24 +55,34 @@ pub const BACKOFF_MAX: Duration = Duration::from_secs(2);
 /// Where and how to reach the server.
 #[derive(Debug, Clone)]
 pub struct RemoteOptions {
-    /// `http://host:port` or `https://host:port` (a path prefix is allowed).
+    /// `http://host:port` or `https://host:port` (a path prefix and `user:password@` are
+    /// allowed; see [`ServerUrl`]).
     pub url: String,
     /// The model's name on the server; `None`: derived from the local model (see the module
     /// documentation).
     pub model: Option<String>,
     /// Timeout of each request (and of the start checks).
     pub timeout: Duration,
-    /// Most requests in flight to this server from this process (0 = no bound).
+    /// Most requests in flight to this server from this process (0 = no bound from this
+    /// element; the smallest bound of the elements using one server applies to all of them).
     pub max_in_flight: u32,
 }
 
 /// A start failure, naming the server and what failed.
 #[derive(Debug, Clone, thiserror::Error)]
 pub enum RemoteError {
-    #[error("server `{url}`: unsupported URL: {reason}")]
+    #[error("server `{url}`: invalid URL: {reason}")]
     Url { url: String, reason: String },
     #[error("server `{url}` is unreachable: {reason}")]
     Unreachable { url: String, reason: String },
+    /// The server answered, but not with what was asked for.
+    #[error("server `{url}` answered the {what} request for `{model}` with {reason}")]
+    Answered {
+        url: String,
+        what: String,
+        model: String,
+        reason: String,
+    },
     #[error("server `{url}` has no model `{model}` ({reason})")]
     UnknownModel {
         url: String,
@@ -105,62 +122,111 @@ impl RemoteError {
     }
 }
 
-/// A process-wide bound on requests in flight to one server.
+/// A process-wide bound on requests in flight to one server (one per [`ServerUrl::server_key`]).
+/// Each element using it registers its bound; the smallest non-zero one applies to every
+/// request (0 = no bound from that element). It goes from the registry with its last user.
 #[derive(Debug)]
 struct Limiter {
-    max: usize,
-    in_flight: Mutex<usize>,
+    state: Mutex<LimiterState>,
     freed: Condvar,
+}
+
+#[derive(Debug, Default)]
+struct LimiterState {
+    in_flight: usize,
+    /// The bounds of the elements using this server, one entry each.
+    bounds: Vec<u32>,
+}
+
+impl LimiterState {
+    fn max(&self) -> Option<usize> {
+        self.bounds
+            .iter()
+            .copied()
+            .filter(|&b| b > 0)
+            .min()
+            .map(|b| b as usize)
+    }
+}
+
+/// One element's use of a server's limiter; dropping it withdraws the element's bound.
+#[derive(Debug)]
+struct LimiterUse {
+    limiter: Arc<Limiter>,
+    bound: u32,
+}
+
+impl Drop for LimiterUse {
+    fn drop(&mut self) {
+        let mut st = self.limiter.state.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(i) = st.bounds.iter().position(|&b| b == self.bound) {
+            st.bounds.swap_remove(i);
+        }
+        drop(st);
+        // A larger bound may apply now.
+        self.limiter.freed.notify_all();
+    }
 }
 
 struct Permit(Arc<Limiter>);
 
 impl Drop for Permit {
     fn drop(&mut self) {
-        let mut n = self.0.in_flight.lock().unwrap_or_else(|e| e.into_inner());
-        *n = n.saturating_sub(1);
+        let mut st = self.0.state.lock().unwrap_or_else(|e| e.into_inner());
+        st.in_flight = st.in_flight.saturating_sub(1);
+        drop(st);
         self.0.freed.notify_one();
     }
 }
 
 impl Limiter {
-    fn shared(url: &str, max: u32) -> Option<Arc<Limiter>> {
-        type ByServer = HashMap<(String, u32), Arc<Limiter>>;
-        static ALL: LazyLock<Mutex<ByServer>> = LazyLock::new(Default::default);
-        if max == 0 {
-            return None;
-        }
+    /// Join the limiter of the server `key` with this element's `bound`.
+    fn join(key: &str, bound: u32) -> LimiterUse {
+        static ALL: LazyLock<Mutex<HashMap<String, Weak<Limiter>>>> =
+            LazyLock::new(Default::default);
         let mut all = ALL.lock().unwrap_or_else(|e| e.into_inner());
-        Some(
-            all.entry((url.to_string(), max))
-                .or_insert_with(|| {
-                    Arc::new(Limiter {
-                        max: max as usize,
-                        in_flight: Mutex::new(0),
-                        freed: Condvar::new(),
-                    })
-                })
-                .clone(),
-        )
+        all.retain(|_, l| l.strong_count() > 0);
+        let limiter = match all.get(key).and_then(Weak::upgrade) {
+            Some(l) => l,
+            None => {
+                let l = Arc::new(Limiter {
+                    state: Mutex::default(),
+                    freed: Condvar::new(),
+                });
+                all.insert(key.to_string(), Arc::downgrade(&l));
+                l
+            }
+        };
+        drop(all);
+        limiter
+            .state
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .bounds
+            .push(bound);
+        LimiterUse { limiter, bound }
     }
+}
 
-    /// Wait up to `timeout` for a slot.
-    fn acquire(self: &Arc<Self>, timeout: Duration) -> Option<Permit> {
+impl LimiterUse {
+    /// Wait up to `timeout` for a slot; otherwise the bound that was full.
+    fn acquire(&self, timeout: Duration) -> Result<Permit, usize> {
+        let l = &self.limiter;
         let deadline = Instant::now() + timeout;
-        let mut n = self.in_flight.lock().unwrap_or_else(|e| e.into_inner());
-        while *n >= self.max {
+        let mut st = l.state.lock().unwrap_or_else(|e| e.into_inner());
+        while let Some(max) = st.max().filter(|&m| st.in_flight >= m) {
             let now = Instant::now();
             if now >= deadline {
-                return None;
+                return Err(max);
             }
-            n = self
+            st = l
                 .freed
-                .wait_timeout(n, deadline - now)
+                .wait_timeout(st, deadline - now)
                 .unwrap_or_else(|e| e.into_inner())
                 .0;
         }
-        *n += 1;
-        Some(Permit(self.clone()))
+        st.in_flight += 1;
+        Ok(Permit(l.clone()))
     }
 }
 
@@ -210,10 +276,11 @@ enum RemoteKind {
 pub struct RemoteScorer {
     local: Scorer,
     client: V2Client,
+    /// The server's URL as shown ([`display_url`]).
     url: String,
     model: String,
     kind: RemoteKind,
-    limiter: Option<Arc<Limiter>>,
+    limiter: LimiterUse,
     timeout: Duration,
     reference: Option<Features>,
     current: Option<Features>,
@@ -259,26 +326,11 @@ impl RemoteScorer {
     /// Check the server and its model against the local model's contract, and prove it with a
     /// dry run on a blank frame. `local` is the loaded local model (pair or split).
     pub fn connect(local: Scorer, opts: &RemoteOptions) -> Result<RemoteScorer, RemoteError> {
-        let url = opts.url.trim().trim_end_matches('/').to_string();
-        let bad_url = |reason: &str| RemoteError::Url {
-            url: url.clone(),
-            reason: reason.to_string(),
-        };
-        let rest = if let Some(r) = url.strip_prefix("http://") {
-            r
-        } else if let Some(r) = url.strip_prefix("https://") {
-            r
-        } else if url.starts_with("grpc://") || url.starts_with("grpcs://") {
-            return Err(bad_url(
-                "gRPC is not supported yet; use the server's HTTP endpoint (Triton: \
-                 http://host:8000)",
-            ));
-        } else {
-            return Err(bad_url("expected http://host:port or https://host:port"));
-        };
-        if rest.is_empty() || rest.starts_with('/') {
-            return Err(bad_url("no host"));
-        }
+        let server = ServerUrl::parse(&opts.url).map_err(|reason| RemoteError::Url {
+            url: display_url(&opts.url),
+            reason,
+        })?;
+        let url = server.to_string();
         let kind = if local.head_feature_dims().is_some() {
             RemoteKind::Encoder
         } else {
@@ -302,42 +354,37 @@ impl RemoteScorer {
             });
         }
         let timeout = opts.timeout.max(Duration::from_millis(1));
-        let client = V2Client::new(&url, timeout);
+        let client = V2Client::new(&server, timeout);
+        let failed = |what: &str, e: ClientError| match e {
+            ClientError::Transport(reason) => RemoteError::Unreachable {
+                url: url.clone(),
+                reason,
+            },
+            e => RemoteError::Answered {
+                url: url.clone(),
+                what: what.to_string(),
+                model: model.clone(),
+                reason: e.to_string(),
+            },
+        };
         let meta = match client.model_metadata(&model) {
             Ok(m) => m,
-            Err(ClientError::Transport(reason)) => {
-                return Err(RemoteError::Unreachable { url, reason })
-            }
             Err(ClientError::Status { code, message }) if (400..500).contains(&code) => {
                 return Err(RemoteError::UnknownModel {
+                    reason: ClientError::Status { code, message }.to_string(),
                     url,
                     model,
-                    reason: if message.is_empty() {
-                        format!("HTTP status {code}")
-                    } else {
-                        message
-                    },
                 })
             }
-            Err(e) => {
-                return Err(RemoteError::Unreachable {
-                    url,
-                    reason: format!("model metadata: {e}"),
-                })
-            }
+            Err(e) => return Err(failed("model metadata", e)),
         };
         match client.model_ready(&model) {
             Ok(true) => {}
             Ok(false) => return Err(RemoteError::NotReady { url, model }),
-            Err(e) => {
-                return Err(RemoteError::Unreachable {
-                    url,
-                    reason: e.to_string(),
-                })
-            }
+            Err(e) => return Err(failed("model readiness", e)),
         }
         let mut scorer = RemoteScorer {
-            limiter: Limiter::shared(&url, opts.max_in_flight),
+            limiter: Limiter::join(&server.server_key(), opts.max_in_flight),
             local,
             client,
             url,
@@ -461,16 +508,12 @@ impl RemoteScorer {
         inputs: &[InputTensor<'_>],
         outputs: &[&str],
     ) -> Result<Vec<client::OutputTensor>, String> {
-        let _permit = match &self.limiter {
-            Some(l) => Some(l.acquire(self.timeout).ok_or_else(|| {
-                format!(
-                    "{} requests already in flight to the server for {} ms",
-                    l.max,
-                    self.timeout.as_millis()
-                )
-            })?),
-            None => None,
-        };
+        let _permit = self.limiter.acquire(self.timeout).map_err(|max| {
+            format!(
+                "{max} requests already in flight to the server for {} ms",
+                self.timeout.as_millis()
+            )
+        })?;
         let t0 = Instant::now();
         self.requests += 1;
         let r = self.client.infer(&self.model, inputs, outputs);
@@ -497,6 +540,16 @@ impl RemoteScorer {
             &["features"],
         )?;
         let f = out.pop().ok_or("no `features` output")?;
+        // The head gets only a shape it can take: batch one, its feature dimensions, no empty
+        // dimension (anything else would fail inside ONNX Runtime, or worse).
+        let want = self.local.head_feature_dims().unwrap_or_default();
+        let dims: Option<Vec<i64>> = f.shape.iter().map(|&d| i64::try_from(d).ok()).collect();
+        if !dims.is_some_and(|d| d.first() == Some(&1) && !d.contains(&0) && dims_fit(&d, &want)) {
+            return Err(format!(
+                "`features` has shape {:?}, expected {want:?} with batch 1 (-1: any size)",
+                f.shape
+            ));
+        }
         Ok(Features {
             shape: f.shape,
             data: f.data,
@@ -555,8 +608,8 @@ impl RemoteScorer {
                 u
             }
         };
-        if !u.is_finite() {
-            return Err(format!("`utility` is not finite ({u})"));
+        if !(0.0..=1.0).contains(&u) {
+            return Err(format!("`utility` {u} is not in [0, 1]"));
         }
         Ok(u)
     }
@@ -612,7 +665,7 @@ impl RemoteScorer {
         self.local.info()
     }
 
-    /// The server's URL.
+    /// The server's URL as shown ([`display_url`]: without credentials).
     pub fn url(&self) -> &str {
         &self.url
     }
@@ -671,11 +724,33 @@ mod tests {
 
     #[test]
     fn limiter_bounds() {
-        let l = Limiter::shared("http://test-limiter", 1).unwrap();
-        let p = l.acquire(Duration::from_millis(10)).unwrap();
-        assert!(l.acquire(Duration::from_millis(10)).is_none());
+        let t = Duration::from_millis(10);
+        let l = Limiter::join("http://test-limiter", 1);
+        let p = l.acquire(t).unwrap();
+        assert_eq!(l.acquire(t).err(), Some(1));
         drop(p);
-        assert!(l.acquire(Duration::from_millis(10)).is_some());
-        assert!(Limiter::shared("http://x", 0).is_none());
+        assert!(l.acquire(t).is_ok());
+        // No bound from anybody: no wait.
+        let free = Limiter::join("http://test-unbounded", 0);
+        let _held: Vec<_> = (0..100).map(|_| free.acquire(t).unwrap()).collect();
+    }
+
+    #[test]
+    fn smallest_bound_of_the_users_applies_while_they_use_it() {
+        let t = Duration::from_millis(10);
+        let wide = Limiter::join("http://test-smallest", 3);
+        let narrow = Limiter::join("http://test-smallest", 1);
+        let p = wide.acquire(t).unwrap();
+        assert_eq!(wide.acquire(t).err(), Some(1));
+        assert_eq!(narrow.acquire(t).err(), Some(1));
+        drop(narrow);
+        let q = wide.acquire(t).unwrap();
+        let r = wide.acquire(t).unwrap();
+        assert_eq!(wide.acquire(t).err(), Some(3));
+        drop((p, q, r));
+        // The last user gone, the server's limiter goes too: a new one starts afresh.
+        drop(wide);
+        let again = Limiter::join("http://test-smallest", 2);
+        assert_eq!(again.limiter.state.lock().unwrap().bounds, vec![2]);
     }
 }

@@ -7,6 +7,9 @@
 //! by itself when its parent (the test) goes away.
 #![allow(dead_code)]
 
+/// A scripted V2 server for hostile behaviours (tests/v2server/scripted.rs).
+pub mod scripted;
+
 use std::net::TcpListener;
 use std::os::unix::process::CommandExt;
 use std::path::PathBuf;
