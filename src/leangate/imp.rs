@@ -992,6 +992,21 @@ impl BaseTransformImpl for LeanGate {
         Ok(())
     }
 
+    fn query(&self, direction: gst::PadDirection, query: &mut gst::QueryRef) -> bool {
+        let unreadable = match query.view() {
+            gst::QueryView::AcceptCaps(q) if direction == gst::PadDirection::Sink => {
+                crate::preprocess::unreadable_format_error(q.caps())
+            }
+            _ => None,
+        };
+        let res = BaseTransformImplExt::parent_query(self, direction, query);
+        if let (false, Some(msg)) = (res, unreadable) {
+            // Upstream will only say `not-negotiated`: name the format and the fix first.
+            gst::element_imp_error!(self, gst::CoreError::Negotiation, ["{}", msg]);
+        }
+        res
+    }
+
     fn sink_event(&self, event: gst::Event) -> bool {
         match event.view() {
             gst::EventView::CustomDownstream(_)
