@@ -272,11 +272,12 @@ impl PixelFormat {
     }
 }
 
-/// The error for fixed raw-video caps (system memory) in a format the element cannot read, naming
-/// the format and the fix; `None` for anything else (a readable format, unfixed caps, other
-/// media). The sink posts it where negotiation refuses such caps, so that a decoder's output that
-/// fails to link (e.g. `Y41B` from a DV or FFV1 clip) says more than `not-negotiated`.
-pub fn unreadable_format_error(caps: &gst::CapsRef) -> Option<String> {
+/// The error for fixed raw-video caps (system memory) in a format the element cannot read: a
+/// message naming the format and the fix, and details listing the formats it reads; `None` for
+/// anything else (a readable format, unfixed caps, other media). The sink posts it where
+/// negotiation refuses such caps, so that a decoder's output it cannot read (e.g. `Y41B` from a
+/// DV or FFV1 4:1:1 clip) says more than the decoder's `not-negotiated`.
+pub fn unreadable_format_error(caps: &gst::CapsRef) -> Option<(String, String)> {
     if !caps.is_fixed() {
         return None;
     }
@@ -295,10 +296,12 @@ pub fn unreadable_format_error(caps: &gst::CapsRef) -> Option<String> {
         .iter()
         .map(|f| f.to_video_format().to_str().as_str())
         .collect();
-    Some(format!(
-        "leangate cannot read {name} video; put videoconvert before it (`... ! videoconvert ! \
-         leangate`). It reads {}",
-        readable.join(", ")
+    Some((
+        format!(
+            "leangate cannot read {name} video: put videoconvert before it (`... ! videoconvert \
+             ! leangate`)"
+        ),
+        format!("caps {caps}; leangate reads {}", readable.join(", ")),
     ))
 }
 

@@ -1000,9 +1000,13 @@ impl BaseTransformImpl for LeanGate {
             _ => None,
         };
         let res = BaseTransformImplExt::parent_query(self, direction, query);
-        if let (false, Some(msg)) = (res, unreadable) {
+        let refused = match query.view() {
+            gst::QueryView::AcceptCaps(q) => !res || !q.result(),
+            _ => false,
+        };
+        if let (true, Some((msg, details))) = (refused, unreadable) {
             // Upstream will only say `not-negotiated`: name the format and the fix first.
-            gst::element_imp_error!(self, gst::CoreError::Negotiation, ["{}", msg]);
+            gst::element_imp_error!(self, gst::CoreError::Negotiation, ("{}", msg), ["{}", details]);
         }
         res
     }
