@@ -163,7 +163,7 @@ fn make_install_runs_from_the_installed_files_alone_and_uninstall_removes_them()
     );
     let t = text(&o);
     assert!(o.status.success(), "pipeline with the installed plugin: {t}");
-    let ort = std::fs::canonicalize(prefix.join("lib/leangate/libonnxruntime.so")).unwrap();
+    let ort = prefix.join("lib/leangate/libonnxruntime.so");
     assert!(
         t.contains(&format!("calling init: {}", ort.display())),
         "ONNX Runtime not loaded from {}: {}",
