@@ -98,7 +98,11 @@ const GREY: (Planes, &[PassDesc]) = (&[(1, FULL)], &[pass(0, 1, FULL, &[(0, 0), 
 /// Planes G, B, R.
 const GBR: (Planes, &[PassDesc]) = (
     &[(1, FULL), (1, FULL), (1, FULL)],
-    &[pass(0, 1, FULL, S1), pass(1, 1, FULL, S2), pass(2, 1, FULL, S0)],
+    &[
+        pass(0, 1, FULL, S1),
+        pass(1, 1, FULL, S2),
+        pass(2, 1, FULL, S0),
+    ],
 );
 /// Y plane, then U and V interleaved at half width and height (NV12, P010; NV21: V first).
 const NV12: (Planes, &[PassDesc]) = (
@@ -130,10 +134,17 @@ const YUY2: (Planes, &[PassDesc]) = (
 );
 const UYVY: (Planes, &[PassDesc]) = (
     &[(4, (2, 1))],
-    &[pass(0, 2, FULL, &[(1, 0)]), pass(0, 4, (2, 1), &[(0, 1), (2, 2)])],
+    &[
+        pass(0, 2, FULL, &[(1, 0)]),
+        pass(0, 4, (2, 1), &[(0, 1), (2, 2)]),
+    ],
 );
 
-const fn rgb(bytes: usize, shift: u32, (planes, passes): (Planes, &'static [PassDesc])) -> FormatDesc {
+const fn rgb(
+    bytes: usize,
+    shift: u32,
+    (planes, passes): (Planes, &'static [PassDesc]),
+) -> FormatDesc {
     FormatDesc {
         bytes,
         shift,
@@ -143,7 +154,11 @@ const fn rgb(bytes: usize, shift: u32, (planes, passes): (Planes, &'static [Pass
     }
 }
 
-const fn yuv(bytes: usize, shift: u32, (planes, passes): (Planes, &'static [PassDesc])) -> FormatDesc {
+const fn yuv(
+    bytes: usize,
+    shift: u32,
+    (planes, passes): (Planes, &'static [PassDesc]),
+) -> FormatDesc {
     FormatDesc {
         bytes,
         shift,
@@ -675,12 +690,7 @@ fn flatten(taps: &[Taps]) -> (usize, usize, FlatTaps) {
     (x0, x1, FlatTaps { t, start, w })
 }
 
-fn plane_pass(
-    desc: &PassDesc,
-    x_taps: &[Taps],
-    y_taps: Vec<Taps>,
-    sums: bool,
-) -> PlanePass {
+fn plane_pass(desc: &PassDesc, x_taps: &[Taps], y_taps: Vec<Taps>, sums: bool) -> PlanePass {
     let (x0, x1, x) = flatten(x_taps);
     let y_sum = y_taps
         .iter()
@@ -1554,8 +1564,7 @@ mod tests {
                         // YUV: 8-bit limited-range rounding plus 2x2 chroma subsampling of a
                         // steep ramp (up to ~5 code values per pixel here): a few codes at most,
                         // about one on average.
-                        let (tol, mean_tol) = if f.is_yuv()
-                        {
+                        let (tol, mean_tol) = if f.is_yuv() {
                             (6.0 / 255.0, 1.5 / 255.0)
                         } else {
                             (1e-6, 1e-7)

@@ -337,11 +337,7 @@ fn every_format_scores_like_rgb_including_odd_sizes_and_padded_strides() {
                     (&pic, want)
                 };
                 let got = utility_in_format(src, w, h, f, pad);
-                let tol = if f.is_yuv() {
-                    3.0 / 255.0
-                } else {
-                    1e-6
-                };
+                let tol = if f.is_yuv() { 3.0 / 255.0 } else { 1e-6 };
                 assert!(
                     (got - reference).abs() <= tol,
                     "{f:?} {w}x{h} pad {pad}: {got} vs RGB {reference}"
@@ -412,7 +408,10 @@ fn utilities(src: &str) -> (Vec<f64>, String) {
 
 fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
 }
 
 /// Every accepted format, written by GStreamer's own `videoconvert` from a moving RGB test
@@ -476,7 +475,12 @@ fn phone_and_camera_clips_link_straight_from_decodebin() {
         ("libx264", "yuv444p10le", "mp4", "Y444_10LE"),
         ("libx264rgb", "rgb24", "mkv", "GBR"),
     ] {
-        let clip = ffmpeg_clip(dir.path(), &format!("{codec}-{pix_fmt}.{container}"), codec, pix_fmt);
+        let clip = ffmpeg_clip(
+            dir.path(),
+            &format!("{codec}-{pix_fmt}.{container}"),
+            codec,
+            pix_fmt,
+        );
         let src = format!("filesrc location={clip} ! decodebin");
         let (got, read) = utilities(&src);
         assert_eq!(read, format, "{codec} {pix_fmt}");
@@ -502,7 +506,9 @@ fn unreadable_decoder_output_names_the_format_and_videoconvert() {
     let err = msgs
         .iter()
         .find_map(|m| match m.view() {
-            gst::MessageView::Error(e) => Some((m.src().map(|s| s.name().to_string()), e.error().to_string())),
+            gst::MessageView::Error(e) => {
+                Some((m.src().map(|s| s.name().to_string()), e.error().to_string()))
+            }
             _ => None,
         })
         .expect("an error");
@@ -511,7 +517,9 @@ fn unreadable_decoder_output_names_the_format_and_videoconvert() {
         err.1.contains("Y41B") && err.1.contains("videoconvert ! leangate"),
         "{err:?}"
     );
-    let (u, read) = utilities(&format!("filesrc location={clip} ! decodebin ! videoconvert"));
+    let (u, read) = utilities(&format!(
+        "filesrc location={clip} ! decodebin ! videoconvert"
+    ));
     assert_eq!(u.len(), 20);
     assert_ne!(read, "Y41B");
 }

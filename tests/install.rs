@@ -16,10 +16,13 @@ fn built() -> (PathBuf, PathBuf) {
     let exe = std::env::current_exe().unwrap();
     let deps = exe.parent().unwrap();
     let profile = deps.parent().unwrap();
-    let plugin = [deps.join("libgstleangate.so"), profile.join("libgstleangate.so")]
-        .into_iter()
-        .find(|p| p.exists())
-        .expect("libgstleangate.so built (cargo build)");
+    let plugin = [
+        deps.join("libgstleangate.so"),
+        profile.join("libgstleangate.so"),
+    ]
+    .into_iter()
+    .find(|p| p.exists())
+    .expect("libgstleangate.so built (cargo build)");
     let cli = profile.join("leangate");
     assert!(
         cli.exists(),
@@ -64,7 +67,14 @@ fn can_hide() -> bool {
 
 /// Run `args` in a clean environment as a user of the installed files would: HOME and PATH only
 /// (plus `extra`), from `cwd`, with the checkout's target/ and .deps/ hidden when `hide`.
-fn user_run(home: &Path, prefix: &Path, cwd: &Path, hide: bool, extra: &[(&str, &str)], args: &[&str]) -> Output {
+fn user_run(
+    home: &Path,
+    prefix: &Path,
+    cwd: &Path,
+    hide: bool,
+    extra: &[(&str, &str)],
+    args: &[&str],
+) -> Output {
     let empty = home.join("empty");
     std::fs::create_dir_all(&empty).unwrap();
     let mut c = if hide {
@@ -87,7 +97,10 @@ fn user_run(home: &Path, prefix: &Path, cwd: &Path, hide: bool, extra: &[(&str, 
         .env("HOME", home)
         .env(
             "PATH",
-            format!("{}:/usr/local/bin:/usr/bin:/bin", prefix.join("bin").display()),
+            format!(
+                "{}:/usr/local/bin:/usr/bin:/bin",
+                prefix.join("bin").display()
+            ),
         )
         .current_dir(cwd);
     for (k, v) in extra {
@@ -132,15 +145,21 @@ fn make_install_runs_from_the_installed_files_alone_and_uninstall_removes_them()
 
     let hide = can_hide();
     if !hide {
-        eprintln!("NOTE: unshare unavailable: target/ and .deps/ stay visible; the loader log is checked");
+        eprintln!(
+            "NOTE: unshare unavailable: target/ and .deps/ stay visible; the loader log is checked"
+        );
     }
-    let run = |extra: &[(&str, &str)], args: &[&str]| user_run(&home, &prefix, &work, hide, extra, args);
+    let run =
+        |extra: &[(&str, &str)], args: &[&str]| user_run(&home, &prefix, &work, hide, extra, args);
 
     // GStreamer finds the plugin through the link in the user's plugin directory.
     let o = run(&[], &["gst-inspect-1.0", "leangate"]);
     let t = text(&o);
     assert!(o.status.success(), "gst-inspect-1.0 leangate: {t}");
-    assert!(t.contains("Drops video frames") && t.contains(&link.display().to_string()), "{t}");
+    assert!(
+        t.contains("Drops video frames") && t.contains(&link.display().to_string()),
+        "{t}"
+    );
 
     // A pipeline scores with the ONNX Runtime installed beside the plugin (the loader's log
     // names the library it initialises), never the checkout's.
@@ -162,13 +181,19 @@ fn make_install_runs_from_the_installed_files_alone_and_uninstall_removes_them()
         ],
     );
     let t = text(&o);
-    assert!(o.status.success(), "pipeline with the installed plugin: {t}");
+    assert!(
+        o.status.success(),
+        "pipeline with the installed plugin: {t}"
+    );
     let ort = prefix.join("lib/leangate/libonnxruntime.so");
     assert!(
         t.contains(&format!("calling init: {}", ort.display())),
         "ONNX Runtime not loaded from {}: {}",
         ort.display(),
-        t.lines().filter(|l| l.contains("onnxruntime")).collect::<Vec<_>>().join("\n")
+        t.lines()
+            .filter(|l| l.contains("onnxruntime"))
+            .collect::<Vec<_>>()
+            .join("\n")
     );
     assert!(!t.contains(&format!("calling init: {}", root().display())));
 
@@ -198,12 +223,23 @@ fn make_install_runs_from_the_installed_files_alone_and_uninstall_removes_them()
     let o = run(&[], &["leangate-client", "clip.avi"]);
     let t = text(&o);
     assert!(o.status.success(), "leangate-client clip.avi: {t}");
-    assert!(t.contains("frames-in=30"), "leangate-client reports the 30 frames: {t}");
+    assert!(
+        t.contains("frames-in=30"),
+        "leangate-client reports the 30 frames: {t}"
+    );
 
     install(&home, &prefix, true);
     for f in &installed {
-        assert!(!f.exists() && f.symlink_metadata().is_err(), "{} left behind", f.display());
+        assert!(
+            !f.exists() && f.symlink_metadata().is_err(),
+            "{} left behind",
+            f.display()
+        );
     }
     let o = run(&[], &["gst-inspect-1.0", "leangate"]);
-    assert!(!o.status.success(), "leangate still found after uninstall: {}", text(&o));
+    assert!(
+        !o.status.success(),
+        "leangate still found after uninstall: {}",
+        text(&o)
+    );
 }

@@ -1006,7 +1006,12 @@ impl BaseTransformImpl for LeanGate {
         };
         if let (true, Some((msg, details))) = (refused, unreadable) {
             // Upstream will only say `not-negotiated`: name the format and the fix first.
-            gst::element_imp_error!(self, gst::CoreError::Negotiation, ("{}", msg), ["{}", details]);
+            gst::element_imp_error!(
+                self,
+                gst::CoreError::Negotiation,
+                ("{}", msg),
+                ["{}", details]
+            );
         }
         res
     }

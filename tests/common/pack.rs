@@ -69,7 +69,12 @@ pub fn pack_rgb(
             for x in 0..w {
                 let c = px(x, y);
                 for (k, &o) in order.iter().enumerate() {
-                    put(&mut p, order.len() * x + k, y, if o < 3 { c[o] } else { 255.0 });
+                    put(
+                        &mut p,
+                        order.len() * x + k,
+                        y,
+                        if o < 3 { c[o] } else { 255.0 },
+                    );
                 }
             }
         }
