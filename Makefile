@@ -4,8 +4,12 @@
 CARGO ?= cargo
 PLUGIN_DIR := $(CURDIR)/target/release
 DEMO_DIR ?= out/demo
+# `make install`: where (default ~/.local; `PREFIX=/usr/local` as root), and where to link the
+# plugin so GStreamer finds it with no variables set (see scripts/install.sh; empty: no link).
+PREFIX ?= $(HOME)/.local
+GST_LINK_DIR ?= auto
 
-.PHONY: all setup build release fixtures test lint bench demo inspect clean
+.PHONY: all setup build release fixtures test lint bench demo inspect install uninstall clean
 
 all: build
 
@@ -46,6 +50,13 @@ demo: release
 # gst-inspect-1.0 documentation of the element.
 inspect: release
 	GST_PLUGIN_PATH=$(PLUGIN_DIR) gst-inspect-1.0 leangate
+
+# The plugin, ONNX Runtime beside it, the `leangate` CLI and leangate-client, under $(PREFIX).
+install: release
+	PREFIX='$(PREFIX)' GST_LINK_DIR='$(GST_LINK_DIR)' bash scripts/install.sh
+
+uninstall:
+	PREFIX='$(PREFIX)' GST_LINK_DIR='$(GST_LINK_DIR)' bash scripts/install.sh --uninstall
 
 clean:
 	$(CARGO) clean

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Install everything LeanGate needs on a Debian 12 machine, idempotently:
-#   1. GStreamer 1.22 development files, tools, plugins and Python bindings (apt);
+#   1. GStreamer 1.22 development files, tools, plugins and Python bindings (apt), and ffmpeg
+#      (tests/element.rs encodes clips in the formats phones and cameras record);
 #   2. ONNX Runtime 1.31.1: libonnxruntime.so from the PyPI wheel, extracted into .deps/
 #      (ORT_FLAVOR=gpu takes onnxruntime-gpu==1.31.1, for CUDA 13, into .deps/onnxruntime-gpu);
 #   3. a project-local Python venv (.venv) with `onnx` (to regenerate the test fixture models),
@@ -23,7 +24,7 @@ ORT_FLAVOR=${ORT_FLAVOR:-cpu}
 APT_PACKAGES=(pkg-config libgstreamer1.0-dev libgstreamer-plugins-base1.0-dev gstreamer1.0-tools
   gstreamer1.0-plugins-base gstreamer1.0-plugins-good gstreamer1.0-libav python3-gi
   gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 python3-gst-1.0 python3-numpy
-  python3-venv python3-pip fonts-dejavu-core unzip)
+  python3-venv python3-pip fonts-dejavu-core unzip ffmpeg)
 
 missing=()
 for p in "${APT_PACKAGES[@]}"; do

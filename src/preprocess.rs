@@ -6,7 +6,9 @@
 //! does; or `stretch`), area-averaging when shrinking / bilinear when enlarging (separable), scale
 //! to [0,1], then `(x - mean) / std` per channel.
 
-/// Pixel formats accepted by the element (its caps list exactly these).
+/// Pixel formats accepted by the element (its caps list exactly these, in this order of
+/// preference): packed RGB and grey, and what decoders output for phone and camera video (8-, 10-,
+/// 12- and 16-bit YUV in 4:2:0, 4:2:2 and 4:4:4, planar and semi-planar and packed).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PixelFormat {
     Rgb,
@@ -18,10 +20,156 @@ pub enum PixelFormat {
     Gray8,
     Nv12,
     I420,
+    Nv21,
+    Yuy2,
+    Uyvy,
+    Y42b,
+    Y444,
+    Gbr,
+    Gray16Le,
+    I42010le,
+    I42012le,
+    P01010le,
+    P012Le,
+    P016Le,
+    I42210le,
+    I42212le,
+    Y44410le,
+    Y44412le,
+}
+
+/// Where one pass of the preprocessor reads its samples: plane `plane`, in units of `bpp`
+/// interleaved samples covering `sub.0` pixels across and `sub.1` rows down (2 for subsampled
+/// chroma, and for the chroma of packed 4:2:2), and which sample of a unit feeds which output slot
+/// (R, G, B, or Y, U, V).
+#[derive(Debug, Clone, Copy)]
+struct PassDesc {
+    plane: usize,
+    bpp: usize,
+    sub: (usize, usize),
+    chans: &'static [(usize, usize)],
+}
+
+/// How a format lays out its samples in memory.
+#[derive(Debug, Clone, Copy)]
+struct FormatDesc {
+    /// Bytes per sample: 1, or 2 (a 16-bit little-endian word).
+    bytes: usize,
+    /// Bits a stored sample has above an 8-bit code value: 0; 2 for 10-bit and 4 for 12-bit
+    /// samples (in the low bits of their word); 8 for 16-bit and MSB-aligned words (P010, P012).
+    /// The same scaling as `videoconvert`'s.
+    shift: u32,
+    /// YUV (converted to RGB through the caps' matrix and range) rather than RGB or grey.
+    yuv: bool,
+    /// Per plane: samples per unit and the unit's size in pixels (across, down).
+    planes: &'static [(usize, (usize, usize))],
+    passes: &'static [PassDesc],
+}
+
+const fn pass(
+    plane: usize,
+    bpp: usize,
+    sub: (usize, usize),
+    chans: &'static [(usize, usize)],
+) -> PassDesc {
+    PassDesc {
+        plane,
+        bpp,
+        sub,
+        chans,
+    }
+}
+
+type Planes = &'static [(usize, (usize, usize))];
+
+const FULL: (usize, usize) = (1, 1);
+const RGB: &[(usize, usize)] = &[(0, 0), (1, 1), (2, 2)];
+const BGR: &[(usize, usize)] = &[(2, 0), (1, 1), (0, 2)];
+const S0: &[(usize, usize)] = &[(0, 0)];
+const S1: &[(usize, usize)] = &[(0, 1)];
+const S2: &[(usize, usize)] = &[(0, 2)];
+const LUMA: PassDesc = pass(0, 1, FULL, S0);
+
+const PACKED_3: (Planes, &[PassDesc]) = (&[(3, FULL)], &[pass(0, 3, FULL, RGB)]);
+const PACKED_3_BGR: (Planes, &[PassDesc]) = (&[(3, FULL)], &[pass(0, 3, FULL, BGR)]);
+const PACKED_4: (Planes, &[PassDesc]) = (&[(4, FULL)], &[pass(0, 4, FULL, RGB)]);
+const PACKED_4_BGR: (Planes, &[PassDesc]) = (&[(4, FULL)], &[pass(0, 4, FULL, BGR)]);
+const GREY: (Planes, &[PassDesc]) = (&[(1, FULL)], &[pass(0, 1, FULL, &[(0, 0), (0, 1), (0, 2)])]);
+/// Planes G, B, R.
+const GBR: (Planes, &[PassDesc]) = (
+    &[(1, FULL), (1, FULL), (1, FULL)],
+    &[
+        pass(0, 1, FULL, S1),
+        pass(1, 1, FULL, S2),
+        pass(2, 1, FULL, S0),
+    ],
+);
+/// Y plane, then U and V interleaved at half width and height (NV12, P010; NV21: V first).
+const NV12: (Planes, &[PassDesc]) = (
+    &[(1, FULL), (2, (2, 2))],
+    &[LUMA, pass(1, 2, (2, 2), &[(0, 1), (1, 2)])],
+);
+const NV21: (Planes, &[PassDesc]) = (
+    &[(1, FULL), (2, (2, 2))],
+    &[LUMA, pass(1, 2, (2, 2), &[(1, 1), (0, 2)])],
+);
+/// Planes Y, U, V; chroma at half width and height (4:2:0), half width (4:2:2), or full (4:4:4).
+const I420: (Planes, &[PassDesc]) = (
+    &[(1, FULL), (1, (2, 2)), (1, (2, 2))],
+    &[LUMA, pass(1, 1, (2, 2), S1), pass(2, 1, (2, 2), S2)],
+);
+const I422: (Planes, &[PassDesc]) = (
+    &[(1, FULL), (1, (2, 1)), (1, (2, 1))],
+    &[LUMA, pass(1, 1, (2, 1), S1), pass(2, 1, (2, 1), S2)],
+);
+const I444: (Planes, &[PassDesc]) = (
+    &[(1, FULL), (1, FULL), (1, FULL)],
+    &[LUMA, pass(1, 1, FULL, S1), pass(2, 1, FULL, S2)],
+);
+/// Packed 4:2:2, two pixels in four samples `Y0 U Y1 V` (YUY2) or `U Y0 V Y1` (UYVY): the luma
+/// read per pixel (two samples), the chroma per pair of pixels (four samples).
+const YUY2: (Planes, &[PassDesc]) = (
+    &[(4, (2, 1))],
+    &[pass(0, 2, FULL, S0), pass(0, 4, (2, 1), &[(1, 1), (3, 2)])],
+);
+const UYVY: (Planes, &[PassDesc]) = (
+    &[(4, (2, 1))],
+    &[
+        pass(0, 2, FULL, &[(1, 0)]),
+        pass(0, 4, (2, 1), &[(0, 1), (2, 2)]),
+    ],
+);
+
+const fn rgb(
+    bytes: usize,
+    shift: u32,
+    (planes, passes): (Planes, &'static [PassDesc]),
+) -> FormatDesc {
+    FormatDesc {
+        bytes,
+        shift,
+        yuv: false,
+        planes,
+        passes,
+    }
+}
+
+const fn yuv(
+    bytes: usize,
+    shift: u32,
+    (planes, passes): (Planes, &'static [PassDesc]),
+) -> FormatDesc {
+    FormatDesc {
+        bytes,
+        shift,
+        yuv: true,
+        planes,
+        passes,
+    }
 }
 
 impl PixelFormat {
-    pub const ALL: [PixelFormat; 9] = [
+    pub const ALL: [PixelFormat; 25] = [
         PixelFormat::Rgb,
         PixelFormat::Rgbx,
         PixelFormat::Rgba,
@@ -31,22 +179,28 @@ impl PixelFormat {
         PixelFormat::Gray8,
         PixelFormat::Nv12,
         PixelFormat::I420,
+        PixelFormat::Nv21,
+        PixelFormat::Yuy2,
+        PixelFormat::Uyvy,
+        PixelFormat::Y42b,
+        PixelFormat::Y444,
+        PixelFormat::Gbr,
+        PixelFormat::Gray16Le,
+        PixelFormat::I42010le,
+        PixelFormat::I42012le,
+        PixelFormat::P01010le,
+        PixelFormat::P012Le,
+        PixelFormat::P016Le,
+        PixelFormat::I42210le,
+        PixelFormat::I42212le,
+        PixelFormat::Y44410le,
+        PixelFormat::Y44412le,
     ];
 
     pub fn from_video_format(f: gst_video::VideoFormat) -> Option<PixelFormat> {
-        use gst_video::VideoFormat as V;
-        Some(match f {
-            V::Rgb => PixelFormat::Rgb,
-            V::Bgr => PixelFormat::Bgr,
-            V::Rgbx => PixelFormat::Rgbx,
-            V::Rgba => PixelFormat::Rgba,
-            V::Bgrx => PixelFormat::Bgrx,
-            V::Bgra => PixelFormat::Bgra,
-            V::Gray8 => PixelFormat::Gray8,
-            V::Nv12 => PixelFormat::Nv12,
-            V::I420 => PixelFormat::I420,
-            _ => return None,
-        })
+        PixelFormat::ALL
+            .into_iter()
+            .find(|p| p.to_video_format() == f)
     }
 
     pub fn to_video_format(self) -> gst_video::VideoFormat {
@@ -61,17 +215,109 @@ impl PixelFormat {
             PixelFormat::Gray8 => V::Gray8,
             PixelFormat::Nv12 => V::Nv12,
             PixelFormat::I420 => V::I420,
+            PixelFormat::Nv21 => V::Nv21,
+            PixelFormat::Yuy2 => V::Yuy2,
+            PixelFormat::Uyvy => V::Uyvy,
+            PixelFormat::Y42b => V::Y42b,
+            PixelFormat::Y444 => V::Y444,
+            PixelFormat::Gbr => V::Gbr,
+            PixelFormat::Gray16Le => V::Gray16Le,
+            PixelFormat::I42010le => V::I42010le,
+            PixelFormat::I42012le => V::I42012le,
+            PixelFormat::P01010le => V::P01010le,
+            PixelFormat::P012Le => V::P012Le,
+            PixelFormat::P016Le => V::P016Le,
+            PixelFormat::I42210le => V::I42210le,
+            PixelFormat::I42212le => V::I42212le,
+            PixelFormat::Y44410le => V::Y44410le,
+            PixelFormat::Y44412le => V::Y44412le,
+        }
+    }
+
+    fn desc(self) -> FormatDesc {
+        match self {
+            PixelFormat::Rgb => rgb(1, 0, PACKED_3),
+            PixelFormat::Bgr => rgb(1, 0, PACKED_3_BGR),
+            PixelFormat::Rgbx | PixelFormat::Rgba => rgb(1, 0, PACKED_4),
+            PixelFormat::Bgrx | PixelFormat::Bgra => rgb(1, 0, PACKED_4_BGR),
+            PixelFormat::Gbr => rgb(1, 0, GBR),
+            PixelFormat::Gray8 => rgb(1, 0, GREY),
+            PixelFormat::Gray16Le => rgb(2, 8, GREY),
+            PixelFormat::Nv12 => yuv(1, 0, NV12),
+            PixelFormat::Nv21 => yuv(1, 0, NV21),
+            PixelFormat::P01010le | PixelFormat::P012Le | PixelFormat::P016Le => yuv(2, 8, NV12),
+            PixelFormat::I420 => yuv(1, 0, I420),
+            PixelFormat::I42010le => yuv(2, 2, I420),
+            PixelFormat::I42012le => yuv(2, 4, I420),
+            PixelFormat::Y42b => yuv(1, 0, I422),
+            PixelFormat::I42210le => yuv(2, 2, I422),
+            PixelFormat::I42212le => yuv(2, 4, I422),
+            PixelFormat::Y444 => yuv(1, 0, I444),
+            PixelFormat::Y44410le => yuv(2, 2, I444),
+            PixelFormat::Y44412le => yuv(2, 4, I444),
+            PixelFormat::Yuy2 => yuv(1, 0, YUY2),
+            PixelFormat::Uyvy => yuv(1, 0, UYVY),
         }
     }
 
     /// Number of planes.
     pub fn n_planes(self) -> usize {
-        match self {
-            PixelFormat::Nv12 => 2,
-            PixelFormat::I420 => 3,
-            _ => 1,
-        }
+        self.desc().planes.len()
     }
+
+    /// YUV (converted through the caps' colour matrix), not RGB or grey.
+    pub fn is_yuv(self) -> bool {
+        self.desc().yuv
+    }
+
+    /// One grey channel.
+    pub fn is_grey(self) -> bool {
+        matches!(self, PixelFormat::Gray8 | PixelFormat::Gray16Le)
+    }
+
+    /// Bytes per row and rows of each plane of a tightly packed `w`x`h` frame (`(0, 0)` past the
+    /// last plane).
+    pub fn plane_sizes(self, w: usize, h: usize) -> [(usize, usize); 3] {
+        let d = self.desc();
+        let mut out = [(0, 0); 3];
+        for (o, &(spu, (sx, sy))) in out.iter_mut().zip(d.planes) {
+            *o = (w.div_ceil(sx) * spu * d.bytes, h.div_ceil(sy));
+        }
+        out
+    }
+}
+
+/// The error for fixed raw-video caps (system memory) in a format the element cannot read: a
+/// message naming the format and the fix, and details listing the formats it reads; `None` for
+/// anything else (a readable format, unfixed caps, other media). The sink posts it where
+/// negotiation refuses such caps, so that a decoder's output it cannot read (e.g. `Y41B` from a
+/// DV or FFV1 4:1:1 clip) says more than the decoder's `not-negotiated`.
+pub fn unreadable_format_error(caps: &gst::CapsRef) -> Option<(String, String)> {
+    if !caps.is_fixed() {
+        return None;
+    }
+    let s = caps.structure(0)?;
+    let system = caps
+        .features(0)
+        .is_none_or(|f| f.is_equal(&gst::CAPS_FEATURES_MEMORY_SYSTEM_MEMORY));
+    if s.name() != "video/x-raw" || !system {
+        return None;
+    }
+    let name = s.get::<&str>("format").ok()?;
+    if PixelFormat::from_video_format(gst_video::VideoFormat::from_string(name)).is_some() {
+        return None;
+    }
+    let readable: Vec<&str> = PixelFormat::ALL
+        .iter()
+        .map(|f| f.to_video_format().to_str().as_str())
+        .collect();
+    Some((
+        format!(
+            "leangate cannot read {name} video: put videoconvert before it (`... ! videoconvert \
+             ! leangate`)"
+        ),
+        format!("caps {caps}; leangate reads {}", readable.join(", ")),
+    ))
 }
 
 /// How the frame is mapped onto the model's input rectangle.
@@ -233,21 +479,6 @@ pub(crate) fn try_filled<T: Clone>(len: usize, v: T) -> Result<Vec<T>, Preproces
     })?;
     out.resize(len, v);
     Ok(out)
-}
-
-/// Rows, bytes per row and bytes per pixel of each plane of a `w`x`h` frame (rows 0: no plane).
-fn plane_layout(format: PixelFormat, w: usize, h: usize) -> [(usize, usize); 3] {
-    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
-    // (row bytes, rows)
-    match format {
-        PixelFormat::Rgb | PixelFormat::Bgr => [(3 * w, h), (0, 0), (0, 0)],
-        PixelFormat::Rgbx | PixelFormat::Rgba | PixelFormat::Bgrx | PixelFormat::Bgra => {
-            [(4 * w, h), (0, 0), (0, 0)]
-        }
-        PixelFormat::Gray8 => [(w, h), (0, 0), (0, 0)],
-        PixelFormat::Nv12 => [(w, h), (2 * cw, ch), (0, 0)],
-        PixelFormat::I420 => [(w, h), (cw, ch), (cw, ch)],
-    }
 }
 
 /// Row addressing of one checked plane: row `y` starts at `origin + y * stride`.
@@ -459,57 +690,52 @@ fn flatten(taps: &[Taps]) -> (usize, usize, FlatTaps) {
     (x0, x1, FlatTaps { t, start, w })
 }
 
-fn plane_pass(
-    plane: usize,
-    bpp: usize,
-    x_taps: &[Taps],
-    y_taps: Vec<Taps>,
-    chans: &[(usize, usize)],
-) -> PlanePass {
+fn plane_pass(desc: &PassDesc, x_taps: &[Taps], y_taps: Vec<Taps>, sums: bool) -> PlanePass {
     let (x0, x1, x) = flatten(x_taps);
     let y_sum = y_taps
         .iter()
         .map(|t| {
             let w = &t.weights;
-            w.len() >= 4
+            sums && w.len() >= 4
                 && w.len() - 2 <= MAX_U16_ROWS
                 && w[1..w.len() - 1].iter().all(|&x| x == w[1])
         })
         .collect();
     PlanePass {
-        plane,
-        bpp,
+        plane: desc.plane,
+        bpp: desc.bpp,
         x0,
         x1,
         x,
         y: y_taps,
         y_sum,
-        chans: chans.to_vec(),
+        chans: desc.chans.to_vec(),
     }
 }
 
+/// One pass per [`PassDesc`] of the format; chroma taps merged 2:1 where it is subsampled. Wide
+/// samples are brought to 8-bit code values through the vertical weights (a power of two: exact),
+/// and are never summed in u16.
 fn make_passes(format: PixelFormat, x_taps: &[Taps], y_taps: &[Taps]) -> Vec<PlanePass> {
-    const RGB: [(usize, usize); 3] = [(0, 0), (1, 1), (2, 2)];
-    const BGR: [(usize, usize); 3] = [(2, 0), (1, 1), (0, 2)];
-    let full = |plane, bpp, chans: &[(usize, usize)]| {
-        plane_pass(plane, bpp, x_taps, y_taps.to_vec(), chans)
+    let d = format.desc();
+    let unit = 1.0 / (1u32 << d.shift) as f32;
+    let taps = |taps: &[Taps], sub: usize| {
+        if sub == 2 {
+            halve_taps(taps)
+        } else {
+            taps.to_vec()
+        }
     };
-    let half = |plane, bpp, chans: &[(usize, usize)]| {
-        plane_pass(plane, bpp, &halve_taps(x_taps), halve_taps(y_taps), chans)
-    };
-    match format {
-        PixelFormat::Rgb => vec![full(0, 3, &RGB)],
-        PixelFormat::Bgr => vec![full(0, 3, &BGR)],
-        PixelFormat::Rgbx | PixelFormat::Rgba => vec![full(0, 4, &RGB)],
-        PixelFormat::Bgrx | PixelFormat::Bgra => vec![full(0, 4, &BGR)],
-        PixelFormat::Gray8 => vec![full(0, 1, &[(0, 0), (0, 1), (0, 2)])],
-        PixelFormat::Nv12 => vec![full(0, 1, &[(0, 0)]), half(1, 2, &[(0, 1), (1, 2)])],
-        PixelFormat::I420 => vec![
-            full(0, 1, &[(0, 0)]),
-            half(1, 1, &[(0, 1)]),
-            half(2, 1, &[(0, 2)]),
-        ],
-    }
+    d.passes
+        .iter()
+        .map(|p| {
+            let mut y = taps(y_taps, p.sub.1);
+            y.iter_mut()
+                .flat_map(|t| t.weights.iter_mut())
+                .for_each(|w| *w *= unit);
+            plane_pass(p, &taps(x_taps, p.sub.0), y, d.bytes == 1)
+        })
+        .collect()
 }
 
 fn has_avx2() -> bool {
@@ -596,7 +822,7 @@ impl Preprocessor {
             )));
         }
         let mut rows_out = [Rows::default(); 3];
-        let layout = plane_layout(f.format, f.width as usize, f.height as usize);
+        let layout = f.format.plane_sizes(f.width as usize, f.height as usize);
         for (p, &(row_bytes, rows)) in layout.iter().enumerate() {
             if rows == 0 {
                 continue;
@@ -715,7 +941,8 @@ impl Preprocessor {
             1.0 / (255.0 * sd[2]),
         ];
         let offset = [m[0] / sd[0], m[1] / sd[1], m[2] / sd[2]];
-        let yuv = matches!(self.format, PixelFormat::Nv12 | PixelFormat::I420);
+        let desc = self.format.desc();
+        let (yuv, wide) = (desc.yuv, desc.bytes == 2);
         let c = self.yuv.coefficients();
         let FastScratch {
             acc: accs,
@@ -741,47 +968,11 @@ impl Preprocessor {
             {
                 let bpp = pass.bpp;
                 let n = (pass.x1 - pass.x0) * bpp;
-                let data = frame.planes[pass.plane];
-                let r = rows[pass.plane];
-                let ty = &pass.y[oy];
-                {
-                    let acc = &mut acc[..n];
-                    // In range: `check` validated every row of the plane, and the pass's pixel
-                    // range lies inside a row.
-                    let src = |j: usize| {
-                        let at = r.at(ty.start + j) + pass.x0 * bpp;
-                        &data[at..at + n]
-                    };
-                    let w = &ty.weights;
-                    if pass.y_sum[oy] {
-                        let last = w.len() - 1;
-                        // Area averaging: the interior rows share one weight. Sum them exactly
-                        // in u16 (16 samples per instruction), then one multiply-add; the two
-                        // partial edge rows as floats.
-                        let sum = &mut sum[..n];
-                        vsum2(sum, src(1), src(2));
-                        for k in 3..last {
-                            vsum(sum, src(k));
-                        }
-                        vinit2(acc, src(0), w[0], src(last), w[last]);
-                        vacc_sum(acc, sum, w[1]);
-                    } else {
-                        // Two source rows per sweep over the accumulator.
-                        let mut j = if w.len() >= 2 {
-                            vinit2(acc, src(0), w[0], src(1), w[1]);
-                            2
-                        } else {
-                            vinit(acc, src(0), w[0]);
-                            1
-                        };
-                        while j + 1 < w.len() {
-                            vacc2(acc, src(j), w[j], src(j + 1), w[j + 1]);
-                            j += 2;
-                        }
-                        if j < w.len() {
-                            vacc(acc, src(j), w[j]);
-                        }
-                    }
+                let (data, r) = (frame.planes[pass.plane], rows[pass.plane]);
+                if wide {
+                    vertical::<2>(&mut acc[..n], sum, data, r, pass, oy);
+                } else {
+                    vertical::<1>(&mut acc[..n], sum, data, r, pass, oy);
                 }
                 match bpp {
                     1 => hpass::<1>(acc, pass, hrow),
@@ -828,7 +1019,7 @@ impl Preprocessor {
     /// the reference the fast path is tested and benchmarked against.
     #[doc(hidden)]
     pub fn run_reference(&self, frame: &RawFrame, out: &mut [f32]) -> Result<(), PreprocessError> {
-        let [r0, r1, r2] = self.check(frame)?;
+        let rows = self.check(frame)?;
         if out.len() != self.spec.len() {
             return Err(PreprocessError(format!(
                 "output tensor has {} elements, need {}",
@@ -836,64 +1027,32 @@ impl Preprocessor {
                 self.spec.len()
             )));
         }
-        let [p0, p1, p2] = frame.planes;
         let yuv = self.yuv;
-        let rgb = |v: [f32; 3]| v;
-        let to_rgb = |v: [f32; 3]| yuv.to_rgb(v);
+        let d = self.format.desc();
+        let unit = 1.0 / (1u32 << d.shift) as f32;
+        // Per output slot (R, G, B or Y, U, V): plane, samples per unit, unit size, sample.
+        let mut slots = [(0usize, 1usize, FULL, 0usize); 3];
+        for p in d.passes {
+            for &(sample, slot) in p.chans {
+                slots[slot] = (p.plane, p.bpp, p.sub, sample);
+            }
+        }
+        let fetch = |x: usize, y: usize| {
+            slots.map(|(plane, bpp, (sx, sy), k)| {
+                let at = rows[plane].at(y / sy) + ((x / sx) * bpp + k) * d.bytes;
+                let p = &frame.planes[plane][at..];
+                if d.bytes == 1 {
+                    sample::<1>(p)
+                } else {
+                    sample::<2>(p) * unit
+                }
+            })
+        };
         let scratch = Scratch::new(self)?;
-        match self.format {
-            PixelFormat::Rgb => self.resample(
-                out,
-                scratch,
-                |x, y| px3(p0, r0.at(y) + 3 * x, [0, 1, 2]),
-                rgb,
-            ),
-            PixelFormat::Bgr => self.resample(
-                out,
-                scratch,
-                |x, y| px3(p0, r0.at(y) + 3 * x, [2, 1, 0]),
-                rgb,
-            ),
-            PixelFormat::Rgbx | PixelFormat::Rgba => self.resample(
-                out,
-                scratch,
-                |x, y| px3(p0, r0.at(y) + 4 * x, [0, 1, 2]),
-                rgb,
-            ),
-            PixelFormat::Bgrx | PixelFormat::Bgra => self.resample(
-                out,
-                scratch,
-                |x, y| px3(p0, r0.at(y) + 4 * x, [2, 1, 0]),
-                rgb,
-            ),
-            PixelFormat::Gray8 => self.resample(
-                out,
-                scratch,
-                |x, y| {
-                    let v = p0[r0.at(y) + x] as f32;
-                    [v, v, v]
-                },
-                rgb,
-            ),
-            PixelFormat::Nv12 => self.resample(
-                out,
-                scratch,
-                |x, y| {
-                    let c = r1.at(y / 2) + (x / 2) * 2;
-                    [p0[r0.at(y) + x] as f32, p1[c] as f32, p1[c + 1] as f32]
-                },
-                to_rgb,
-            ),
-            PixelFormat::I420 => self.resample(
-                out,
-                scratch,
-                |x, y| {
-                    let c1 = r1.at(y / 2) + x / 2;
-                    let c2 = r2.at(y / 2) + x / 2;
-                    [p0[r0.at(y) + x] as f32, p1[c1] as f32, p2[c2] as f32]
-                },
-                to_rgb,
-            ),
+        if d.yuv {
+            self.resample(out, scratch, fetch, |v| yuv.to_rgb(v));
+        } else {
+            self.resample(out, scratch, fetch, |v| v);
         }
         Ok(())
     }
@@ -947,7 +1106,7 @@ impl Preprocessor {
             .map_readable()
             .map_err(|e| PreprocessError(format!("cannot map the buffer: {e}")))?;
         let data = map.as_slice();
-        let layout = plane_layout(format, info.width() as usize, info.height() as usize);
+        let layout = format.plane_sizes(info.width() as usize, info.height() as usize);
         let mut planes: [&[u8]; 3] = [&[], &[], &[]];
         for p in 0..n {
             let (row_bytes, rows) = layout[p];
@@ -1101,27 +1260,113 @@ impl Scratch {
     }
 }
 
-/// `acc = w * src` (u8 samples to float), vectorised.
+/// The vertical pass of one output row over one plane: the source rows under output row `oy`,
+/// weighted, into `acc` (the pass's `n` samples; `S` bytes per sample). In range: `check`
+/// validated every row of the plane, and the pass's pixel range lies inside a row.
 #[inline(always)]
-fn vinit(acc: &mut [f32], src: &[u8], w: f32) {
-    for (a, &p) in acc.iter_mut().zip(src) {
-        *a = w * p as f32;
+fn vertical<const S: usize>(
+    acc: &mut [f32],
+    sum: &mut [u16],
+    data: &[u8],
+    r: Rows,
+    pass: &PlanePass,
+    oy: usize,
+) {
+    let n = acc.len() * S;
+    let ty = &pass.y[oy];
+    let src = |j: usize| {
+        let at = r.at(ty.start + j) + pass.x0 * pass.bpp * S;
+        &data[at..at + n]
+    };
+    let w = &ty.weights;
+    if pass.y_sum[oy] {
+        // (8-bit samples only: `make_passes` never sums wider ones.)
+        let last = w.len() - 1;
+        // Area averaging: the interior rows share one weight. Sum them exactly in u16 (16
+        // samples per instruction), then one multiply-add; the two partial edge rows as floats.
+        let sum = &mut sum[..acc.len()];
+        vsum2(sum, src(1), src(2));
+        for k in 3..last {
+            vsum(sum, src(k));
+        }
+        vinit2::<S>(acc, src(0), w[0], src(last), w[last]);
+        vacc_sum(acc, sum, w[1]);
+    } else {
+        // Two source rows per sweep over the accumulator.
+        let mut j = if w.len() >= 2 {
+            vinit2::<S>(acc, src(0), w[0], src(1), w[1]);
+            2
+        } else {
+            vinit::<S>(acc, src(0), w[0]);
+            1
+        };
+        while j + 1 < w.len() {
+            vacc2::<S>(acc, src(j), w[j], src(j + 1), w[j + 1]);
+            j += 2;
+        }
+        if j < w.len() {
+            vacc::<S>(acc, src(j), w[j]);
+        }
+    }
+}
+
+/// One sample of `S` bytes (a byte, or a 16-bit little-endian word) as a float.
+#[inline(always)]
+fn sample<const S: usize>(p: &[u8]) -> f32 {
+    if S == 1 {
+        p[0] as f32
+    } else {
+        u16::from_le_bytes([p[0], p[1]]) as f32
+    }
+}
+
+/// `acc = w * src` (samples of `S` bytes to float), vectorised.
+#[inline(always)]
+fn vinit<const S: usize>(acc: &mut [f32], src: &[u8], w: f32) {
+    if S == 1 {
+        for (a, &p) in acc.iter_mut().zip(src) {
+            *a = w * p as f32;
+        }
+    } else {
+        for (a, p) in acc.iter_mut().zip(src.chunks_exact(S)) {
+            *a = w * sample::<S>(p);
+        }
     }
 }
 
 /// `acc = w0 * s0 + w1 * s1`, vectorised.
 #[inline(always)]
-fn vinit2(acc: &mut [f32], s0: &[u8], w0: f32, s1: &[u8], w1: f32) {
-    for ((a, &p), &q) in acc.iter_mut().zip(s0).zip(s1) {
-        *a = w0 * p as f32 + w1 * q as f32;
+fn vinit2<const S: usize>(acc: &mut [f32], s0: &[u8], w0: f32, s1: &[u8], w1: f32) {
+    if S == 1 {
+        for ((a, &p), &q) in acc.iter_mut().zip(s0).zip(s1) {
+            *a = w0 * p as f32 + w1 * q as f32;
+        }
+    } else {
+        for ((a, p), q) in acc
+            .iter_mut()
+            .zip(s0.chunks_exact(S))
+            .zip(s1.chunks_exact(S))
+        {
+            *a = w0 * sample::<S>(p) + w1 * sample::<S>(q);
+        }
     }
 }
 
 /// `acc += w0 * s0 + w1 * s1`, vectorised.
 #[inline(always)]
-fn vacc2(acc: &mut [f32], s0: &[u8], w0: f32, s1: &[u8], w1: f32) {
-    for ((a, &p), &q) in acc.iter_mut().zip(s0).zip(s1) {
-        *a = *a + w0 * p as f32 + w1 * q as f32;
+fn vacc2<const S: usize>(acc: &mut [f32], s0: &[u8], w0: f32, s1: &[u8], w1: f32) {
+    if S == 1 {
+        for ((a, &p), &q) in acc.iter_mut().zip(s0).zip(s1) {
+            *a = *a + w0 * p as f32 + w1 * q as f32;
+        }
+    } else {
+        for ((a, p), q) in acc
+            .iter_mut()
+            .zip(s0.chunks_exact(S))
+            .zip(s1.chunks_exact(S))
+        {
+            *a = *a + w0 * sample::<S>(p) + w1 * sample::<S>(q);
+        }
     }
 }
 
@@ -1151,9 +1396,15 @@ fn vacc_sum(acc: &mut [f32], sum: &[u16], w: f32) {
 
 /// `acc += w * src`, vectorised.
 #[inline(always)]
-fn vacc(acc: &mut [f32], src: &[u8], w: f32) {
-    for (a, &p) in acc.iter_mut().zip(src) {
-        *a += w * p as f32;
+fn vacc<const S: usize>(acc: &mut [f32], src: &[u8], w: f32) {
+    if S == 1 {
+        for (a, &p) in acc.iter_mut().zip(src) {
+            *a += w * p as f32;
+        }
+    } else {
+        for (a, p) in acc.iter_mut().zip(src.chunks_exact(S)) {
+            *a += w * sample::<S>(p);
+        }
     }
 }
 
@@ -1227,11 +1478,6 @@ fn hpass_any<const B: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
     }
 }
 
-#[inline(always)]
-fn px3(p: &[u8], i: usize, o: [usize; 3]) -> [f32; 3] {
-    [p[i + o[0]] as f32, p[i + o[1]] as f32, p[i + o[2]] as f32]
-}
-
 #[cfg(test)]
 #[path = "../tests/common/pack.rs"]
 mod test_pack;
@@ -1303,7 +1549,7 @@ mod tests {
                 let pic = picture(w, h, gray);
                 let reference = tensor(&pic, w, h, PixelFormat::Rgb, 0, &s);
                 for f in PixelFormat::ALL {
-                    if f == PixelFormat::Gray8 && !gray {
+                    if f.is_grey() && !gray {
                         continue;
                     }
                     for pad in [0usize, 5, 64] {
@@ -1318,8 +1564,7 @@ mod tests {
                         // YUV: 8-bit limited-range rounding plus 2x2 chroma subsampling of a
                         // steep ramp (up to ~5 code values per pixel here): a few codes at most,
                         // about one on average.
-                        let (tol, mean_tol) = if matches!(f, PixelFormat::Nv12 | PixelFormat::I420)
-                        {
+                        let (tol, mean_tol) = if f.is_yuv() {
                             (6.0 / 255.0, 1.5 / 255.0)
                         } else {
                             (1e-6, 1e-7)
@@ -1367,7 +1612,24 @@ mod tests {
                     mean: [0.485, 0.456, 0.406],
                     std: [0.229, 0.224, 0.225],
                 };
-                for f in PixelFormat::ALL {
+                // Every format at the small sizes; at the large ones, one of each kind of
+                // layout (packed, grey, semi-planar, planar 4:2:0 / 4:2:2, packed 4:2:2, wide).
+                let formats: &[PixelFormat] = if w * h <= 101 * 75 {
+                    &PixelFormat::ALL
+                } else {
+                    &[
+                        PixelFormat::Rgb,
+                        PixelFormat::Bgra,
+                        PixelFormat::Gray8,
+                        PixelFormat::Nv12,
+                        PixelFormat::I420,
+                        PixelFormat::Y42b,
+                        PixelFormat::Uyvy,
+                        PixelFormat::P01010le,
+                        PixelFormat::I42010le,
+                    ]
+                };
+                for &f in formats {
                     for (pad, yuv) in [
                         (0usize, YuvMatrix::BT601),
                         (

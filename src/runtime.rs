@@ -1,11 +1,14 @@
 //! Finding and loading ONNX Runtime (`libonnxruntime.so`), once per process.
 //!
-//! Search order: `$ORT_DYLIB_PATH` (alone, when set), else the path baked in at build time (the project-local copy that
-//! `make setup` extracts from the `onnxruntime==1.31.1` wheel), then the system loader
-//! (`libonnxruntime.so.1`, `libonnxruntime.so`). No ort API may be touched before this succeeds: ort
+//! Search order: `$ORT_DYLIB_PATH` (alone, when set), else the copy `make install` puts beside the
+//! loaded plugin or binary (`../leangate/` from `$PREFIX/lib/gstreamer-1.0/libgstleangate.so`,
+//! `../lib/leangate/` from `$PREFIX/bin/leangate`; symlinks resolved), then the path baked in at
+//! build time (the project-local copy that `make setup` extracts from the `onnxruntime==1.31.1`
+//! wheel), then the system loader (`libonnxruntime.so.1`, `libonnxruntime.so`). No ort API may be touched before this succeeds: ort
 //! would otherwise try its own default and panic.
 
-use std::path::PathBuf;
+use std::os::unix::ffi::OsStrExt;
+use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 /// The path baked in by build.rs.
@@ -44,14 +47,53 @@ pub fn candidates() -> Vec<(String, PathBuf)> {
         }
         _ => {}
     }
-    let mut v = vec![(
+    let mut v: Vec<(String, PathBuf)> = module_path()
+        .map(|m| installed_candidates(&m))
+        .unwrap_or_default()
+        .into_iter()
+        .map(|p| (format!("beside the installed plugin {}", p.display()), p))
+        .collect();
+    v.push((
         format!("built-in path {BAKED_ORT_LIB}"),
         PathBuf::from(BAKED_ORT_LIB),
-    )];
+    ));
     for name in ["libonnxruntime.so.1", "libonnxruntime.so"] {
         v.push((format!("system loader ({name})"), PathBuf::from(name)));
     }
     v
+}
+
+/// Where `make install` puts ONNX Runtime relative to the loaded module `module` (the plugin in
+/// `$PREFIX/lib/gstreamer-1.0/`, or the `leangate` binary in `$PREFIX/bin/`): `$PREFIX/lib/leangate/`.
+pub fn installed_candidates(module: &Path) -> Vec<PathBuf> {
+    let Some(up) = module.parent().and_then(Path::parent) else {
+        return Vec::new();
+    };
+    ["leangate", "lib/leangate"]
+        .iter()
+        .map(|rel| up.join(rel).join("libonnxruntime.so"))
+        .collect()
+}
+
+/// The file this code was loaded from (the plugin `libgstleangate.so`, or the executable it is
+/// linked into), symlinks resolved: `dladdr` on one of its own functions.
+pub fn module_path() -> Option<PathBuf> {
+    let mut info = std::mem::MaybeUninit::<libc::Dl_info>::zeroed();
+    let addr = module_path as fn() -> Option<PathBuf> as *const libc::c_void;
+    // SAFETY: `addr` is an address in this module and `info` is a valid place for the answer.
+    let found = unsafe { libc::dladdr(addr, info.as_mut_ptr()) };
+    if found == 0 {
+        return None;
+    }
+    // SAFETY: dladdr succeeded, so `info` is filled; `dli_fname` is null or a C string.
+    let fname = unsafe { info.assume_init().dli_fname };
+    if fname.is_null() {
+        return None;
+    }
+    // SAFETY: non-null, NUL-terminated, owned by the dynamic loader for the module's lifetime.
+    let name = unsafe { std::ffi::CStr::from_ptr(fname) };
+    let path = PathBuf::from(std::ffi::OsStr::from_bytes(name.to_bytes()));
+    std::fs::canonicalize(&path).ok().or(Some(path))
 }
 
 /// The process-wide ort environment, loading the library on first use. Returns the environment and
@@ -83,4 +125,21 @@ pub fn environment() -> Result<(ort::environment::Environment, String), RuntimeE
         }
     }
     Err(RuntimeError { attempts })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_installed_library_is_looked_up_beside_the_loaded_module() {
+        // In a test, the module is the test executable itself.
+        let exe = std::fs::canonicalize(std::env::current_exe().unwrap()).unwrap();
+        assert_eq!(module_path().as_deref(), Some(exe.as_path()));
+        let plugin = Path::new("/opt/lg/lib/gstreamer-1.0/libgstleangate.so");
+        let cli = Path::new("/opt/lg/bin/leangate");
+        let lib = Path::new("/opt/lg/lib/leangate/libonnxruntime.so");
+        assert!(installed_candidates(plugin).iter().any(|p| p == lib));
+        assert!(installed_candidates(cli).iter().any(|p| p == lib));
+    }
 }

@@ -331,17 +331,13 @@ fn every_format_scores_like_rgb_including_odd_sizes_and_padded_strides() {
         assert!(want > 0.2);
         for f in PixelFormat::ALL {
             for pad in [0usize, 7] {
-                let (src, reference) = if f == PixelFormat::Gray8 {
+                let (src, reference) = if f.is_grey() {
                     (&grey, want_grey)
                 } else {
                     (&pic, want)
                 };
                 let got = utility_in_format(src, w, h, f, pad);
-                let tol = if matches!(f, PixelFormat::Nv12 | PixelFormat::I420) {
-                    3.0 / 255.0
-                } else {
-                    1e-6
-                };
+                let tol = if f.is_yuv() { 3.0 / 255.0 } else { 1e-6 };
                 assert!(
                     (got - reference).abs() <= tol,
                     "{f:?} {w}x{h} pad {pad}: {got} vs RGB {reference}"
@@ -355,19 +351,177 @@ fn every_format_scores_like_rgb_including_odd_sizes_and_padded_strides() {
 fn unsupported_caps_are_refused_at_negotiation() {
     let e = element(&format!("model={}", fixture("mad.onnx")));
     let sink = e.static_pad("sink").unwrap();
-    let yuy2 = gst::Caps::from_str("video/x-raw,format=YUY2,width=64,height=48").unwrap();
-    assert!(!sink.query_accept_caps(&yuy2));
+    let y41b = gst::Caps::from_str("video/x-raw,format=Y41B,width=64,height=48").unwrap();
+    assert!(!sink.query_accept_caps(&y41b));
     for f in PixelFormat::ALL {
+        // Fixed caps (an accept-caps query of unfixed ones is a GStreamer CRITICAL).
         let caps = gst_video::VideoCapsBuilder::new()
             .format(f.to_video_format())
             .width(64)
             .height(48)
+            .framerate(gst::Fraction::new(30, 1))
             .build();
+        assert!(caps.is_fixed());
         assert!(sink.query_accept_caps(&caps), "{f:?} must be accepted");
     }
-    let err = gst::parse::launch("videotestsrc ! video/x-raw,format=YUY2 ! leangate ! fakesink")
+    let err = gst::parse::launch("videotestsrc ! video/x-raw,format=Y41B ! leangate ! fakesink")
         .unwrap_err();
     assert!(err.to_string().contains("can't handle caps"), "{err}");
+}
+
+/// Run `src ! leangate (mad.onnx, annotate, threshold 1: only the first frame is kept, so every
+/// utility is against it) ! appsink`; the utilities and the format leangate read. Panics with
+/// the error text on an error.
+fn utilities(src: &str) -> (Vec<f64>, String) {
+    init();
+    let desc = format!(
+        "{src} ! leangate model={} mode=annotate threshold=1 ! appsink name=out sync=false",
+        fixture("mad.onnx")
+    );
+    let pipeline = gst::parse::launch(&desc).unwrap_or_else(|e| panic!("`{desc}`: {e}"));
+    let sink = pipeline
+        .downcast_ref::<gst::Bin>()
+        .unwrap()
+        .by_name("out")
+        .unwrap()
+        .downcast::<gst_app::AppSink>()
+        .unwrap();
+    let bus = pipeline.bus().unwrap();
+    pipeline.set_state(gst::State::Playing).unwrap();
+    let (mut v, mut format) = (Vec::new(), String::new());
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while !sink.is_eos() {
+        assert!(std::time::Instant::now() < deadline, "`{desc}` hangs");
+        if let Some(m) = bus.pop_filtered(&[gst::MessageType::Error]) {
+            pipeline.set_state(gst::State::Null).unwrap();
+            panic!("`{desc}`: {}", error_text(&[m]).unwrap());
+        }
+        if let Some(s) = sink.try_pull_sample(gst::ClockTime::from_mseconds(50)) {
+            let info = gst_video::VideoInfo::from_caps(s.caps().unwrap()).unwrap();
+            format = info.format().to_str().to_string();
+            v.push(meta(&s.buffer_owned().unwrap()).utility);
+        }
+    }
+    pipeline.set_state(gst::State::Null).unwrap();
+    (v, format)
+}
+
+fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
+}
+
+/// Every accepted format, written by GStreamer's own `videoconvert` from a moving RGB test
+/// picture (odd size: partial chroma blocks), scores like the RGB picture itself (the grey
+/// formats like GRAY8 from the same picture).
+#[test]
+fn every_format_written_by_videoconvert_scores_like_rgb() {
+    let src = "videotestsrc num-buffers=8 pattern=smpte horizontal-speed=9 ! \
+               video/x-raw,format=RGB,width=97,height=61,framerate=30/1";
+    let (rgb, _) = utilities(src);
+    let (grey, _) = utilities(&format!("{src} ! videoconvert ! video/x-raw,format=GRAY8"));
+    assert!(rgb[1..].iter().all(|&u| u > 0.02), "{rgb:?}");
+    for f in PixelFormat::ALL {
+        let name = f.to_video_format().to_str().as_str();
+        let (got, read) = utilities(&format!("{src} ! videoconvert ! video/x-raw,format={name}"));
+        assert_eq!(read, name);
+        let want = if f.is_grey() { &grey } else { &rgb };
+        let d = max_abs_diff(&got, want);
+        // Chroma subsampling of sharp colour bars, and 8-bit YUV rounding.
+        // GRAY16_LE keeps the luma GRAY8 rounds.
+        let tol = match f {
+            _ if f.is_yuv() => 0.01,
+            PixelFormat::Gray16Le => 0.005,
+            _ => 1e-3,
+        };
+        eprintln!("{name}: max utility difference {d:.5}");
+        assert!(d <= tol, "{name}: {got:?} vs {want:?} ({d})");
+    }
+}
+
+/// A clip encoded by ffmpeg (`-c:v codec -pix_fmt pix_fmt`, 160x120, 20 frames).
+fn ffmpeg_clip(dir: &std::path::Path, name: &str, codec: &str, pix_fmt: &str) -> String {
+    let path = dir.join(name);
+    let out = std::process::Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-y", "-f", "lavfi", "-i"])
+        .arg("testsrc2=size=160x120:rate=30")
+        .args(["-frames:v", "20", "-c:v", codec, "-pix_fmt", pix_fmt])
+        .arg(&path)
+        .output()
+        .expect("ffmpeg (apt ffmpeg, installed by `make setup`)");
+    assert!(
+        out.status.success(),
+        "ffmpeg {codec} {pix_fmt}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    path.display().to_string()
+}
+
+/// What phones and cameras record, decoded by the decoders installed here and linked straight
+/// to leangate (`filesrc ! decodebin ! leangate`): the format leangate reads is the decoder's,
+/// and the scores match the same clip converted to RGB by videoconvert.
+#[test]
+fn phone_and_camera_clips_link_straight_from_decodebin() {
+    let dir = tempfile::tempdir().unwrap();
+    for (codec, pix_fmt, container, format) in [
+        ("libx265", "yuv420p10le", "mp4", "I420_10LE"),
+        ("libx264", "yuv420p10le", "mp4", "I420_10LE"),
+        ("libx264", "yuv422p", "mp4", "Y42B"),
+        ("libx264", "yuv422p10le", "mp4", "I422_10LE"),
+        ("libx264", "yuv444p", "mp4", "Y444"),
+        ("libx264", "yuv444p10le", "mp4", "Y444_10LE"),
+        ("libx264rgb", "rgb24", "mkv", "GBR"),
+    ] {
+        let clip = ffmpeg_clip(
+            dir.path(),
+            &format!("{codec}-{pix_fmt}.{container}"),
+            codec,
+            pix_fmt,
+        );
+        let src = format!("filesrc location={clip} ! decodebin");
+        let (got, read) = utilities(&src);
+        assert_eq!(read, format, "{codec} {pix_fmt}");
+        assert_eq!(got.len(), 20);
+        let (want, _) = utilities(&format!("{src} ! videoconvert ! video/x-raw,format=RGB"));
+        let d = max_abs_diff(&got, &want);
+        eprintln!("{codec} {pix_fmt} ({format}): max utility difference to RGB {d:.5}");
+        assert!(d <= 0.01, "{codec} {pix_fmt}: {got:?} vs RGB {want:?}");
+        assert!(got[1..].iter().any(|&u| u > 0.02), "{got:?}");
+    }
+}
+
+/// A format leangate still cannot read (4:1:1, from an FFV1 clip as from a DV camera): the error
+/// comes from leangate, names the format and the fix, and the fix works.
+#[test]
+fn unreadable_decoder_output_names_the_format_and_videoconvert() {
+    let dir = tempfile::tempdir().unwrap();
+    let clip = ffmpeg_clip(dir.path(), "ffv1-411.mkv", "ffv1", "yuv411p");
+    let msgs = run_pipeline(
+        &format!("filesrc location={clip} ! decodebin ! leangate name=gate ! fakesink"),
+        60,
+    );
+    let err = msgs
+        .iter()
+        .find_map(|m| match m.view() {
+            gst::MessageView::Error(e) => {
+                Some((m.src().map(|s| s.name().to_string()), e.error().to_string()))
+            }
+            _ => None,
+        })
+        .expect("an error");
+    assert_eq!(err.0.as_deref(), Some("gate"), "{err:?}");
+    assert!(
+        err.1.contains("Y41B") && err.1.contains("videoconvert ! leangate"),
+        "{err:?}"
+    );
+    let (u, read) = utilities(&format!(
+        "filesrc location={clip} ! decodebin ! videoconvert"
+    ));
+    assert_eq!(u.len(), 20);
+    assert_ne!(read, "Y41B");
 }
 
 #[test]

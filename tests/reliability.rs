@@ -914,6 +914,7 @@ proptest! {
         seed in 0u32..50,
         crop in any::<bool>(),
     ) {
+        init();
         let format = PixelFormat::ALL[fi];
         let pic = texture(w, h, seed);
         let spec = TensorSpec {

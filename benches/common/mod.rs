@@ -128,18 +128,13 @@ pub fn noise(len: usize, seed: u32) -> Vec<u8> {
 
 /// Planes and strides of a tightly packed `w`x`h` frame of `format`, filled by [`noise`].
 pub fn frame_planes(format: PixelFormat, w: usize, h: usize) -> (Vec<Vec<u8>>, [isize; 3]) {
-    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
-    match format {
-        PixelFormat::Rgb | PixelFormat::Bgr => (vec![noise(3 * w * h, 1)], [3 * w as isize, 0, 0]),
-        PixelFormat::Gray8 => (vec![noise(w * h, 1)], [w as isize, 0, 0]),
-        PixelFormat::Nv12 => (
-            vec![noise(w * h, 1), noise(2 * cw * ch, 2)],
-            [w as isize, 2 * cw as isize, 0],
-        ),
-        PixelFormat::I420 => (
-            vec![noise(w * h, 1), noise(cw * ch, 2), noise(cw * ch, 3)],
-            [w as isize, cw as isize, cw as isize],
-        ),
-        _ => (vec![noise(4 * w * h, 1)], [4 * w as isize, 0, 0]),
+    let mut strides = [0isize; 3];
+    let mut planes = Vec::new();
+    for (p, (row_bytes, rows)) in format.plane_sizes(w, h).into_iter().enumerate() {
+        if rows > 0 {
+            planes.push(noise(row_bytes * rows, p as u32 + 1));
+            strides[p] = row_bytes as isize;
+        }
     }
+    (planes, strides)
 }

@@ -1004,6 +1004,30 @@ impl BaseTransformImpl for LeanGate {
         Ok(())
     }
 
+    fn query(&self, direction: gst::PadDirection, query: &mut gst::QueryRef) -> bool {
+        let unreadable = match query.view() {
+            gst::QueryView::AcceptCaps(q) if direction == gst::PadDirection::Sink => {
+                crate::preprocess::unreadable_format_error(q.caps())
+            }
+            _ => None,
+        };
+        let res = BaseTransformImplExt::parent_query(self, direction, query);
+        let refused = match query.view() {
+            gst::QueryView::AcceptCaps(q) => !res || !q.result(),
+            _ => false,
+        };
+        if let (true, Some((msg, details))) = (refused, unreadable) {
+            // Upstream will only say `not-negotiated`: name the format and the fix first.
+            gst::element_imp_error!(
+                self,
+                gst::CoreError::Negotiation,
+                ("{}", msg),
+                ["{}", details]
+            );
+        }
+        res
+    }
+
     fn sink_event(&self, event: gst::Event) -> bool {
         match event.view() {
             gst::EventView::CustomDownstream(_)

@@ -23,9 +23,29 @@ pub const PROPERTIES: [&str; 13] = [
     "frames-kept",
 ];
 
+/// GStreamer (once per test binary) with the leangate plugin registered. A CRITICAL log message
+/// (a failed GLib/GStreamer precondition, e.g. a query built from unfixed caps: a bug in the test
+/// or the element) is fatal, as in GStreamer's own gst_check tests: it aborts the test binary,
+/// and is printed with the name of the thread that logged it (a test's own thread is named after
+/// the test; a streaming thread after its element's pad).
 pub fn init() {
     static INIT: Once = Once::new();
     INIT.call_once(|| {
+        use gst::glib;
+        glib::log_set_writer_func(|level, fields| {
+            if level == glib::LogLevel::Critical {
+                use std::io::Write;
+                let t = std::thread::current();
+                // Straight to stderr: the test harness's capture is lost when the binary aborts.
+                let _ = writeln!(
+                    std::io::stderr(),
+                    "CRITICAL in thread `{}`, which fails the tests:",
+                    t.name().unwrap_or("unnamed")
+                );
+            }
+            glib::log_writer_default(level, fields)
+        });
+        glib::log_set_always_fatal(glib::LogLevels::LEVEL_CRITICAL);
         gst::init().unwrap();
         gstleangate::plugin_register_static().expect("register the leangate plugin");
     });
