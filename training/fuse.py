@@ -123,9 +123,11 @@ class Fusion:
         if self.fixed is not None:
             self.w = np.array(self.fixed)
             return self
-        X = np.concatenate([self.X(d)[m] for d, m in rows])
-        y = np.concatenate([d["tau"][m] for d, m in rows])
-        sw = np.sqrt(decision_weight(y))
+        rows = [r if len(r) == 3 else (*r, 1.0) for r in rows]
+        X = np.concatenate([self.X(d)[m] for d, m, _ in rows])
+        y = np.concatenate([d["tau"][m] for d, m, _ in rows])
+        k = np.concatenate([np.full(int(m.sum()), wt) for _, m, wt in rows])
+        sw = np.sqrt(decision_weight(y) * k)
         if self.s_weight is None:
             self.w = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)[0]
         else:
@@ -152,7 +154,7 @@ class MaxFusion(Fusion):
     def fit(self, rows):
         self.offset = 0.0
         self.a.fit(rows)
-        self.b.fit([(d, m & np.isfinite(d["geo"])) for d, m in rows])
+        self.b.fit([(r[0], r[1] & np.isfinite(r[0]["geo"]), *r[2:]) for r in rows])
         self.w = np.concatenate([self.a.w, self.b.w])
         return self
 
@@ -223,12 +225,15 @@ def match_budget(fusion, spans, threshold):
     return fusion
 
 
-def fit(fusion, data, spans, threshold, horizon):
-    """Least squares on the pairs of `spans` ({sequence: [(first, last)]}), then the budget match."""
+def fit(fusion, data, spans, threshold, horizon, synth=None, synth_weight=0.0):
+    """Least squares on the pairs of `spans` ({sequence: [(first, last)]}) and, at `synth_weight`,
+    of the synthetic sequences `synth` ({name: table}); then the budget match over all of them."""
     rows = [(data[n], mask(data[n], a, b, horizon)) for n, parts in spans.items() for a, b in parts]
+    whole = [(t, 0, len(t["tau"]) - 1) for t in (synth or {}).values()] if synth_weight > 0 else []
+    rows += [(t, mask(t, a, b, horizon), synth_weight) for t, a, b in whole]
     fusion.fit(rows)
     if fusion.fixed is None:
-        match_budget(fusion, [(data[n], a, b) for n, parts in spans.items() for a, b in parts], threshold)
+        match_budget(fusion, [(data[n], a, b) for n, parts in spans.items() for a, b in parts] + whole, threshold)
     return fusion
 
 
@@ -272,6 +277,8 @@ def main():
     ap.add_argument("--horizon", type=int, default=60, help="pairs: every frame against its next H frames")
     ap.add_argument("--fit-horizon", type=int, default=30, help="fit on pairs at most this many frames apart")
     ap.add_argument("--threshold", type=float, default=0.5)
+    ap.add_argument("--synth", default="", help="comma-separated synthetic TUM sequences to fit on as well (not the held-out eval ones)")
+    ap.add_argument("--synth-weight", type=float, default=0.0, help="their weight in the fit (0: real only, the shipped fit)")
     ap.add_argument("--write", action="store_true", help=f"write the `{SHIPPED}` fusion fitted on the fit parts into the models")
     a = ap.parse_args()
     data = {}
@@ -280,6 +287,8 @@ def main():
         if not os.path.isdir(seq):
             raise SystemExit(f"{seq} is missing: the real sequences live in ../shared/data")
         data[name] = sequence_data(seq, os.path.join(a.out, name), a.models, a.horizon)
+    synth = {os.path.basename(os.path.normpath(p)): sequence_data(p, os.path.join(a.out, os.path.basename(os.path.normpath(p))), a.models, a.horizon)
+             for p in filter(None, a.synth.split(","))}
     names = list(data)
     whole = {n: [(0, len(data[n]["tau"]) - 1)] for n in names}
     fit_parts = {n: [REAL_SPLITS[n][p] for p in FIT_PARTS[n]] for n in names}
@@ -305,7 +314,7 @@ def main():
     print("| candidate | w, offset | " + " | ".join(f"{n} {p}" for n, p in cols) + " |")
     print("|---|---|" + "---|" * len(cols))
     for fz in candidates():
-        fit(fz, data, fit_parts, a.threshold, a.fit_horizon)
+        fit(fz, data, fit_parts, a.threshold, a.fit_horizon, synth, a.synth_weight)
         ev = evaluate(fz, data, a.threshold)
         print(f"| {fz.name} | {np.round(fz.w, 3).tolist()}, {fz.offset:+.3f} | " + " | ".join(cell(ev[c]) for c in cols) + " |")
         for c in cols:
