@@ -338,6 +338,10 @@ pub fn ate_rmse(est: &[Vector3<f64>], gt: &[Vector3<f64>]) -> Option<f64> {
     Some((se / est.len() as f64).sqrt())
 }
 
+/// A frame of the report: its image (None for a video frame), timestamp and ground-truth
+/// camera-to-world pose, where known.
+type FrameInfo = (Option<PathBuf>, Option<f64>, Option<Isometry3<f64>>);
+
 /// Reconstruct every policy's kept frames (`data.kept`) and a `dense` reference, one after the
 /// other, and add the fields to `report.policies` (the `dense` entry is created). A policy whose
 /// reconstruction fails gets `sfm_error` and the others go on; the result is an error only when
@@ -353,7 +357,7 @@ pub fn add_reconstruction(
     let source = Source::open(path)?;
     let n = report.frames;
     // Image path, timestamp and ground-truth pose per frame index of the report.
-    let frames_of: Vec<(Option<PathBuf>, Option<f64>, Option<Isometry3<f64>>)> = match &source {
+    let frames_of: Vec<FrameInfo> = match &source {
         Source::Sequence(seq) => seq
             .frames
             .iter()
@@ -432,7 +436,7 @@ pub fn add_reconstruction(
                     ate_rmse_cm: ate_rmse(&est, &truth).map(|e| e * 100.0),
                     sfm_reproj_px: res.mean_reprojection_error_px,
                     sfm_points: res.points3d,
-                    sfm_seconds: res.seconds.values().sum(),
+                    sfm_seconds: res.seconds.values().fold(0.0, |a, b| a + b),
                     sfm_wall_seconds: t0.elapsed().as_secs_f64(),
                 };
                 serde_json::to_value(&outcome).unwrap()
@@ -474,8 +478,9 @@ const FREE_GATES: [&str; 2] = ["stride", "dense"];
 
 /// Add each policy's figures relative to `dense`: `ate_vs_dense`, `sfm_speedup`,
 /// `gate_seconds` (`model`: `frames` / its `fps`; 0 for [`FREE_GATES`]; otherwise not
-/// measured, absent) and `end_to_end_speedup` (dense's SfM time / (gate + SfM time)). A ratio
-/// whose parts are missing (no ATE, a failed run) is null.
+/// measured, null) and `end_to_end_speedup` (dense's SfM time / (gate + SfM time)). A ratio
+/// whose parts are missing (no ATE, a failed run) is null, and so are the speed-ups of a policy
+/// that built no model (too few frames: being fast at nothing is no speed-up).
 pub fn relative_to_dense(policies: &mut serde_json::Map<String, Value>, frames: usize) {
     let num = |p: &Value, k: &str| p.get(k).and_then(Value::as_f64);
     let dense = policies.get("dense");
@@ -493,7 +498,8 @@ pub fn relative_to_dense(policies: &mut serde_json::Map<String, Value>, frames: 
                 .filter(|f| *f > 0.0)
                 .map(|f| frames as f64 / f)
         };
-        let sfm = num(p, "sfm_seconds");
+        let built = num(p, "models").is_some_and(|m| m >= 1.0);
+        let sfm = num(p, "sfm_seconds").filter(|_| built);
         let fields = json!({
             "ate_vs_dense": ratio(num(p, "ate_rmse_cm"), dense_ate),
             "sfm_speedup": ratio(dense_sfm, sfm),
@@ -603,10 +609,11 @@ mod tests {
     #[test]
     fn relative_to_dense_fills_the_ratios_it_can() {
         let mut p = match json!({
-            "dense": {"ate_rmse_cm": 2.0, "sfm_seconds": 100.0},
-            "model": {"ate_rmse_cm": 2.4, "sfm_seconds": 50.0, "fps": 100.0},
-            "stride": {"ate_rmse_cm": 1.8, "sfm_seconds": 40.0},
-            "oracle": {"ate_rmse_cm": null, "sfm_seconds": 60.0},
+            "dense": {"ate_rmse_cm": 2.0, "sfm_seconds": 100.0, "models": 1},
+            "model": {"ate_rmse_cm": 2.4, "sfm_seconds": 50.0, "fps": 100.0, "models": 1},
+            "stride": {"ate_rmse_cm": 1.8, "sfm_seconds": 40.0, "models": 2},
+            "oracle": {"ate_rmse_cm": null, "sfm_seconds": 60.0, "models": 1},
+            "pixel_diff": {"ate_rmse_cm": null, "sfm_seconds": 0.0, "models": 0, "fps": 9.0},
             "motion": {"sfm_error": "COLMAP failed"},
         }) {
             Value::Object(m) => m,
@@ -628,6 +635,7 @@ mod tests {
         assert_eq!(f("oracle", "end_to_end_speedup"), None);
         for k in ["ate_vs_dense", "sfm_speedup", "end_to_end_speedup"] {
             assert!(p["motion"][k].is_null(), "{k}");
+            assert!(p["pixel_diff"][k].is_null(), "{k}: no model, no speed-up");
         }
         assert_eq!(p["motion"]["sfm_error"], "COLMAP failed");
     }
