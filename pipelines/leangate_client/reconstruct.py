@@ -998,6 +998,14 @@ def reconstruct(
     else:
         gate_result = gate_input(inp, os.path.join(out_dir, "images"), **(gate or {}))
         chosen = gate_result.kept
+        listed = len(inp.frames[: (gate or {}).get("max_frames") or None])
+        if gate_result.frames_in == 0:
+            # The decoders skip a few undecodable frames with a warning rather than an error.
+            first = f" (the first: {inp.frames[0].path})" if inp.frames else ""
+            raise SetupError(f"no frame of {inp.path} could be decoded{first}")
+        if inp.kind != "video" and gate_result.frames_in < listed:
+            log.warning("%d of %d images of %s could not be decoded (left out)",
+                        listed - gate_result.frames_in, listed, inp.path)
     if inp.kind != "video":
         missing = [f.path for f in chosen if not os.path.isfile(f.path)]  # type: ignore[arg-type]
         if missing:

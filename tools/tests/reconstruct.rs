@@ -464,7 +464,8 @@ fn explicit_frames_and_a_python_without_pycolmap() {
 /// no COLMAP abort (`--overlap 0 --matcher sequential` used to SIGABRT inside COLMAP; `--every
 /// -2` ran backwards, `--every 0` was ignored; the others raised Python tracebacks). So are the
 /// inputs: a non-numeric timestamp in rgb.txt names the line, and a folder of images COLMAP
-/// cannot read is an error (it used to exit 0 with nothing reconstructed).
+/// (or, gated, the decoder) cannot read is an error (it used to exit 0 with nothing
+/// reconstructed).
 #[test]
 fn consumer_refuses_bad_arguments_and_inputs_with_a_clear_error() {
     let (Some(seq), Some(py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
@@ -568,6 +569,14 @@ fn consumer_refuses_bad_arguments_and_inputs_with_a_clear_error() {
         &junk,
         "COLMAP could read 0 of 3 images (not an image, or corrupt:",
     );
+    // The same through the gate: the decoder skips each file with a warning, nothing comes out.
+    if let Some(plugins) = plugin_dir() {
+        check(
+            &["--plugin-path", plugins.to_str().unwrap()],
+            &junk,
+            "could be decoded (the first: ",
+        );
+    }
 }
 
 /// A TUM-layout rgb.txt that lists one image twice (a pause written by repeating a frame) used
