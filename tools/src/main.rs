@@ -505,13 +505,15 @@ fn eval_cmd(
             report.sweep = Some(eval::sweep(sequence, model, thresholds, &cfg, &mut show)?);
         }
         if let Some(sfm) = &reconstruct {
-            eval::reconstruct::add_reconstruction(sequence, &mut report, &data, sfm, &mut show)?;
+            // Several sequences: each one's models and trajectories in DIR/K-SEQ/.
+            let sfm = match several {
+                true => sfm.in_subdirectory(&format!("{}-{}", k + 1, sequence_name(sequence))),
+                false => sfm.clone(),
+            };
+            eval::reconstruct::add_reconstruction(sequence, &mut report, &data, &sfm, &mut show)?;
         }
         bar.finish_and_clear();
-        let name = sequence
-            .file_name()
-            .map(|s| s.to_string_lossy().to_string())
-            .unwrap_or_default();
+        let name = sequence_name(sequence);
         // One file per sequence when there are several: NAME-K-SEQ.ext beside the given path.
         let per_sequence = |p: &Path| -> PathBuf {
             if !several {
@@ -656,6 +658,14 @@ fn print_summary(r: &eval::EvalReport) {
             f(&g("fps"), 1),
         );
     }
+}
+
+/// The last component of a sequence's path (its name in titles and file names).
+fn sequence_name(sequence: &Path) -> String {
+    sequence
+        .file_name()
+        .map(|s| s.to_string_lossy().to_string())
+        .unwrap_or_default()
 }
 
 /// The `--reconstruct` table: per policy, frames kept, registered / kept, ATE and ATE relative to

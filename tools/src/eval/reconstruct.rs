@@ -74,6 +74,18 @@ impl Default for SfmConfig {
     }
 }
 
+impl SfmConfig {
+    /// The same settings with `work_dir` and `trajectory_dir` (where given) one level down, in
+    /// `name`: one sequence's share of a run over several.
+    pub fn in_subdirectory(&self, name: &str) -> SfmConfig {
+        SfmConfig {
+            work_dir: self.work_dir.as_ref().map(|d| d.join(name)),
+            trajectory_dir: self.trajectory_dir.as_ref().map(|d| d.join(name)),
+            ..self.clone()
+        }
+    }
+}
+
 /// What the report records about the reconstruction run (`reconstruction` in the JSON).
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct ReconstructionInfo {
