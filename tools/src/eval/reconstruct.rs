@@ -617,6 +617,26 @@ mod tests {
         assert!((r.determinant() - 1.0).abs() < 1e-9);
     }
 
+    /// One sequence of several: its models and trajectories one level down, nothing else moved.
+    #[test]
+    fn in_subdirectory_moves_only_the_output_directories() {
+        let cfg = SfmConfig {
+            work_dir: Some("sfm".into()),
+            trajectory_dir: Some("traj".into()),
+            dense_every: 7,
+            ..Default::default()
+        };
+        let sub = cfg.in_subdirectory("2-tum_fr1_desk");
+        assert_eq!(sub.work_dir, Some(PathBuf::from("sfm/2-tum_fr1_desk")));
+        assert_eq!(
+            sub.trajectory_dir,
+            Some(PathBuf::from("traj/2-tum_fr1_desk"))
+        );
+        assert_eq!(sub.dense_every, 7);
+        let none = SfmConfig::default().in_subdirectory("x");
+        assert!(none.work_dir.is_none() && none.trajectory_dir.is_none());
+    }
+
     /// Each policy against dense: ratios where both parts exist, the gate's time where known.
     #[test]
     fn relative_to_dense_fills_the_ratios_it_can() {
