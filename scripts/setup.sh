@@ -8,7 +8,9 @@
 #      numpy and pillow (the training package's preprocessing, checked against the element's);
 #   4. .venv-sfm: Debian's python3 in a venv that sees the system's PyGObject and numpy
 #      (--system-site-packages), with pycolmap (COLMAP's bindings, a manylinux wheel) for the
-#      reconstruction consumer (pipelines/reconstruct.py, `leangate eval --reconstruct`);
+#      reconstruction consumer (pipelines/reconstruct.py, `leangate eval --reconstruct`), and
+#      evo (`evo_ape`, the SLAM trajectory evaluator, for `eval --trajectory-dir` files; it
+#      brings its own numpy 2, matplotlib, scipy and pandas into this venv);
 #   5. .venv-triton: Debian's /usr/bin/python3 in a venv with nvidia-pytriton (NVIDIA Triton
 #      Inference Server, CPU) and onnxruntime, the KServe V2 server the remote-scoring tests and
 #      benchmark start on loopback (scripts/v2_server.py). Debian's python, not pyenv's: the
@@ -72,11 +74,12 @@ if [ ! -x .venv/bin/python ] || ! .venv/bin/python -c 'import onnx, PIL' 2>/dev/
   .venv/bin/pip install -q --disable-pip-version-check onnx==1.23.2 numpy pillow==13.0.0
 fi
 PYCOLMAP_VERSION=4.2.1
-if [ ! -x .venv-sfm/bin/python ] || ! .venv-sfm/bin/python -c 'import pycolmap' 2>/dev/null; then
-  echo "setup: creating .venv-sfm (system site packages + pycolmap==$PYCOLMAP_VERSION)"
+EVO_VERSION=1.38.1
+if [ ! -x .venv-sfm/bin/python ] || ! .venv-sfm/bin/python -c 'import pycolmap, evo' 2>/dev/null; then
+  echo "setup: creating .venv-sfm (system site packages + pycolmap==$PYCOLMAP_VERSION, evo==$EVO_VERSION)"
   [ -x .venv-sfm/bin/python ] || /usr/bin/python3 -m venv --system-site-packages .venv-sfm
   .venv-sfm/bin/pip install -q --disable-pip-version-check --only-binary=:all: \
-    "pycolmap==$PYCOLMAP_VERSION"
+    "pycolmap==$PYCOLMAP_VERSION" "evo==$EVO_VERSION"
 fi
 PYTRITON_VERSION=0.7.0
 if [ ! -x .venv-triton/bin/python ] || ! .venv-triton/bin/python -c 'import pytriton, onnxruntime' 2>/dev/null; then

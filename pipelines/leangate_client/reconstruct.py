@@ -9,11 +9,15 @@ Two ways to choose the frames:
 * **explicit**: ``frames=[...]`` (indices into the sequence, or ``(index, path)`` pairs) or
   ``every=k``; the gate is not run. ``leangate eval --reconstruct`` uses this for each policy.
 
-Then SIFT features (``pycolmap.extract_features``), matching (exhaustive for small sets,
-sequential otherwise), incremental mapping (``pycolmap.incremental_mapping``). The sparse models
-are written under ``OUT/sparse/N``; the largest is reported: frames registered, number of
-models, mean reprojection error, and, when the input has ground truth, the ATE of the camera
-centres after a similarity (Umeyama, with scale) alignment. ``--ply`` exports its points.
+COLMAP sees the frames as ``OUT/images/frame_<index>.<ext>`` (written for a video, links for a
+sequence; a file listed twice goes in once). Then SIFT features (``pycolmap.extract_features``),
+matching (exhaustive for small sets, sequential otherwise), incremental mapping
+(``pycolmap.incremental_mapping``), in a child process (``run_sfm``: a COLMAP abort becomes a
+PipelineError). The sparse models are written under ``OUT/sparse/N``, COLMAP's messages into
+``OUT/colmap.log``; the largest model is reported: frames registered (with their camera-to-world
+poses), number of models, mean reprojection error, and, when the input has ground truth, the ATE
+of the camera centres after a similarity (Umeyama, with scale) alignment. ``--ply`` exports its
+points.
 
 Inputs: a video file; a directory in TUM RGB-D layout (``rgb.txt``, optional
 ``intrinsics.txt`` ``fx fy cx cy depth_scale`` -> a shared PINHOLE camera, optional
@@ -31,7 +35,10 @@ import json
 import logging
 import math
 import os
+import re
 import shutil
+import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -122,6 +129,15 @@ def _data_lines(path: str) -> Iterable[Tuple[int, List[str]]]:
                 yield n, s.split()
 
 
+def _float_or_none(text: str) -> Optional[float]:
+    """``text`` as a finite float, else None."""
+    try:
+        v = float(text)
+    except ValueError:
+        return None
+    return v if math.isfinite(v) else None
+
+
 def read_intrinsics(path: str) -> Tuple[float, float, float, float]:
     """``fx fy cx cy [depth_scale]`` from the first data line of intrinsics.txt."""
     for n, parts in _data_lines(path):
@@ -143,9 +159,13 @@ def open_input(path: str) -> InputSequence:
     if os.path.isfile(rgb_txt):
         frames = []
         for n, parts in _data_lines(rgb_txt):
-            if len(parts) < 2:
-                raise SetupError(f"{rgb_txt} line {n}: expected `timestamp path`")
-            frames.append(FrameRef(len(frames), float(parts[0]), os.path.join(path, parts[1])))
+            t = _float_or_none(parts[0]) if len(parts) >= 2 else None
+            if t is None:
+                raise SetupError(
+                    f"{rgb_txt} line {n}: expected `timestamp path` with a numeric timestamp, "
+                    f"got {' '.join(parts)!r}"
+                )
+            frames.append(FrameRef(len(frames), t, os.path.join(path, parts[1])))
         seq = InputSequence(path=path, kind="sequence", frames=frames)
     else:
         folder = os.path.join(path, "rgb") if os.path.isdir(os.path.join(path, "rgb")) else path
@@ -385,7 +405,7 @@ class SfmOptions:
     SIMPLE_RADIAL camera (focal guessed, refined). ``min_model_size``: smaller models are
     discarded (COLMAP's default is 10; 3 here, for gates that keep few frames).
     ``init_min_tri_angle``: degrees between the two initial views (COLMAP's default 16 is too
-    strict for the short baselines of handheld video)."""
+    strict for the short baselines of handheld video). ``threads``: -1 for every core."""
 
     matcher: str = "auto"
     overlap: int = 10
@@ -398,14 +418,54 @@ class SfmOptions:
     threads: int = -1
     seed: int = 0
 
+    def check(self) -> None:
+        """SetupError naming the first setting COLMAP would reject (some it aborts on)."""
+        if self.matcher not in MATCHERS:
+            raise SetupError(f"matcher must be one of {', '.join(MATCHERS)}, not {self.matcher!r}")
+        for name, lo in (("overlap", 1), ("max_features", 1), ("min_model_size", 2)):
+            if getattr(self, name) < lo:
+                raise SetupError(f"{name} must be at least {lo}, not {getattr(self, name)}")
+        if self.threads != -1 and self.threads < 1:
+            raise SetupError(f"threads must be -1 (every core) or at least 1, not {self.threads}")
+        if not 0 < self.init_min_tri_angle < 180:
+            raise SetupError(
+                f"init_min_tri_angle must be in (0, 180) degrees, not {self.init_min_tri_angle}"
+            )
+        if self.camera_model is not None and self.camera_model not in CAMERA_MODELS:
+            raise SetupError(
+                f"unknown COLMAP camera model {self.camera_model!r}; one of "
+                f"{', '.join(CAMERA_MODELS)}"
+            )
+        if self.intrinsics is not None:
+            if len(self.intrinsics) != 4 or not all(math.isfinite(v) for v in self.intrinsics):
+                raise SetupError(f"intrinsics must be four finite numbers, not {self.intrinsics}")
+            if min(self.intrinsics[:2]) <= 0:
+                raise SetupError(f"intrinsics: the focal lengths must be positive: {self.intrinsics}")
+            if self.camera_model not in (None, "PINHOLE"):
+                raise SetupError(
+                    f"intrinsics FX,FY,CX,CY are PINHOLE parameters; camera model "
+                    f"{self.camera_model} takes others (drop --camera-model, or the intrinsics)"
+                )
+
+
+#: COLMAP 3.x/4.x camera models (``pycolmap.CameraModelId`` of pycolmap 4.2.1, less INVALID).
+CAMERA_MODELS = (
+    "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL",
+    "RADIAL_FISHEYE", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV", "FOV", "THIN_PRISM_FISHEYE",
+    "RAD_TAN_THIN_PRISM_FISHEYE", "SIMPLE_DIVISION", "DIVISION", "SIMPLE_FISHEYE", "FISHEYE",
+    "EUCM", "EQUIRECTANGULAR",
+)  # fmt: skip
+
 
 @dataclass
 class SfmResult:
     """The outcome: ``images`` fed to COLMAP; ``models``: models that register at least one
     frame no larger model has (COLMAP may also build models from frames a larger one already
     holds; those are not counted); ``registered``: frames in the largest model, with their
-    camera centres in ``centres`` (name -> centre); ``registered_total``: frames in any model;
-    mean reprojection error, 3-D points and directory of the largest model."""
+    camera centres in ``centres`` (name -> centre) and orientations in ``rotations`` (name ->
+    camera-to-world quaternion x, y, z, w); ``registered_total``: frames in any model; mean
+    reprojection error, 3-D points and directory of the largest model; ``unreadable``: images
+    COLMAP could not read (left out)."""
 
     images: int
     models: int
@@ -418,6 +478,13 @@ class SfmResult:
     seconds: Dict[str, float]
     matcher: str
     camera_model: str
+    rotations: Dict[str, Tuple[float, float, float, float]] = field(default_factory=dict)
+    unreadable: List[str] = field(default_factory=list)
+
+
+#: The child's log records on its stderr: ``PREFIX<levelno>:<message>``; other lines are COLMAP's.
+_CHILD_LOG = "\x1eleangate-sfm:"
+_GLOG_LINE = re.compile(r"^[IWEF]\d{4,8} [\d:.]+ +\d+ [^\]]+\] (.*)$")
 
 
 def run_sfm(
@@ -428,11 +495,134 @@ def run_sfm(
     colmap_log: bool = False,
 ) -> SfmResult:
     """Incremental SfM on ``names`` (paths relative to ``image_root``): database and sparse
-    models under ``out_dir`` (``database.db``, ``sparse/N``)."""
+    models under ``out_dir`` (``database.db``, ``sparse/N``, COLMAP's messages in
+    ``colmap.log``).
+
+    COLMAP runs in a child Python process: COLMAP ends the process on a failed internal check
+    (glog ``CHECK``: SIGABRT), which here becomes a PipelineError naming the check and the stage,
+    and the caller goes on. Its progress comes back through this process's log."""
+    opts.check()
+    os.makedirs(out_dir, exist_ok=True)
+    request = os.path.join(out_dir, "sfm_request.json")
+    response = os.path.join(out_dir, "sfm_result.json")
+    if os.path.exists(response):
+        os.remove(response)
+    with open(request, "w") as f:
+        json.dump({
+            "image_root": image_root,
+            "names": list(names),
+            "out_dir": out_dir,
+            "opts": opts.__dict__,
+            "colmap_log": colmap_log,
+            "response": response,
+        }, f)
+    package_parent = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_parent, env.get("PYTHONPATH")) if p)
+    # pycolmap first: see import_pycolmap.
+    code = (
+        "import sys, pycolmap\n"
+        "from leangate_client.reconstruct import _sfm_child\n"
+        "sys.exit(_sfm_child(sys.argv[1]))\n"
+    )
+    log_path = os.path.join(out_dir, "colmap.log")
+    stage = "start"
+    colmap_errors: List[str] = []
+    with open(log_path, "w") as colmap_file:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", code, request],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            env=env,
+            text=True,
+            errors="replace",
+        )
+        try:
+            for line in proc.stderr:  # type: ignore[union-attr]
+                if line.startswith(_CHILD_LOG):
+                    level, _, msg = line[len(_CHILD_LOG):].rstrip("\n").partition(":")
+                    if level == "stage":
+                        stage = msg
+                    else:
+                        log.log(int(level), "%s", msg)
+                    continue
+                colmap_file.write(line)
+                m = _GLOG_LINE.match(line.rstrip("\n"))
+                if m and line[0] in "EF":
+                    colmap_errors.append(m.group(1).strip())
+                elif "what():" in line:  # an uncaught C++ exception: std::terminate, SIGABRT
+                    colmap_errors.append(line.split("what():", 1)[1].strip())
+                if colmap_log:
+                    sys.stderr.write(line)
+        finally:
+            rc = proc.wait()
+    outcome = None
+    if os.path.exists(response):
+        with open(response) as f:
+            outcome = json.load(f)
+    if rc != 0 or outcome is None:
+        why = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
+        detail = f": {colmap_errors[-1]}" if colmap_errors else ""
+        raise PipelineError(
+            f"COLMAP failed during {stage} of {len(names)} images ({why}){detail}; "
+            f"its messages are in {log_path}"
+        )
+    if "error" in outcome:
+        kind = SetupError if outcome.get("kind") == "setup" else PipelineError
+        raise kind(outcome["error"])
+    r = outcome["result"]
+    r["centres"] = {k: tuple(v) for k, v in r["centres"].items()}
+    r["rotations"] = {k: tuple(v) for k, v in r["rotations"].items()}
+    return SfmResult(**r)
+
+
+def _sfm_child(request_path: str) -> int:
+    """The child process of ``run_sfm``: run COLMAP, write the result (or the error) as JSON.
+    Log records go to stderr tagged for the parent, which re-logs them."""
+
+    class _Tagged(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            sys.stderr.write(f"{_CHILD_LOG}{record.levelno}:{record.getMessage()}\n")
+            sys.stderr.flush()
+
+    root = logging.getLogger("leangate_client")
+    root.handlers[:] = [_Tagged()]
+    root.setLevel(logging.DEBUG)
+    root.propagate = False
+    with open(request_path) as f:
+        req = json.load(f)
+    try:
+        result = _run_sfm_here(
+            req["image_root"], req["names"], req["out_dir"], SfmOptions(**req["opts"]),
+            req["colmap_log"],
+        )
+        outcome: Dict[str, Any] = {"result": result.__dict__}
+    except SetupError as e:
+        outcome = {"error": str(e), "kind": "setup"}
+    except Exception as e:  # pycolmap raises RuntimeError/ValueError with COLMAP's message
+        outcome = {"error": f"COLMAP: {e}", "kind": "pipeline"}
+    with open(req["response"], "w") as f:
+        json.dump(outcome, f)
+    return 0
+
+
+def _stage(name: str) -> None:
+    sys.stderr.write(f"{_CHILD_LOG}stage:{name}\n")
+    sys.stderr.flush()
+
+
+def _run_sfm_here(
+    image_root: str,
+    names: Sequence[str],
+    out_dir: str,
+    opts: SfmOptions,
+    colmap_log: bool,
+) -> SfmResult:
+    """``run_sfm``'s work, in this process."""
     pycolmap = import_pycolmap()
     if not colmap_log:
-        pycolmap.logging.minloglevel = 2  # errors only from COLMAP's glog
-    os.makedirs(out_dir, exist_ok=True)
+        pycolmap.logging.minloglevel = 1  # warnings and errors from COLMAP's glog
     db = os.path.join(out_dir, "database.db")
     if os.path.exists(db):
         os.remove(db)
@@ -453,6 +643,7 @@ def run_sfm(
     extract.sift.max_num_features = opts.max_features
     extract.num_threads = opts.threads
     t = time.monotonic()
+    _stage("feature extraction")
     log.info("SIFT features of %d images (%s camera, shared)", len(names), reader.camera_model)
     pycolmap.extract_features(
         db,
@@ -464,23 +655,34 @@ def run_sfm(
         device=device,
     )
     seconds["features"] = time.monotonic() - t
+    with pycolmap.Database.open(db) as database:
+        read = {img.name for img in database.read_all_images()}
+    unreadable = [n for n in names if n not in read]
+    if unreadable:
+        where = os.path.realpath(os.path.join(image_root, unreadable[0]))
+        if len(read) < 2:
+            raise SetupError(
+                f"COLMAP could read {len(read)} of {len(names)} images (not an image, or "
+                f"corrupt: {where}{' and others' if len(unreadable) > 1 else ''})"
+            )
+        log.warning("COLMAP could not read %d of %d images (left out), the first: %s",
+                    len(unreadable), len(names), where)
 
     matcher = opts.matcher
     if matcher == "auto":
-        matcher = "exhaustive" if len(names) <= EXHAUSTIVE_MAX else "sequential"
+        matcher = "exhaustive" if len(read) <= EXHAUSTIVE_MAX else "sequential"
     match = pycolmap.FeatureMatchingOptions()
     match.num_threads = opts.threads
     t = time.monotonic()
+    _stage(f"{matcher} matching")
     if matcher == "exhaustive":
-        log.info("exhaustive matching: %d pairs", len(names) * (len(names) - 1) // 2)
+        log.info("exhaustive matching: %d pairs", len(read) * (len(read) - 1) // 2)
         pycolmap.match_exhaustive(db, matching_options=match, device=device)
-    elif matcher == "sequential":
+    else:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = opts.overlap
         log.info("sequential matching: each image with its %d successors", opts.overlap)
         pycolmap.match_sequential(db, matching_options=match, pairing_options=pairing, device=device)
-    else:
-        raise SetupError(f"matcher must be one of {', '.join(MATCHERS)}, not {opts.matcher!r}")
     seconds["matching"] = time.monotonic() - t
 
     mo = pycolmap.IncrementalPipelineOptions()
@@ -500,6 +702,7 @@ def run_sfm(
         log.info("mapping: %d images registered after the initial pair", registered[0])
 
     t = time.monotonic()
+    _stage("incremental mapping")
     log.info("incremental mapping")
     models = pycolmap.incremental_mapping(
         db, image_root, sparse, options=mo, next_image_callback=next_image
@@ -519,6 +722,7 @@ def run_sfm(
         log.info("%d models, %d of them only re-register frames of a larger one", len(recs),
                  len(recs) - distinct)
     centres: Dict[str, Tuple[float, float, float]] = {}
+    rotations: Dict[str, Tuple[float, float, float, float]] = {}
     err = None
     points = 0
     model_dir = None
@@ -528,6 +732,8 @@ def run_sfm(
             if img.has_pose:
                 c = img.projection_center()
                 centres[img.name] = (float(c[0]), float(c[1]), float(c[2]))
+                q = img.cam_from_world().inverse().rotation.quat  # x, y, z, w
+                rotations[img.name] = (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
         err = float(rec.compute_mean_reprojection_error())
         points = int(rec.num_points3D())
         model_dir = os.path.join(sparse, str(key))
@@ -543,6 +749,8 @@ def run_sfm(
         seconds=seconds,
         matcher=matcher,
         camera_model=reader.camera_model,
+        rotations=rotations,
+        unreadable=unreadable,
     )
 
 
@@ -586,29 +794,41 @@ def ate_rmse(est, gt) -> Optional[float]:
 # -- the whole consumer ------------------------------------------------------------------------
 @dataclass
 class Reconstruction:
-    """What ``reconstruct`` did: the frames used (``frames``: FrameRef, in order), the gate's
-    result when it ran, the SfM result, ATE (cm) when ground truth exists, and where it wrote."""
+    """What ``reconstruct`` did: the frames used (``frames``: FrameRef, in order) and the image
+    name COLMAP saw for each (``names``), the gate's result when it ran, the SfM result, ATE
+    (cm) when ground truth exists, and where it wrote."""
 
     input: InputSequence
     frames: List[FrameRef]
+    names: List[str]
     sfm: SfmResult
     gate: Optional[GateResult]
     ate_rmse_cm: Optional[float]
     out_dir: str
 
     def frame_rows(self) -> List[Dict[str, Any]]:
+        """Per frame: index, timestamp, the image name COLMAP saw (``images/frame_<index>``
+        under the output directory), the source file, whether it registered in the largest
+        model, and its camera-to-world pose there (``center``, ``rotation`` x, y, z, w)."""
         rows = []
-        for f in self.frames:
-            name = _name_for(self.input, f, self.out_dir)
+        for f, name in zip(self.frames, self.names):
             c = self.sfm.centres.get(name)
+            q = self.sfm.rotations.get(name)
             rows.append({
                 "frame": f.index,
                 "timestamp": f.timestamp,
                 "name": name,
+                "path": os.path.abspath(f.path) if f.path else None,
                 "registered": c is not None,
                 "center": list(c) if c else None,
+                "rotation": list(q) if q else None,
             })
         return rows
+
+    @property
+    def registered(self) -> int:
+        """Frames (not images: a repeated image counts for each frame) in the largest model."""
+        return sum(1 for n in self.names if n in self.sfm.centres)
 
     def to_dict(self) -> Dict[str, Any]:
         s = self.sfm
@@ -618,7 +838,8 @@ class Reconstruction:
             "engine": f"pycolmap {_pycolmap_version()}",
             "kept": len(self.frames),
             "images": s.images,
-            "registered": s.registered,
+            "registered": self.registered,
+            "registered_images": s.registered,
             "registered_total": s.registered_total,
             "models": s.models,
             "mean_reprojection_error_px": s.mean_reprojection_error_px,
@@ -628,6 +849,7 @@ class Reconstruction:
             "camera_model": s.camera_model,
             "model_dir": s.model_dir,
             "seconds": s.seconds,
+            "unreadable": s.unreadable,
             "frames": self.frame_rows(),
         }
         if self.gate is not None:
@@ -649,13 +871,52 @@ def _pycolmap_version() -> str:
         return "?"
 
 
-def _name_for(inp: InputSequence, f: FrameRef, out_dir: str) -> str:
-    root = _image_root(inp, out_dir)
-    return os.path.relpath(os.path.abspath(f.path), root)  # type: ignore[arg-type]
+def image_name(f: FrameRef) -> str:
+    """The name COLMAP knows a frame by, relative to the output directory:
+    ``images/frame_<index>.<ext>``. By index, not by file: a sequence may list one file twice
+    (a pause written by repeating a frame), and COLMAP's database refuses two images of one
+    name."""
+    ext = os.path.splitext(f.path or "")[1] or ".png"
+    return f"images/frame_{f.index:06d}{ext}"
 
 
-def _image_root(inp: InputSequence, out_dir: str) -> str:
-    return os.path.abspath(out_dir if inp.kind == "video" else inp.path)
+def fresh_image_dir(inp: InputSequence, out_dir: str) -> str:
+    """Empty ``OUT/images`` (made anew), refusing an output directory whose images/ holds the
+    input itself."""
+    d = os.path.realpath(os.path.join(out_dir, "images"))
+    src = os.path.realpath(inp.path)
+    if src == d or src.startswith(d + os.sep):
+        raise SetupError(
+            f"--out {out_dir}: its images/ folder is (or holds) the input {inp.path}, which "
+            "would be overwritten; choose another output directory"
+        )
+    shutil.rmtree(d, ignore_errors=True)
+    os.makedirs(d)
+    return d
+
+
+def link_images(frames: Sequence[FrameRef], out_dir: str) -> List[str]:
+    """Make each frame's file visible as ``OUT/image_name(f)`` (a symlink, else a copy) and
+    return the name of each frame's image. A frame whose file an earlier frame already uses (a
+    pause written by repeating a frame) gets that frame's image: COLMAP sees each file once (two
+    identical images are a zero-baseline pair that can wreck its initialisation), and the
+    repeat takes the same pose."""
+    first: Dict[str, str] = {}
+    names = []
+    for f in frames:
+        src = os.path.realpath(f.path)  # type: ignore[arg-type]
+        name = first.get(src)
+        if name is None:
+            name = first[src] = image_name(f)
+            dst = os.path.join(out_dir, name)
+            try:
+                os.symlink(src, dst)
+            except OSError:
+                shutil.copyfile(src, dst)
+        else:
+            log.info("frame %d repeats the image %s: reconstructed once", f.index, name)
+        names.append(name)
+    return names
 
 
 def select_frames(
@@ -666,11 +927,21 @@ def select_frames(
 ) -> List[FrameRef]:
     """Explicit frames: ``frames`` (indices, or (index, path) pairs whose path overrides the
     sequence's file) or every ``every``-th frame; video frames are decoded and written."""
+    if every is not None and every < 1:
+        raise SetupError(f"every must be at least 1, not {every}")
+    idx = [f[0] if isinstance(f, (tuple, list)) else f for f in frames or []]
+    for i in idx:
+        if not isinstance(i, int) or i < 0:
+            raise SetupError(f"frame indices are integers >= 0, not {i!r}")
+    seen: set = set()
+    for i in idx:
+        if i in seen:
+            raise SetupError(f"frame {i} is listed twice")
+        seen.add(i)
     image_dir = os.path.join(out_dir, "images")
     if inp.kind == "video":
         if every:
             raise SetupError("--every needs an image sequence; give --frames for a video")
-        idx = [f[0] if isinstance(f, (tuple, list)) else int(f) for f in frames or []]
         return decode_video_frames(inp.path, idx, image_dir)
     if every:
         return inp.frames[::every]
@@ -678,9 +949,9 @@ def select_frames(
     by_path = {os.path.abspath(f.path): f for f in inp.frames if f.path}
     for f in frames or []:
         if isinstance(f, (tuple, list)):
-            i, p = int(f[0]), f[1]
+            i, p = f[0], f[1]
         else:
-            i, p = int(f), None
+            i, p = f, None
         if p:
             # The caller's own index (e.g. eval's, over frames with ground truth); the timestamp
             # comes from the sequence's listing of that file.
@@ -706,33 +977,49 @@ def reconstruct(
     colmap_log: bool = False,
 ) -> Reconstruction:
     """The consumer: choose the frames (the gate, or ``frames`` / ``every``), reconstruct them,
-    measure ATE where ground truth exists. ``gate``: keyword arguments of ``gate_input``."""
+    measure ATE where ground truth exists. ``gate``: keyword arguments of ``gate_input``.
+    COLMAP sees the frames as ``OUT/images/frame_<index>.<ext>`` (written for a video, linked
+    for a sequence) and runs in a child process (``run_sfm``)."""
+    opts = sfm or SfmOptions()
+    opts.check()
     import_pycolmap()
     inp = open_input(input_path)
-    opts = sfm or SfmOptions()
     if opts.intrinsics is None and inp.intrinsics is not None:
-        opts = SfmOptions(**{**opts.__dict__, "intrinsics": inp.intrinsics})
+        if opts.camera_model in (None, "PINHOLE"):
+            opts = SfmOptions(**{**opts.__dict__, "intrinsics": inp.intrinsics})
+        else:
+            log.info("camera model %s: the PINHOLE intrinsics.txt is not used", opts.camera_model)
     os.makedirs(out_dir, exist_ok=True)
-    if inp.kind == "video":
-        shutil.rmtree(os.path.join(out_dir, "images"), ignore_errors=True)
+    fresh_image_dir(inp, out_dir)
     gate_result = None
-    if frames is not None or every:
+    if frames is not None or every is not None:
         chosen = select_frames(inp, out_dir, frames, every)
         log.info("%d frames chosen explicitly", len(chosen))
     else:
         gate_result = gate_input(inp, os.path.join(out_dir, "images"), **(gate or {}))
         chosen = gate_result.kept
+        listed = len(inp.frames[: (gate or {}).get("max_frames") or None])
+        if gate_result.frames_in == 0:
+            # The decoders skip a few undecodable frames with a warning rather than an error.
+            first = f" (the first: {inp.frames[0].path})" if inp.frames else ""
+            raise SetupError(f"no frame of {inp.path} could be decoded{first}")
+        if inp.kind != "video" and gate_result.frames_in < listed:
+            log.warning("%d of %d images of %s could not be decoded (left out)",
+                        listed - gate_result.frames_in, listed, inp.path)
     if inp.kind != "video":
         missing = [f.path for f in chosen if not os.path.isfile(f.path)]  # type: ignore[arg-type]
         if missing:
             raise SetupError(f"image not found: {missing[0]}")
-    root = _image_root(inp, out_dir)
-    names = [_name_for(inp, f, out_dir) for f in chosen]
-    if len(names) < 2:
-        log.warning("%d frame(s): nothing to reconstruct", len(names))
-        result = SfmResult(len(names), 0, 0, 0, {}, None, 0, None, {}, "-", "-")
+        names = link_images(chosen, out_dir)
     else:
-        result = run_sfm(root, names, out_dir, opts, colmap_log=colmap_log)
+        names = [image_name(f) for f in chosen]
+    root = os.path.abspath(out_dir)
+    unique = list(dict.fromkeys(names))
+    if len(unique) < 2:
+        log.warning("%d image(s): nothing to reconstruct", len(unique))
+        result = SfmResult(len(unique), 0, 0, 0, {}, None, 0, None, {}, "-", "-")
+    else:
+        result = run_sfm(root, unique, out_dir, opts, colmap_log=colmap_log)
     ate = None
     if inp.groundtruth and result.registered >= 3:
         est, gt = [], []
@@ -746,18 +1033,85 @@ def reconstruct(
     if ply and result.model_dir:
         export_ply(result.model_dir, ply)
         log.info("points written to %s", ply)
-    return Reconstruction(inp, list(chosen), result, gate_result, ate, os.path.abspath(out_dir))
+    return Reconstruction(
+        inp, list(chosen), names, result, gate_result, ate, os.path.abspath(out_dir)
+    )
 
 
 # -- command line ------------------------------------------------------------------------------
+def _frame_index(text: str, where: str = "") -> int:
+    at = f"{where}: " if where else ""
+    try:
+        i = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{at}{text!r} is not a frame index") from None
+    if i < 0:
+        raise argparse.ArgumentTypeError(f"{at}frame {i} is negative")
+    return i
+
+
 def _parse_frames(spec: str) -> List[Any]:
-    """``0,5,10`` or ``@FILE`` (one ``index [path]`` per line, # comments)."""
+    """``0,5,10`` or ``@FILE`` (one ``index [path]`` per line, # comments): indices >= 0, none
+    twice; argparse.ArgumentTypeError naming the bad entry (and the file and line)."""
+    out: List[Any] = []
     if spec.startswith("@"):
-        out: List[Any] = []
-        for _, parts in _data_lines(spec[1:]):
-            out.append((int(parts[0]), " ".join(parts[1:]) or None))
-        return out
-    return [int(v) for v in spec.replace(" ", "").split(",") if v]
+        try:
+            for n, parts in _data_lines(spec[1:]):
+                i = _frame_index(parts[0], f"{spec[1:]} line {n}")
+                out.append((i, " ".join(parts[1:]) or None))
+        except OSError as e:
+            raise argparse.ArgumentTypeError(f"cannot read {spec[1:]}: {e.strerror}") from None
+    else:
+        out = [_frame_index(v) for v in spec.replace(" ", "").split(",") if v]
+    idx = [f[0] if isinstance(f, tuple) else f for f in out]
+    seen: set = set()
+    for i in idx:
+        if i in seen:
+            raise argparse.ArgumentTypeError(f"frame {i} is listed twice")
+        seen.add(i)
+    if not out:
+        raise argparse.ArgumentTypeError(f"no frame in {spec!r}")
+    return out
+
+
+def _integer(lo: int, *, also: Optional[int] = None, meaning: str = "") -> Callable[[str], int]:
+    """An argparse type: an integer >= ``lo`` (or ``also``)."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if v < lo and v != also:
+            alt = f" or {also}{meaning}" if also is not None else ""
+            raise argparse.ArgumentTypeError(f"must be at least {lo}{alt}, got {v}")
+        return v
+
+    return parse
+
+
+def _number(lo: float, hi: float, *, open_lo: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite number in [lo, hi] (or (lo, hi] with ``open_lo``)."""
+
+    def parse(text: str) -> float:
+        v = _float_or_none(text)
+        if v is None:
+            raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+        if v > hi or v < lo or (open_lo and v == lo):
+            raise argparse.ArgumentTypeError(
+                f"must be in {'(' if open_lo else '['}{lo:g}, {hi:g}], got {text}")
+        return v
+
+    return parse
+
+
+def _intrinsics(text: str) -> Tuple[float, float, float, float]:
+    vals = [_float_or_none(v) for v in text.split(",")]
+    if len(vals) != 4 or any(v is None for v in vals):
+        raise argparse.ArgumentTypeError(f"expected FX,FY,CX,CY (four numbers), got {text!r}")
+    if min(vals[:2]) <= 0:  # type: ignore[type-var]
+        raise argparse.ArgumentTypeError(f"the focal lengths FX,FY must be positive, got {text!r}")
+    return tuple(vals)  # type: ignore[return-value]
 
 
 def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
@@ -766,41 +1120,45 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
         description="Gate a video or image sequence with leangate and reconstruct the kept "
         "frames with COLMAP (pycolmap): sparse model, frames registered, models, reprojection "
         "error, ATE against ground truth when the input has it.",
-        epilog="Video frames are written as PNG under OUT/images; the models under OUT/sparse/N. "
-        "The plugin is found through GST_PLUGIN_PATH or --plugin-path.",
+        epilog="The frames are written (video) or linked (sequence) as OUT/images/frame_<index>; "
+        "the models go under OUT/sparse/N, COLMAP's messages into OUT/colmap.log. The plugin is "
+        "found through GST_PLUGIN_PATH or --plugin-path.",
     )
     ap.add_argument("input", help="video file, TUM-layout directory (rgb.txt), or image folder")
     ap.add_argument("--out", default="out/reconstruct", help="output directory (default %(default)s)")
     which = ap.add_mutually_exclusive_group()
-    which.add_argument("--frames", metavar="LIST",
+    which.add_argument("--frames", metavar="LIST", type=_parse_frames,
                        help="reconstruct these frames instead of gating: `0,5,10` (indices into "
                        "the sequence / decode order) or @FILE (`index [path]` per line)")
-    which.add_argument("--every", type=int, metavar="K",
+    which.add_argument("--every", type=_integer(1), metavar="K",
                        help="reconstruct every K-th frame instead of gating (a dense reference)")
     g = ap.add_argument_group("gate (when neither --frames nor --every)")
     g.add_argument("--model", default=os.environ.get("LEANGATE_MODEL") or None,
                    help="LeanGate model (.onnx); default $LEANGATE_MODEL, else the embedded student")
-    g.add_argument("--threshold", type=float, default=None)
-    g.add_argument("--warmup", type=int, default=None)
-    g.add_argument("--max-gap", type=int, default=None)
-    g.add_argument("--max-frames", type=int, default=None,
+    g.add_argument("--threshold", type=_number(0.0, 1.0), default=None, help="tau_keep in [0, 1]")
+    g.add_argument("--warmup", type=_integer(0), default=None)
+    g.add_argument("--max-gap", type=_integer(0), default=None, help="0: off")
+    g.add_argument("--max-frames", type=_integer(1), default=None,
                    help="gate only the first N frames of an image sequence / keep at most N of a video")
     g.add_argument("--execution-provider", choices=("auto", "cpu", "cuda", "tensorrt"))
     g.add_argument("--plugin-path", metavar="PATH")
     s = ap.add_argument_group("COLMAP")
     s.add_argument("--matcher", choices=MATCHERS, default="auto",
                    help=f"auto: exhaustive up to {EXHAUSTIVE_MAX} images, else sequential")
-    s.add_argument("--overlap", type=int, default=10, help="sequential matching neighbours")
-    s.add_argument("--max-features", type=int, default=4096, help="SIFT features per image")
-    s.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
+    s.add_argument("--overlap", type=_integer(1), default=10,
+                   help="sequential matching neighbours (at least 1)")
+    s.add_argument("--max-features", type=_integer(1), default=4096, help="SIFT features per image")
+    s.add_argument("--intrinsics", metavar="FX,FY,CX,CY", type=_intrinsics,
                    help="PINHOLE intrinsics (default: the input's intrinsics.txt, else unknown)")
-    s.add_argument("--camera-model", help="COLMAP camera model (default PINHOLE with intrinsics, "
-                   "else SIMPLE_RADIAL)")
+    s.add_argument("--camera-model", choices=CAMERA_MODELS, metavar="MODEL",
+                   help="COLMAP camera model (default PINHOLE with intrinsics, else "
+                   "SIMPLE_RADIAL); one of " + ", ".join(CAMERA_MODELS))
     s.add_argument("--refine-intrinsics", action="store_true",
                    help="let bundle adjustment refine given intrinsics")
-    s.add_argument("--min-model-size", type=int, default=3)
-    s.add_argument("--init-min-tri-angle", type=float, default=4.0, metavar="DEG")
-    s.add_argument("--threads", type=int, default=-1)
+    s.add_argument("--min-model-size", type=_integer(2), default=3)
+    s.add_argument("--init-min-tri-angle", type=_number(0.0, 179.0, open_lo=True), default=4.0,
+                   metavar="DEG")
+    s.add_argument("--threads", type=_integer(1, also=-1, meaning=" (every core)"), default=-1)
     ap.add_argument("--ply", metavar="PATH", help="export the largest model's points as PLY")
     ap.add_argument("--json", metavar="PATH", help="write the result (per frame too) as JSON")
     ap.add_argument("--colmap-log", action="store_true", help="let COLMAP log (glog) to stderr")
@@ -823,20 +1181,15 @@ def main(
     ap = build_parser(prog)
     args = ap.parse_args(argv)
     configure_logging(ap.prog, args.verbose)
+    if args.intrinsics and args.camera_model not in (None, "PINHOLE"):
+        ap.error(f"--intrinsics are PINHOLE parameters; --camera-model {args.camera_model} "
+                 "takes others")
     try:
-        intr = None
-        if args.intrinsics:
-            try:
-                intr = tuple(float(v) for v in args.intrinsics.split(","))
-            except ValueError:
-                intr = ()
-            if len(intr) != 4:
-                ap.error("--intrinsics takes FX,FY,CX,CY")
         opts = SfmOptions(
             matcher=args.matcher,
             overlap=args.overlap,
             max_features=args.max_features,
-            intrinsics=intr,  # type: ignore[arg-type]
+            intrinsics=args.intrinsics,
             camera_model=args.camera_model,
             refine_intrinsics=args.refine_intrinsics,
             min_model_size=args.min_model_size,
@@ -853,12 +1206,11 @@ def main(
             plugin_fallbacks=plugin_fallbacks,
             max_frames=args.max_frames,
         )
-        frames = _parse_frames(args.frames) if args.frames is not None else None
         t = time.monotonic()
         rec = reconstruct(
             args.input,
             args.out,
-            frames=frames,
+            frames=args.frames,
             every=args.every,
             sfm=opts,
             gate=gate,
@@ -883,12 +1235,11 @@ def main(
         return 130
 
     s = rec.sfm
-    reg = set(s.centres)
     for row in rec.frame_rows():
-        print(f"frame {row['frame']} {row['name']} registered {int(row['name'] in reg)}")
+        print(f"frame {row['frame']} {row['name']} registered {int(row['registered'])}")
     frames_in = f"frames-in={rec.gate.frames_in} " if rec.gate else ""
     print(
-        f"summary: {frames_in}kept={len(rec.frames)} registered={s.registered}/{len(rec.frames)} "
+        f"summary: {frames_in}kept={len(rec.frames)} registered={rec.registered}/{len(rec.frames)} "
         f"models={s.models} mean-reproj-px={_fmt(s.mean_reprojection_error_px, '.3f')} "
         f"points={s.points3d} ate-rmse-cm={_fmt(rec.ate_rmse_cm, '.2f')} matcher={s.matcher} "
         f"camera={s.camera_model} seconds={elapsed:.1f} model={s.model_dir or '-'}"

@@ -201,6 +201,12 @@ enum Command {
         /// SIFT features per frame for --reconstruct.
         #[arg(long, default_value_t = 4096)]
         sfm_max_features: u32,
+        /// With --reconstruct: write each policy's camera trajectory (TUM format, camera-to-world,
+        /// the SfM's frame and scale) as DIR/POLICY.txt and the ground truth as
+        /// DIR/groundtruth.txt, for `evo_ape tum DIR/groundtruth.txt DIR/model.txt --align
+        /// --correct_scale`.
+        #[arg(long, value_name = "DIR", requires = "reconstruct")]
+        trajectory_dir: Option<PathBuf>,
     },
 }
 
@@ -404,6 +410,7 @@ fn run(cli: Cli) -> Res {
             sfm_dir,
             sfm_matcher,
             sfm_max_features,
+            trajectory_dir,
         } => eval_cmd(
             &sequence[..],
             eval::GateModel {
@@ -427,6 +434,7 @@ fn run(cli: Cli) -> Res {
                     work_dir: sfm_dir,
                     matcher: sfm_matcher,
                     max_features: sfm_max_features,
+                    trajectory_dir,
                 }),
             },
             TeacherConfig {
@@ -497,13 +505,15 @@ fn eval_cmd(
             report.sweep = Some(eval::sweep(sequence, model, thresholds, &cfg, &mut show)?);
         }
         if let Some(sfm) = &reconstruct {
-            eval::reconstruct::add_reconstruction(sequence, &mut report, &data, sfm, &mut show)?;
+            // Several sequences: each one's models and trajectories in DIR/K-SEQ/.
+            let sfm = match several {
+                true => sfm.in_subdirectory(&format!("{}-{}", k + 1, sequence_name(sequence))),
+                false => sfm.clone(),
+            };
+            eval::reconstruct::add_reconstruction(sequence, &mut report, &data, &sfm, &mut show)?;
         }
         bar.finish_and_clear();
-        let name = sequence
-            .file_name()
-            .map(|s| s.to_string_lossy().to_string())
-            .unwrap_or_default();
+        let name = sequence_name(sequence);
         // One file per sequence when there are several: NAME-K-SEQ.ext beside the given path.
         let per_sequence = |p: &Path| -> PathBuf {
             if !several {
@@ -650,39 +660,74 @@ fn print_summary(r: &eval::EvalReport) {
     }
 }
 
+/// The last component of a sequence's path (its name in titles and file names).
+fn sequence_name(sequence: &Path) -> String {
+    sequence
+        .file_name()
+        .map(|s| s.to_string_lossy().to_string())
+        .unwrap_or_default()
+}
+
+/// The `--reconstruct` table: per policy, frames kept, registered / kept, ATE and ATE relative to
+/// dense, COLMAP's time and the speed-up against dense, the gate's own time and the end-to-end
+/// speed-up (gate + SfM); then the model's headline in one sentence.
 fn print_reconstruction(r: &eval::EvalReport) {
     if let Some(info) = &r.reconstruction {
         println!(
-            "reconstruction ({}; dense = every {}th frame; ATE after a similarity alignment):",
+            "reconstruction ({}; dense = every {}th frame; ATE after a similarity alignment; \
+             speed-up = dense's SfM time / the policy's):",
             info.engine, info.dense_every
         );
     }
     println!(
-        "{:<11} {:>5} {:>10} {:>6} {:>8} {:>8} {:>7} {:>6}",
-        "policy", "kept", "registered", "models", "ATE cm", "reproj", "points", "s"
+        "{:<11} {:>5} {:>10} {:>6} {:>7} {:>8} {:>7} {:>8} {:>7} {:>9}",
+        "policy",
+        "kept",
+        "registered",
+        "models",
+        "ATE cm",
+        "ATE/dns",
+        "SfM s",
+        "speed-up",
+        "gate s",
+        "end-to-end"
     );
+    let num = |p: &serde_json::Value, k: &str, d: usize, suffix: &str| {
+        p.get(k)
+            .and_then(|v| v.as_f64())
+            .map(|x| format!("{x:.d$}{suffix}"))
+            .unwrap_or_else(|| "-".into())
+    };
     for (name, p) in &r.policies {
+        let kept = p.get("kept").and_then(|v| v.as_u64()).unwrap_or(0);
+        if let Some(e) = p.get("sfm_error").and_then(|v| v.as_str()) {
+            println!("{name:<11} {kept:>5} failed: {e}");
+            continue;
+        }
         let Some(reg) = p.get("registered").and_then(|v| v.as_u64()) else {
             continue;
         };
-        let num = |k: &str, d: usize| {
-            p.get(k)
-                .and_then(|v| v.as_f64())
-                .map(|x| format!("{x:.d$}"))
-                .unwrap_or_else(|| "-".into())
-        };
-        let kept = p.get("kept").and_then(|v| v.as_u64()).unwrap_or(0);
         println!(
-            "{:<11} {:>5} {:>10} {:>6} {:>8} {:>8} {:>7} {:>6}",
+            "{:<11} {:>5} {:>10} {:>6} {:>7} {:>8} {:>7} {:>8} {:>7} {:>9}",
             name,
             kept,
             format!("{reg}/{kept}"),
-            num("models", 0),
-            num("ate_rmse_cm", 2),
-            num("sfm_reproj_px", 3),
-            num("sfm_points", 0),
-            num("sfm_seconds", 1),
+            num(p, "models", 0, ""),
+            num(p, "ate_rmse_cm", 2, ""),
+            num(p, "ate_vs_dense", 2, "x"),
+            num(p, "sfm_seconds", 1, ""),
+            num(p, "sfm_speedup", 2, "x"),
+            num(p, "gate_seconds", 1, ""),
+            num(p, "end_to_end_speedup", 2, "x"),
         );
+    }
+    let model = r.policies.get("model");
+    let field = |k: &str| model.and_then(|p| p.get(k)).and_then(|v| v.as_f64());
+    if let (Some(speed), Some(ate)) = (field("sfm_speedup"), field("ate_vs_dense")) {
+        let e2e = field("end_to_end_speedup")
+            .map(|x| format!(" ({x:.2}x counting the gate)"))
+            .unwrap_or_default();
+        println!("model: SfM {speed:.2}x faster than dense{e2e} at {ate:.2}x dense's ATE");
     }
 }
 

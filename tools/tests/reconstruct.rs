@@ -156,7 +156,12 @@ fn consumer_gates_an_image_sequence_and_reconstructs_the_kept_frames() {
     assert!(frames
         .iter()
         .all(|f| f["registered"] == true && f["center"].as_array().unwrap().len() == 3));
-    assert_eq!(frames[1]["name"], format!("rgb/{:06}.jpg", idx[1]));
+    // COLMAP sees each frame by its index (OUT/images/frame_<index>.jpg, a link to the file).
+    assert_eq!(frames[1]["name"], format!("images/frame_{:06}.jpg", idx[1]));
+    assert!(frames[1]["path"]
+        .as_str()
+        .unwrap()
+        .ends_with(&format!("rgb/{:06}.jpg", idx[1])));
     // The sparse model and the PLY are on disk.
     let model = PathBuf::from(v["model_dir"].as_str().unwrap());
     for f in ["cameras.bin", "images.bin", "points3D.bin"] {
@@ -247,24 +252,63 @@ fn consumer_reconstructs_what_the_gate_keeps_of_a_real_clip() {
     assert!(v["registered"].as_u64().unwrap() >= 3, "{v}");
 }
 
+/// `evo_ape tum GT EST --align --correct_scale`'s RMSE (m), with the evo that `make setup`
+/// installs beside the SfM interpreter.
+fn evo_ape_rmse(py: &Path, gt: &Path, est: &Path) -> f64 {
+    let evo = py.with_file_name("evo_ape");
+    assert!(
+        evo.exists(),
+        "{} missing: `make setup` installs evo into .venv-sfm",
+        evo.display()
+    );
+    let out = Command::new(&evo)
+        .arg("tum")
+        .args([gt, est])
+        .args(["--align", "--correct_scale", "--no_warnings"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    text.lines()
+        .find_map(|l| {
+            let mut it = l.split_whitespace();
+            (it.next() == Some("rmse")).then(|| it.next().unwrap().parse().unwrap())
+        })
+        .unwrap_or_else(|| panic!("no rmse in {text}"))
+}
+
+/// The eval run on 7-Scenes with `--reconstruct`: every policy and a dense reference are
+/// reconstructed, the table relates each to dense, the trajectories are what evo reads (and evo
+/// measures the ATE eval does), and one policy's failure (its work directory's `images` is taken
+/// by a file, so its consumer fails) is reported for that policy while the others come out.
 #[test]
 fn eval_reconstruct_reports_every_policy_and_a_dense_reference() {
-    let (Some(seq), Some(_py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
+    let (Some(seq), Some(py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("eval.json");
+    let (sfm, traj) = (dir.path().join("sfm"), dir.path().join("traj"));
+    std::fs::create_dir_all(sfm.join("stride")).unwrap();
+    std::fs::write(sfm.join("stride/images"), "not a directory").unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_leangate"))
         .args(["eval", "--sequence"])
         .arg(&seq)
         .args(["--reconstruct", "--dense-every", "6", "--sfm-dir"])
-        .arg(dir.path().join("sfm"))
+        .arg(&sfm)
+        .arg("--trajectory-dir")
+        .arg(&traj)
         .arg("--json")
         .arg(&json)
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
-    eprintln!("{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    eprintln!("{stdout}\n{stderr}");
     assert!(out.status.success());
     assert!(stdout.contains("reconstruction (COLMAP"), "{stdout}");
     let v = read_json(&json);
@@ -272,9 +316,30 @@ fn eval_reconstruct_reports_every_policy_and_a_dense_reference() {
     assert_eq!(info["dense_every"], 6);
     assert!(info["engine"].as_str().unwrap().contains("pycolmap"));
     let policies = v["policies"].as_object().unwrap();
+
+    // The failed policy: its error in the JSON, the table and a warning; no panic, no trace.
+    let stride = &policies["stride"];
+    let err = stride["sfm_error"]
+        .as_str()
+        .unwrap_or_else(|| panic!("{stride}"));
+    assert!(
+        err.contains("images") && err.contains("File exists"),
+        "{err}"
+    );
+    assert!(
+        stdout.contains("stride") && stdout.contains("failed: "),
+        "{stdout}"
+    );
+    assert!(
+        stderr.contains("reconstructing policy stride failed"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("Traceback"), "{stderr}");
+
     for name in leangate_tools::eval::POLICIES
         .iter()
         .copied()
+        .filter(|p| *p != "stride")
         .chain(["dense"])
     {
         let p = &policies[name];
@@ -302,6 +367,42 @@ fn eval_reconstruct_reports_every_policy_and_a_dense_reference() {
     let ate = d["ate_rmse_cm"].as_f64().unwrap();
     assert!(ate.is_finite() && ate < 3.0, "dense ATE {ate} cm");
     assert!(d["sfm_reproj_px"].as_f64().unwrap() < 2.0);
+    // Relative to dense: dense is 1x itself; its gate is free; COLMAP's own time is measured.
+    assert_eq!(d["ate_vs_dense"], 1.0);
+    assert_eq!(d["sfm_speedup"], 1.0);
+    assert_eq!(d["gate_seconds"], 0.0);
+    assert!(d["sfm_seconds"].as_f64().unwrap() > 0.0);
+    assert!(d["sfm_wall_seconds"].as_f64().unwrap() >= d["sfm_seconds"].as_f64().unwrap());
+    // The model's gate time is its pipeline's: frames / fps.
+    let m = &policies["model"];
+    let gate = m["gate_seconds"].as_f64().unwrap();
+    let fps = m["fps"].as_f64().unwrap();
+    assert!((gate - 60.0 / fps).abs() < 1e-9 * gate.max(1.0), "{m}");
+    assert!(
+        stdout.contains("speed-up") && stdout.contains("end-to-end"),
+        "{stdout}"
+    );
+
+    // The trajectories: TUM lines (t x y z qx qy qz qw, unit quaternions), one per registered
+    // frame, and evo's APE with Sim(3) alignment equals eval's ATE (evo prints 6 decimals, m).
+    let text = std::fs::read_to_string(traj.join("dense.txt")).unwrap();
+    let rows: Vec<Vec<f64>> = text
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split(' ').map(|x| x.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 10, "{text}");
+    for r in &rows {
+        assert_eq!(r.len(), 8);
+        let norm: f64 = r[4..].iter().map(|q| q * q).sum();
+        assert!((norm - 1.0).abs() < 1e-6, "{r:?}");
+    }
+    assert!(traj.join("model.txt").exists() && !traj.join("stride.txt").exists());
+    let evo = evo_ape_rmse(&py, &traj.join("groundtruth.txt"), &traj.join("dense.txt"));
+    assert!(
+        (evo - ate / 100.0).abs() < 2e-6 + 1e-3 * evo,
+        "evo {evo} m, eval {ate} cm"
+    );
 }
 
 #[test]
@@ -357,4 +458,208 @@ fn explicit_frames_and_a_python_without_pycolmap() {
         err.contains("pycolmap is not importable") && err.contains("scripts/setup.sh"),
         "{err}"
     );
+}
+
+/// Every argument is checked before any work: a clear error naming it, exit 2, no traceback and
+/// no COLMAP abort (`--overlap 0 --matcher sequential` used to SIGABRT inside COLMAP; `--every
+/// -2` ran backwards, `--every 0` was ignored; the others raised Python tracebacks). So are the
+/// inputs: a non-numeric timestamp in rgb.txt names the line, and a folder of images COLMAP
+/// (or, gated, the decoder) cannot read is an error (it used to exit 0 with nothing
+/// reconstructed).
+#[test]
+fn consumer_refuses_bad_arguments_and_inputs_with_a_clear_error() {
+    let (Some(seq), Some(py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("rec");
+    let check = |args: &[&str], input: &Path, expect: &str| {
+        let out = consumer(&py, args, &[Path::new("--out"), &out_dir, input]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(
+            err.contains(expect),
+            "{args:?}: expected {expect:?} in {err}"
+        );
+        assert!(
+            !err.contains("Traceback") && !err.contains("SIGABRT") && !err.contains("Aborted"),
+            "{args:?}: {err}"
+        );
+    };
+    let cases: [(&[&str], &str); 11] = [
+        (
+            &[
+                "--frames",
+                "0,12,24",
+                "--overlap",
+                "0",
+                "--matcher",
+                "sequential",
+            ],
+            "argument --overlap: must be at least 1, got 0",
+        ),
+        (
+            &["--frames", "a,b"],
+            "argument --frames: 'a' is not a frame index",
+        ),
+        (&["--frames", "0,-3"], "frame -3 is negative"),
+        (&["--frames", "3,7,3"], "frame 3 is listed twice"),
+        (&["--camera-model", "BOGUS"], "invalid choice: 'BOGUS'"),
+        (
+            &["--max-features", "0"],
+            "argument --max-features: must be at least 1",
+        ),
+        (
+            &["--threads", "-5"],
+            "argument --threads: must be at least 1 or -1",
+        ),
+        (
+            &["--every", "0"],
+            "argument --every: must be at least 1, got 0",
+        ),
+        (
+            &["--every", "-2"],
+            "argument --every: must be at least 1, got -2",
+        ),
+        (
+            &["--threshold", "nan"],
+            "argument --threshold: expected a finite number",
+        ),
+        (
+            &["--every", "10", "--intrinsics", "500,500,320"],
+            "expected FX,FY,CX,CY",
+        ),
+    ];
+    for (args, expect) in cases {
+        check(args, &seq, expect);
+    }
+    // --frames @FILE: the file and line of a bad entry.
+    let list = dir.path().join("frames.txt");
+    std::fs::write(&list, "0\n12 rgb/000012.jpg\nx\n").unwrap();
+    let arg = format!("@{}", list.display());
+    check(
+        &["--frames", &arg],
+        &seq,
+        "frames.txt line 3: 'x' is not a frame index",
+    );
+
+    // A non-numeric timestamp in rgb.txt.
+    let bad_ts = dir.path().join("bad_ts");
+    std::fs::create_dir(&bad_ts).unwrap();
+    std::os::unix::fs::symlink(seq.join("rgb"), bad_ts.join("rgb")).unwrap();
+    std::fs::write(
+        bad_ts.join("rgb.txt"),
+        "# t path\n0.0 rgb/000000.jpg\nnoon rgb/000012.jpg\n",
+    )
+    .unwrap();
+    check(
+        &["--every", "1"],
+        &bad_ts,
+        "rgb.txt line 3: expected `timestamp path` with a numeric timestamp, got 'noon",
+    );
+
+    // A folder of files named .png that are not images.
+    let junk = dir.path().join("junk");
+    std::fs::create_dir(&junk).unwrap();
+    for i in 0..3 {
+        std::fs::write(junk.join(format!("{i}.png")), vec![i as u8; 500]).unwrap();
+    }
+    check(
+        &["--every", "1"],
+        &junk,
+        "COLMAP could read 0 of 3 images (not an image, or corrupt:",
+    );
+    // The same through the gate: the decoder skips each file with a warning, nothing comes out.
+    if let Some(plugins) = plugin_dir() {
+        check(
+            &["--plugin-path", plugins.to_str().unwrap()],
+            &junk,
+            "could be decoded (the first: ",
+        );
+    }
+}
+
+/// A TUM-layout rgb.txt that lists one image twice (a pause written by repeating a frame) used
+/// to abort the whole run (SQLite constraint: two images of one name). COLMAP now sees each
+/// frame by index, each file once; the repeat takes its image's pose.
+#[test]
+fn consumer_reconstructs_a_sequence_that_lists_an_image_twice() {
+    let (Some(seq), Some(py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("paused");
+    std::fs::create_dir(&input).unwrap();
+    std::os::unix::fs::symlink(seq.join("rgb"), input.join("rgb")).unwrap();
+    std::fs::copy(seq.join("intrinsics.txt"), input.join("intrinsics.txt")).unwrap();
+    std::fs::write(
+        input.join("rgb.txt"),
+        "0.0 rgb/000000.jpg\n0.4 rgb/000012.jpg\n0.8 rgb/000024.jpg\n0.833 rgb/000024.jpg\n\
+         1.2 rgb/000036.jpg\n1.6 rgb/000048.jpg\n",
+    )
+    .unwrap();
+    let json = dir.path().join("r.json");
+    let out = consumer(
+        &py,
+        &["--every", "1", "--out"],
+        &[&dir.path().join("rec"), Path::new("--json"), &json, &input],
+    );
+    assert!(out.status.success());
+    let v = read_json(&json);
+    let frames = v["frames"].as_array().unwrap();
+    let names: Vec<&str> = frames.iter().map(|f| f["name"].as_str().unwrap()).collect();
+    assert_eq!(
+        names,
+        [
+            "images/frame_000000.jpg",
+            "images/frame_000001.jpg",
+            "images/frame_000002.jpg",
+            "images/frame_000002.jpg",
+            "images/frame_000004.jpg",
+            "images/frame_000005.jpg"
+        ]
+    );
+    assert_eq!(v["images"], 5, "each file once: {v}");
+    assert_eq!(v["registered"], 6, "{v}");
+    assert_eq!(frames[2]["center"], frames[3]["center"]);
+    assert_eq!(frames[3]["timestamp"], 0.833);
+}
+
+/// COLMAP ends its process on a failed internal check or an uncaught C++ exception (SIGABRT).
+/// `run_sfm` runs it in a child process, so the caller gets a PipelineError naming COLMAP's
+/// message and the stage, and goes on. Provoked here with COLMAP's own abort on two images of
+/// one name, through the library (the command line no longer lets that through).
+#[test]
+fn a_colmap_abort_is_an_error_for_the_caller_not_a_crash() {
+    let (Some(seq), Some(py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let code = "import sys, pycolmap\n\
+        from leangate_client.reconstruct import run_sfm\n\
+        from leangate_client.errors import PipelineError\n\
+        try:\n\
+        \x20   run_sfm(sys.argv[1], ['rgb/000000.jpg', 'rgb/000000.jpg', 'rgb/000012.jpg'], sys.argv[2])\n\
+        except PipelineError as e:\n\
+        \x20   print('caught:', e)\n\
+        print('still running')\n";
+    let out = Command::new(&py)
+        .args(["-c", code])
+        .arg(&seq)
+        .arg(dir.path())
+        .env("PYTHONPATH", repo_root().join("pipelines"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{:?}", out.status);
+    assert!(
+        stdout.contains(
+            "caught: COLMAP failed during feature extraction of 3 images (killed by SIGABRT)"
+        ) && stdout.contains("SQLite error: constraint failed"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("still running"));
+    let log = std::fs::read_to_string(dir.path().join("colmap.log")).unwrap();
+    assert!(log.contains("constraint failed"), "{log}");
 }

@@ -11,7 +11,21 @@
 //!   the ground-truth centres after the least-squares similarity alignment (Umeyama 1991, with
 //!   scale: SfM has no metric scale), in centimetres, computed here ([`ate_rmse`]); None with
 //!   fewer than 3 registered frames;
-//! - `sfm_reproj_px` (mean reprojection error), `sfm_points`, `sfm_seconds`.
+//! - `sfm_reproj_px` (mean reprojection error), `sfm_points`;
+//! - `sfm_seconds`: COLMAP's own time (feature extraction + matching + mapping, as the consumer
+//!   measures it; `sfm_wall_seconds` adds the interpreter's start and the image links);
+//! - relative to `dense` ([`relative_to_dense`]): `ate_vs_dense` (ATE / dense's ATE),
+//!   `sfm_speedup` (dense's `sfm_seconds` / this policy's); `gate_seconds`, the gate's own time
+//!   (the element's pipeline for `model`: frames / its fps; 0 for `stride` and `dense`; null for
+//!   the policies whose cost is not measured: `oracle` needs the teacher, the cheap baselines run
+//!   on the model pass's thumbnails), and `end_to_end_speedup` = dense's SfM time / (gate + SfM).
+//!
+//! A policy whose reconstruction fails (COLMAP aborts, too few readable images) gets
+//! `sfm_error` with the consumer's message, and the others still run; the run fails only when
+//! every policy fails. `--trajectory-dir DIR` writes each policy's registered camera poses as a
+//! TUM trajectory (`DIR/<policy>.txt`, camera-to-world, in the SfM's frame and scale) and the
+//! sequence's ground truth (`DIR/groundtruth.txt`), for `evo_ape tum DIR/groundtruth.txt
+//! DIR/model.txt --align --correct_scale`.
 //!
 //! The interpreter: `--sfm-python`, else `$LEANGATE_SFM_PYTHON`, else the checkout's
 //! `.venv-sfm/bin/python` (made by `scripts/setup.sh`), else `/usr/bin/python3`; it needs
@@ -20,7 +34,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Isometry3, Matrix3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
@@ -43,6 +57,8 @@ pub struct SfmConfig {
     pub matcher: String,
     /// SIFT features per image.
     pub max_features: u32,
+    /// Write each policy's trajectory (TUM format) and the ground truth here.
+    pub trajectory_dir: Option<PathBuf>,
 }
 
 impl Default for SfmConfig {
@@ -53,6 +69,19 @@ impl Default for SfmConfig {
             work_dir: None,
             matcher: "auto".into(),
             max_features: 4096,
+            trajectory_dir: None,
+        }
+    }
+}
+
+impl SfmConfig {
+    /// The same settings with `work_dir` and `trajectory_dir` (where given) one level down, in
+    /// `name`: one sequence's share of a run over several.
+    pub fn in_subdirectory(&self, name: &str) -> SfmConfig {
+        SfmConfig {
+            work_dir: self.work_dir.as_ref().map(|d| d.join(name)),
+            trajectory_dir: self.trajectory_dir.as_ref().map(|d| d.join(name)),
+            ..self.clone()
         }
     }
 }
@@ -151,18 +180,29 @@ pub fn check_python(python: &Path) -> Result<String, EvalError> {
 /// Check the interpreter and the consumer before a long evaluation: the Python found and
 /// pycolmap's version.
 pub fn preflight(cfg: &SfmConfig) -> Result<(PathBuf, String), EvalError> {
+    if cfg.dense_every == 0 {
+        return Err(EvalError("--dense-every must be at least 1".into()));
+    }
+    if cfg.max_features == 0 {
+        return Err(EvalError("--sfm-max-features must be at least 1".into()));
+    }
     let python = find_python(cfg.python.as_deref());
     let version = check_python(&python)?;
     consumer_script()?;
     Ok((python, version))
 }
 
-/// One frame of the consumer's JSON.
+/// One frame of the consumer's JSON: `center` and `rotation` (quaternion x, y, z, w) are the
+/// camera-to-world pose in the largest model.
 #[derive(Debug, Clone, Deserialize)]
 pub struct ConsumerFrame {
     pub frame: usize,
     pub registered: bool,
     pub center: Option<[f64; 3]>,
+    #[serde(default)]
+    pub rotation: Option<[f64; 4]>,
+    #[serde(default)]
+    pub timestamp: Option<f64>,
 }
 
 /// The consumer's JSON (`reconstruct.py --json`), the fields eval uses.
@@ -174,6 +214,9 @@ pub struct ConsumerResult {
     #[serde(rename = "points3D")]
     pub points3d: usize,
     pub frames: Vec<ConsumerFrame>,
+    /// COLMAP's time per stage (features, matching, mapping).
+    #[serde(default)]
+    pub seconds: std::collections::BTreeMap<String, f64>,
 }
 
 /// A policy's reconstruction as it goes into the report.
@@ -185,6 +228,7 @@ pub struct SfmOutcome {
     pub sfm_reproj_px: Option<f64>,
     pub sfm_points: usize,
     pub sfm_seconds: f64,
+    pub sfm_wall_seconds: f64,
 }
 
 /// The consumer's `--frames @LIST` file: `index [image path]` per line. Paths are made absolute:
@@ -236,19 +280,28 @@ pub fn run_consumer(
         .output()
         .map_err(|e| EvalError(format!("cannot run `{}`: {e}", python.display())))?;
     if !out.status.success() {
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        let tail: Vec<&str> = stderr.lines().rev().take(15).collect();
-        return Err(EvalError(format!(
-            "the reconstruction consumer `{} {}` failed ({}):\n{}",
-            python.display(),
-            script.display(),
-            out.status,
-            tail.into_iter().rev().collect::<Vec<_>>().join("\n")
-        )));
+        return Err(EvalError(consumer_failure(&out.status, &out.stderr)));
     }
     let text = std::fs::read_to_string(&json)
         .map_err(|e| EvalError(format!("`{}`: {e}", json.display())))?;
     serde_json::from_str(&text).map_err(|e| EvalError(format!("`{}`: {e}", json.display())))
+}
+
+/// What to say when the consumer failed: its `error:` lines (the consumer reports COLMAP's
+/// failures, aborts included, that way), else the tail of its stderr, and the exit status.
+fn consumer_failure(status: &std::process::ExitStatus, stderr: &[u8]) -> String {
+    let stderr = String::from_utf8_lossy(stderr);
+    let errors: Vec<&str> = stderr
+        .lines()
+        .filter_map(|l| l.split_once(": error: ").map(|(_, m)| m.trim()))
+        .collect();
+    let text = if errors.is_empty() {
+        let tail: Vec<&str> = stderr.lines().rev().take(15).collect();
+        tail.into_iter().rev().collect::<Vec<_>>().join("\n")
+    } else {
+        errors.join("; ")
+    };
+    format!("the reconstruction consumer failed ({status}): {text}")
 }
 
 /// Least-squares similarity `dst ≈ s R src + t` (Umeyama 1991). None with fewer than 3 points,
@@ -297,9 +350,14 @@ pub fn ate_rmse(est: &[Vector3<f64>], gt: &[Vector3<f64>]) -> Option<f64> {
     Some((se / est.len() as f64).sqrt())
 }
 
+/// A frame of the report: its image (None for a video frame), timestamp and ground-truth
+/// camera-to-world pose, where known.
+type FrameInfo = (Option<PathBuf>, Option<f64>, Option<Isometry3<f64>>);
+
 /// Reconstruct every policy's kept frames (`data.kept`) and a `dense` reference, one after the
-/// other, and add the fields to `report.policies` (the `dense` entry is created).
-/// `progress(stage, done, total)` counts policies.
+/// other, and add the fields to `report.policies` (the `dense` entry is created). A policy whose
+/// reconstruction fails gets `sfm_error` and the others go on; the result is an error only when
+/// every policy failed. `progress(stage, done, total)` counts policies.
 pub fn add_reconstruction(
     path: &Path,
     report: &mut EvalReport,
@@ -307,26 +365,33 @@ pub fn add_reconstruction(
     cfg: &SfmConfig,
     mut progress: impl FnMut(&str, usize, usize),
 ) -> Result<(), EvalError> {
-    if cfg.dense_every == 0 {
-        return Err(EvalError("--dense-every must be at least 1".into()));
-    }
     let (python, version) = preflight(cfg)?;
     let source = Source::open(path)?;
     let n = report.frames;
-    // (image path, ground-truth camera centre) per frame index of the report.
-    let (paths, gt): (Vec<Option<PathBuf>>, Vec<Option<Vector3<f64>>>) = match &source {
+    // Image path, timestamp and ground-truth pose per frame index of the report.
+    let frames_of: Vec<FrameInfo> = match &source {
         Source::Sequence(seq) => seq
             .frames
             .iter()
-            .map(|f| (Some(f.rgb.clone()), f.pose.map(|p| p.translation.vector)))
-            .unzip(),
-        Source::Video(_) => (vec![None; n], vec![None; n]),
+            .map(|f| (Some(f.rgb.clone()), Some(f.timestamp), f.pose))
+            .collect(),
+        Source::Video(_) => vec![(None, None, None); n],
     };
-    if paths.len() != n {
+    if frames_of.len() != n {
         return Err(EvalError(format!(
             "--reconstruct: the sequence has {} frames, the report {n}",
-            paths.len()
+            frames_of.len()
         )));
+    }
+    if let Some(dir) = &cfg.trajectory_dir {
+        std::fs::create_dir_all(dir).map_err(|e| EvalError(format!("`{}`: {e}", dir.display())))?;
+        let gt: Vec<(f64, Isometry3<f64>)> = frames_of
+            .iter()
+            .filter_map(|(_, t, p)| Some(((*t)?, (*p)?)))
+            .collect();
+        if !gt.is_empty() {
+            write_tum(&dir.join("groundtruth.txt"), &gt)?;
+        }
     }
     let mut runs: Vec<(String, Vec<bool>)> = data.kept.clone();
     let dense: Vec<bool> = (0..n).map(|i| i % cfg.dense_every == 0).collect();
@@ -350,39 +415,64 @@ pub fn add_reconstruction(
         }
     };
     let total = runs.len();
+    let mut failures = Vec::new();
     for (k, (name, keep)) in runs.iter().enumerate() {
         progress(&format!("sfm {name}"), k, total);
         let frames: Vec<(usize, Option<PathBuf>)> = keep
             .iter()
             .enumerate()
             .filter(|(_, k)| **k)
-            .map(|(i, _)| (i, paths[i].clone()))
+            .map(|(i, _)| (i, frames_of[i].0.clone()))
             .collect();
         let t0 = std::time::Instant::now();
-        let res = run_consumer(&python, path, &frames, &root.join(name), cfg)?;
-        let (mut est, mut truth) = (Vec::new(), Vec::new());
-        for f in res.frames.iter().filter(|f| f.registered) {
-            if let (Some(c), Some(Some(g))) = (f.center, gt.get(f.frame)) {
-                est.push(Vector3::from(c));
-                truth.push(*g);
+        let fields = match run_consumer(&python, path, &frames, &root.join(name), cfg) {
+            Ok(res) => {
+                let (mut est, mut truth, mut trajectory) = (Vec::new(), Vec::new(), Vec::new());
+                for f in res.frames.iter().filter(|f| f.registered) {
+                    let Some(c) = f.center else { continue };
+                    let (_, t, pose) = frames_of.get(f.frame).cloned().unwrap_or_default();
+                    if let Some(g) = pose {
+                        est.push(Vector3::from(c));
+                        truth.push(g.translation.vector);
+                    }
+                    if let (Some(t), Some(q)) = (t.or(f.timestamp), f.rotation) {
+                        trajectory.push((t, consumer_pose(c, q)));
+                    }
+                }
+                if let Some(dir) = &cfg.trajectory_dir {
+                    write_tum(&dir.join(format!("{name}.txt")), &trajectory)?;
+                }
+                let outcome = SfmOutcome {
+                    registered: res.registered,
+                    models: res.models,
+                    ate_rmse_cm: ate_rmse(&est, &truth).map(|e| e * 100.0),
+                    sfm_reproj_px: res.mean_reprojection_error_px,
+                    sfm_points: res.points3d,
+                    sfm_seconds: res.seconds.values().fold(0.0, |a, b| a + b),
+                    sfm_wall_seconds: t0.elapsed().as_secs_f64(),
+                };
+                serde_json::to_value(&outcome).unwrap()
             }
-        }
-        let outcome = SfmOutcome {
-            registered: res.registered,
-            models: res.models,
-            ate_rmse_cm: ate_rmse(&est, &truth).map(|e| e * 100.0),
-            sfm_reproj_px: res.mean_reprojection_error_px,
-            sfm_points: res.points3d,
-            sfm_seconds: t0.elapsed().as_secs_f64(),
+            Err(e) => {
+                eprintln!("leangate: warning: reconstructing policy {name} failed: {e}");
+                failures.push(format!("{name}: {e}"));
+                json!({ "sfm_error": e.0 })
+            }
         };
-        if let (Some(Value::Object(entry)), Value::Object(fields)) = (
-            report.policies.get_mut(name),
-            serde_json::to_value(&outcome).unwrap(),
-        ) {
+        if let (Some(Value::Object(entry)), Value::Object(fields)) =
+            (report.policies.get_mut(name), fields)
+        {
             entry.extend(fields);
         }
     }
     progress("sfm", total, total);
+    if failures.len() == total {
+        return Err(EvalError(format!(
+            "--reconstruct: every policy failed: {}",
+            failures.join("; ")
+        )));
+    }
+    relative_to_dense(&mut report.policies, n);
     report.reconstruction = Some(ReconstructionInfo {
         engine: format!("COLMAP incremental SfM (pycolmap {version})"),
         python: python.display().to_string(),
@@ -393,6 +483,59 @@ pub fn add_reconstruction(
             .into(),
     });
     Ok(())
+}
+
+/// Policies whose gate costs nothing to run: the frame index alone decides.
+const FREE_GATES: [&str; 2] = ["stride", "dense"];
+
+/// Add each policy's figures relative to `dense`: `ate_vs_dense`, `sfm_speedup`,
+/// `gate_seconds` (`model`: `frames` / its `fps`; 0 for [`FREE_GATES`]; otherwise not
+/// measured, null) and `end_to_end_speedup` (dense's SfM time / (gate + SfM time)). A ratio
+/// whose parts are missing (no ATE, a failed run) is null, and so are the speed-ups of a policy
+/// that built no model (too few frames: being fast at nothing is no speed-up).
+pub fn relative_to_dense(policies: &mut serde_json::Map<String, Value>, frames: usize) {
+    let num = |p: &Value, k: &str| p.get(k).and_then(Value::as_f64);
+    let dense = policies.get("dense");
+    let dense_ate = dense.and_then(|d| num(d, "ate_rmse_cm"));
+    let dense_sfm = dense.and_then(|d| num(d, "sfm_seconds"));
+    let ratio = |a: Option<f64>, b: Option<f64>| match (a, b) {
+        (Some(a), Some(b)) if b > 0.0 && a.is_finite() && b.is_finite() => Some(a / b),
+        _ => None,
+    };
+    for (name, p) in policies.iter_mut() {
+        let gate = if FREE_GATES.contains(&name.as_str()) {
+            Some(0.0)
+        } else {
+            num(p, "fps")
+                .filter(|f| *f > 0.0)
+                .map(|f| frames as f64 / f)
+        };
+        let built = num(p, "models").is_some_and(|m| m >= 1.0);
+        let sfm = num(p, "sfm_seconds").filter(|_| built);
+        let fields = json!({
+            "ate_vs_dense": ratio(num(p, "ate_rmse_cm"), dense_ate),
+            "sfm_speedup": ratio(dense_sfm, sfm),
+            "gate_seconds": gate,
+            "end_to_end_speedup": ratio(dense_sfm, gate.zip(sfm).map(|(g, s)| g + s)),
+        });
+        if let (Value::Object(entry), Value::Object(fields)) = (p, fields) {
+            entry.extend(fields);
+        }
+    }
+}
+
+/// A pose of the consumer's JSON (camera centre, camera-to-world quaternion x, y, z, w) as an
+/// isometry (camera-to-world).
+fn consumer_pose(c: [f64; 3], q: [f64; 4]) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::from(Vector3::from(c)),
+        UnitQuaternion::from_quaternion(Quaternion::new(q[3], q[0], q[1], q[2])),
+    )
+}
+
+/// [`crate::dataset::write_trajectory`] with an eval error.
+fn write_tum(path: &Path, poses: &[(f64, Isometry3<f64>)]) -> Result<(), EvalError> {
+    crate::dataset::write_trajectory(path, poses).map_err(|e| EvalError(e.to_string()))
 }
 
 /// A temporary directory removed on drop (no extra dependency).
@@ -472,6 +615,79 @@ mod tests {
         let mirrored: Vec<_> = gt.iter().map(|p| Vector3::new(-p.x, p.y, p.z)).collect();
         let (_, r, _) = umeyama(&mirrored, &gt).unwrap();
         assert!((r.determinant() - 1.0).abs() < 1e-9);
+    }
+
+    /// One sequence of several: its models and trajectories one level down, nothing else moved.
+    #[test]
+    fn in_subdirectory_moves_only_the_output_directories() {
+        let cfg = SfmConfig {
+            work_dir: Some("sfm".into()),
+            trajectory_dir: Some("traj".into()),
+            dense_every: 7,
+            ..Default::default()
+        };
+        let sub = cfg.in_subdirectory("2-tum_fr1_desk");
+        assert_eq!(sub.work_dir, Some(PathBuf::from("sfm/2-tum_fr1_desk")));
+        assert_eq!(
+            sub.trajectory_dir,
+            Some(PathBuf::from("traj/2-tum_fr1_desk"))
+        );
+        assert_eq!(sub.dense_every, 7);
+        let none = SfmConfig::default().in_subdirectory("x");
+        assert!(none.work_dir.is_none() && none.trajectory_dir.is_none());
+    }
+
+    /// Each policy against dense: ratios where both parts exist, the gate's time where known.
+    #[test]
+    fn relative_to_dense_fills_the_ratios_it_can() {
+        let mut p = match json!({
+            "dense": {"ate_rmse_cm": 2.0, "sfm_seconds": 100.0, "models": 1},
+            "model": {"ate_rmse_cm": 2.4, "sfm_seconds": 50.0, "fps": 100.0, "models": 1},
+            "stride": {"ate_rmse_cm": 1.8, "sfm_seconds": 40.0, "models": 2},
+            "oracle": {"ate_rmse_cm": null, "sfm_seconds": 60.0, "models": 1},
+            "pixel_diff": {"ate_rmse_cm": null, "sfm_seconds": 0.0, "models": 0, "fps": 9.0},
+            "motion": {"sfm_error": "COLMAP failed"},
+        }) {
+            Value::Object(m) => m,
+            _ => unreachable!(),
+        };
+        relative_to_dense(&mut p, 700);
+        let f = |name: &str, k: &str| p[name][k].as_f64();
+        assert_eq!(f("dense", "ate_vs_dense"), Some(1.0));
+        assert_eq!(f("dense", "end_to_end_speedup"), Some(1.0));
+        assert!((f("model", "ate_vs_dense").unwrap() - 1.2).abs() < 1e-12);
+        assert_eq!(f("model", "sfm_speedup"), Some(2.0));
+        assert_eq!(f("model", "gate_seconds"), Some(7.0));
+        assert_eq!(f("model", "end_to_end_speedup"), Some(100.0 / 57.0));
+        assert_eq!(f("stride", "gate_seconds"), Some(0.0));
+        assert_eq!(f("stride", "end_to_end_speedup"), Some(2.5));
+        assert_eq!(f("oracle", "ate_vs_dense"), None);
+        assert_eq!(f("oracle", "sfm_speedup"), Some(100.0 / 60.0));
+        assert_eq!(f("oracle", "gate_seconds"), None);
+        assert_eq!(f("oracle", "end_to_end_speedup"), None);
+        for k in ["ate_vs_dense", "sfm_speedup", "end_to_end_speedup"] {
+            assert!(p["motion"][k].is_null(), "{k}");
+            assert!(p["pixel_diff"][k].is_null(), "{k}: no model, no speed-up");
+        }
+        assert_eq!(p["motion"]["sfm_error"], "COLMAP failed");
+    }
+
+    /// The consumer's `error:` lines make the message; without any, the tail of its stderr.
+    #[test]
+    fn consumer_failure_quotes_the_error_lines() {
+        use std::os::unix::process::ExitStatusExt;
+        let status = std::process::ExitStatus::from_raw(1 << 8);
+        let msg = consumer_failure(
+            &status,
+            b"reconstruct: info: x\nreconstruct: error: COLMAP failed during exhaustive matching\n",
+        );
+        assert!(
+            msg.ends_with(": COLMAP failed during exhaustive matching"),
+            "{msg}"
+        );
+        assert!(!msg.contains("info"), "{msg}");
+        let msg = consumer_failure(&status, b"Segmentation fault\n");
+        assert!(msg.ends_with("Segmentation fault"), "{msg}");
     }
 
     #[test]
