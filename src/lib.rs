@@ -42,10 +42,10 @@ pub use policy::{Decision, Gate, GateConfig, Reason, Score};
 pub use preprocess::{
     PixelFormat, PreprocessError, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix,
 };
-pub use remote::{Backend, RemoteError, RemoteOptions, RemoteScorer};
+pub use remote::{Backend, Interrupt, RemoteError, RemoteOptions, RemoteScorer};
 pub use runtime::RuntimeError;
 pub use scorer::{
-    default_max_sessions, ExecutionProvider, ModelInfo, ModelSource, Precision, Scorer,
+    default_max_sessions, ExecutionProvider, IdleHandle, ModelInfo, ModelSource, Precision, Scorer,
     ScorerError, ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
 };
 pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};

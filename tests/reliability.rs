@@ -510,6 +510,52 @@ fn drop_mode_sends_gap_events_for_dropped_spans() {
     assert_eq!(gaps, want);
 }
 
+/// Issue 22, item 14: a dropped buffer without PTS is announced at its DTS (as GstBaseSink
+/// times such a buffer); one with neither timestamp has no span to announce, so it sends no GAP
+/// (README, Gating), and is still counted (`frames-in` - `frames-kept`).
+#[test]
+fn dropped_buffers_without_pts_gap_at_their_dts_or_not_at_all() {
+    let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));
+    let pic = texture(W, H, 1);
+    let stamped = |i: u64, dts: bool| {
+        let mut b = buffer(pic.clone(), 0);
+        let m = b.get_mut().unwrap();
+        m.set_pts(gst::ClockTime::NONE);
+        m.set_dts(dts.then(|| gst::ClockTime::from_mseconds(i * 33)));
+        b
+    };
+    for i in 0..5u64 {
+        h.push(stamped(i, true)).unwrap();
+    }
+    for i in 5..9u64 {
+        h.push(stamped(i, false)).unwrap();
+    }
+    assert_eq!(
+        drain(&mut h).len(),
+        1,
+        "a static picture: only the first is kept"
+    );
+    let mut gaps = Vec::new();
+    while let Some(ev) = h.try_pull_event() {
+        if let gst::EventView::Gap(g) = ev.view() {
+            gaps.push(g.get().0);
+        }
+    }
+    let want: Vec<_> = (1..5u64)
+        .map(|i| gst::ClockTime::from_mseconds(i * 33))
+        .collect();
+    assert_eq!(
+        gaps, want,
+        "a GAP at each dropped buffer's DTS, none without timestamps"
+    );
+    let e = h.element().unwrap();
+    let (frames_in, kept) = (
+        e.property::<u64>("frames-in"),
+        e.property::<u64>("frames-kept"),
+    );
+    assert_eq!((frames_in, kept), (9, 1));
+}
+
 /// A compositor mixing a gated branch (a static picture: everything but the first frame dropped)
 /// with a moving branch must not stall waiting for frames that will never come. The gated branch's
 /// source stays open (no EOS), as a camera does: without GAP events the compositor waits on that
@@ -664,6 +710,91 @@ fn shared_batched_elements_match_separate_sessions() {
             assert!(
                 (ua.is_nan() && ub.is_nan()) || (ua - ub).abs() <= 1e-5,
                 "pipeline {s} frame {i}: {ua} vs {ub}"
+            );
+        }
+    }
+}
+
+/// Issue 22, item 2: four elements batch on one session (`batch-size=4`, a one-second
+/// `batch-timeout`); after 10 frames one of them stops streaming: EOS, PAUSED, or its sink stops
+/// pulling. The other three then gate their 40 frames far faster than one frame per timeout
+/// (30 s before the fix, when the idle element still counted as a batch member).
+#[test]
+fn an_element_that_stops_streaming_does_not_slow_its_batch_down() {
+    init();
+    for how in ["eos", "paused", "not pulled"] {
+        let (_dir, model) = student_copy();
+        let desc = format!(
+            "appsrc name=src format=time caps={} ! leangate model={} execution-provider=cpu \
+             max-sessions=1 batch-size=4 batch-timeout=1000000 mode=annotate ! \
+             appsink name=out sync=false max-buffers=1",
+            rgb_caps(W, H),
+            model.display()
+        );
+        let pipelines: Vec<gst::Pipeline> = (0..4)
+            .map(|_| {
+                gst::parse::launch(&desc)
+                    .unwrap()
+                    .downcast::<gst::Pipeline>()
+                    .unwrap()
+            })
+            .collect();
+        for p in &pipelines {
+            p.set_state(gst::State::Playing).unwrap();
+        }
+        let t0 = std::time::Instant::now();
+        let handles: Vec<_> = pipelines
+            .iter()
+            .enumerate()
+            .map(|(k, p)| {
+                let src = p
+                    .by_name("src")
+                    .unwrap()
+                    .downcast::<gst_app::AppSrc>()
+                    .unwrap();
+                let sink = p
+                    .by_name("out")
+                    .unwrap()
+                    .downcast::<gst_app::AppSink>()
+                    .unwrap();
+                let p = p.clone();
+                std::thread::spawn(move || {
+                    let stopper = k == 0;
+                    let frames = if stopper && how == "eos" { 10 } else { 40 };
+                    let pics: Vec<Vec<u8>> =
+                        (0..5).map(|i| texture(W, H, k as u32 * 5 + i)).collect();
+                    for i in 0..frames {
+                        src.push_buffer(buffer(pics[(i % 5) as usize].clone(), i * 33))
+                            .unwrap();
+                    }
+                    if frames == 10 {
+                        src.end_of_stream().unwrap();
+                    }
+                    let mut pulled = 0;
+                    while pulled < frames {
+                        if stopper && pulled == 10 {
+                            if how == "paused" {
+                                p.set_state(gst::State::Paused).unwrap();
+                            }
+                            break;
+                        }
+                        sink.try_pull_sample(gst::ClockTime::from_seconds(60))
+                            .expect("a frame");
+                        pulled += 1;
+                    }
+                    t0.elapsed()
+                })
+            })
+            .collect();
+        let took: Vec<_> = handles.into_iter().map(|h| h.join().unwrap()).collect();
+        for p in &pipelines {
+            p.set_state(gst::State::Null).unwrap();
+        }
+        eprintln!("{how}: {took:?}");
+        for t in &took[1..] {
+            assert!(
+                *t < std::time::Duration::from_secs(10),
+                "{how}: 40 frames took {t:?} (one per batch timeout after the 10th: 30 s)"
             );
         }
     }

@@ -10,7 +10,9 @@
 //!   warning names the server, and scoring resumes when it is back; a slow server times out
 //!   and fails open the same way;
 //! - start errors name the URL and what failed: unreachable, unknown model, wrong contract,
-//!   unsupported scheme.
+//!   unsupported scheme;
+//! - a server that stops answering (a proxy turned black hole) does not hold up a pipeline
+//!   stopping: the request in flight is interrupted, not waited out.
 //!
 //! Hostile servers (a scripted V2 server, tests/v2server/scripted.rs, with the fixture models;
 //! these always run): credentials in the URL are sent but never shown; one in-flight bound per
@@ -21,6 +23,10 @@
 mod common;
 mod v2server;
 
+use std::io::{Read, Write};
+use std::net::{TcpListener, TcpStream};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::*;
@@ -148,6 +154,8 @@ fn against_the_student_on_a_v2_server() {
     pair_model_remote_matches_local(&server);
     eprintln!("-- start errors");
     unknown_model_and_wrong_contract_are_start_errors_naming_them(&server);
+    eprintln!("-- hung requests");
+    a_hung_request_is_interrupted_by_stopping(&server);
     let pgid = server.pgid().unwrap();
     drop(server);
     assert!(
@@ -218,6 +226,176 @@ fn pair_model_remote_matches_local(server: &V2Server) {
     // One request per scored frame (all but the first), plus the start's dry run.
     assert_eq!(server.count("leangate-s") - before, frames.len() as u64);
     assert_eq!(e.property::<Option<String>>("server"), Some(server.url()));
+}
+
+/// A TCP proxy to the server on `upstream` that can turn into a black hole: it keeps accepting
+/// connections and reading requests, but nothing reaches the server and nothing comes back (a
+/// server that accepts the request and never answers).
+struct BlackHole {
+    port: u16,
+    on: Arc<AtomicBool>,
+}
+
+impl BlackHole {
+    fn start(upstream: u16) -> BlackHole {
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let on = Arc::new(AtomicBool::new(false));
+        let hole = on.clone();
+        std::thread::spawn(move || {
+            for client in listener.incoming() {
+                let Ok(client) = client else { return };
+                let Ok(server) = TcpStream::connect(("127.0.0.1", upstream)) else {
+                    continue;
+                };
+                let (c, s) = (client.try_clone().unwrap(), server.try_clone().unwrap());
+                let h = hole.clone();
+                std::thread::spawn(move || pump(c, s, &h));
+                let h = hole.clone();
+                std::thread::spawn(move || pump(server, client, &h));
+            }
+        });
+        BlackHole { port, on }
+    }
+
+    fn url(&self) -> String {
+        format!("http://127.0.0.1:{}", self.port)
+    }
+
+    fn set(&self, on: bool) {
+        self.on.store(on, Ordering::SeqCst);
+    }
+}
+
+/// Copy `from` to `to`, dropping the bytes while the hole is on.
+fn pump(mut from: TcpStream, mut to: TcpStream, hole: &AtomicBool) {
+    let mut buf = vec![0u8; 1 << 16];
+    while let Ok(n) = from.read(&mut buf) {
+        if n == 0 || (!hole.load(Ordering::SeqCst) && to.write_all(&buf[..n]).is_err()) {
+            break;
+        }
+    }
+    let _ = to.shutdown(std::net::Shutdown::Both);
+}
+
+/// Issue 22, item 3: with a request hanging (the server accepts it and never answers) and a
+/// 60 s `server-timeout`, `set_state(NULL)` returns within seconds (before: after the whole
+/// timeout), with no error or warning; and on the scorer itself, a cancel interrupts the request
+/// (not counted as a server failure: no backoff), the requests that follow fail at once until
+/// resumed, and scoring works again after.
+fn a_hung_request_is_interrupted_by_stopping(server: &V2Server) {
+    let hole = BlackHole::start(server.http_port);
+    let frames = clip(6);
+    init();
+    let desc = format!(
+        "appsrc name=src format=time caps={} ! leangate name=gate mode=annotate server={} \
+         server-timeout=60000 ! appsink name=out sync=false",
+        rgb_caps(W, H),
+        hole.url()
+    );
+    let pipeline = gst::parse::launch(&desc)
+        .unwrap()
+        .downcast::<gst::Pipeline>()
+        .unwrap();
+    let src = pipeline
+        .by_name("src")
+        .unwrap()
+        .downcast::<gst_app::AppSrc>()
+        .unwrap();
+    let sink = pipeline
+        .by_name("out")
+        .unwrap()
+        .downcast::<gst_app::AppSink>()
+        .unwrap();
+    let gate = pipeline.by_name("gate").unwrap();
+    pipeline.set_state(gst::State::Playing).unwrap();
+    for (i, f) in frames[..3].iter().enumerate() {
+        src.push_buffer(buffer(f.clone(), i as u64 * 33)).unwrap();
+        let s = sink
+            .try_pull_sample(gst::ClockTime::from_seconds(30))
+            .expect("a frame through the healthy server");
+        assert_ne!(meta(&s.buffer_owned().unwrap()).reason, Reason::Error);
+    }
+    hole.set(true);
+    src.push_buffer(buffer(frames[3].clone(), 99)).unwrap();
+    let t = Instant::now();
+    while gate.property::<u64>("frames-in") < 4 {
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "the 4th frame arrives"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    // The frame's request is on its way to nowhere.
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(sink.try_pull_sample(gst::ClockTime::ZERO).is_none());
+    let t = Instant::now();
+    pipeline.set_state(gst::State::Null).unwrap();
+    let took = t.elapsed();
+    eprintln!("set_state(NULL) with a request hanging: {took:?}");
+    assert!(
+        took < Duration::from_secs(5),
+        "set_state(NULL) waited {took:?} for the hung request"
+    );
+    let bus = pipeline.bus().unwrap();
+    while let Some(m) = bus.pop() {
+        assert!(
+            !matches!(
+                m.view(),
+                gst::MessageView::Error(_) | gst::MessageView::Warning(_)
+            ),
+            "an interrupted request is not a failure: {m:?}"
+        );
+    }
+
+    // The scorer: cancel, resume.
+    hole.set(false);
+    let local = gstleangate::Scorer::load(
+        &gstleangate::default_model(),
+        &gstleangate::ScorerOptions {
+            execution_provider: gstleangate::ExecutionProvider::Cpu,
+            precision: gstleangate::Precision::Fp32,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let mut remote = gstleangate::RemoteScorer::connect(
+        local,
+        &gstleangate::RemoteOptions {
+            url: hole.url(),
+            model: None,
+            timeout: Duration::from_secs(60),
+            max_in_flight: 0,
+        },
+    )
+    .unwrap();
+    let len = remote.info().spec.len();
+    let (a, b) = (vec![0.3f32; len], vec![0.6f32; len]);
+    remote.score(&a, &b).unwrap();
+    hole.set(true);
+    let cancel = remote.canceller();
+    let t = Instant::now();
+    let r = std::thread::scope(|scope| {
+        let h = scope.spawn(|| remote.score(&a, &b));
+        std::thread::sleep(Duration::from_millis(300));
+        cancel.cancel();
+        h.join().unwrap()
+    });
+    assert!(
+        matches!(r, Err(gstleangate::ScorerError::Interrupted)),
+        "{r:?}"
+    );
+    assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
+    assert!(matches!(
+        remote.score(&a, &b),
+        Err(gstleangate::ScorerError::Interrupted)
+    ));
+    hole.set(false);
+    cancel.resume();
+    remote
+        .score(&a, &b)
+        .expect("scoring works again after resume");
+    assert_eq!(remote.stats().failed_requests, 0, "{:?}", remote.stats());
 }
 
 fn error_of(props: &str) -> String {

@@ -389,6 +389,80 @@ fn a_single_batching_stream_never_waits() {
     );
 }
 
+/// Issue 22, item 2: a stream that stops must not slow the others down to one frame per
+/// `batch_timeout`. Four scorers batch on one session (batch 4, a one-second timeout); one stops
+/// after 10 frames, either silently (a sink that stopped pulling: only the timeout tells) or
+/// saying so (`idle`, as the element does at EOS, PAUSED or a flush). The other three then score
+/// 40 frames each far faster than 30 x 1 s (before the fix: one frame per second each), still in
+/// batches.
+#[test]
+fn a_stream_that_stops_does_not_hold_back_the_others_batches() {
+    for says_so in [false, true] {
+        // A copy of the student: a session of its own.
+        let (_dir, encoder) = common::student_copy();
+        let source = ModelSource::File(encoder);
+        let opts = ScorerOptions {
+            execution_provider: ExecutionProvider::Cpu,
+            shared: true,
+            max_sessions: 1,
+            batch_size: 4,
+            batch_timeout: std::time::Duration::from_secs(1),
+            ..Default::default()
+        };
+        let mut scorers: Vec<Scorer> = (0..4)
+            .map(|_| Scorer::load(&source, &opts).unwrap())
+            .collect();
+        assert!(scorers.iter().all(|s| s.is_batching()));
+        assert_eq!(scorers[0].batch_members(), (4, 0), "none streams yet");
+        let len = scorers[0].info().spec.len();
+        let frames: Vec<Vec<Vec<f32>>> = (0..4).map(|k| stream_frames(len, k, 41)).collect();
+        let t0 = std::time::Instant::now();
+        let took: Vec<std::time::Duration> = std::thread::scope(|scope| {
+            let handles: Vec<_> = scorers
+                .iter_mut()
+                .zip(&frames)
+                .enumerate()
+                .map(|(k, (s, f))| {
+                    scope.spawn(move || {
+                        if k == 0 {
+                            gate_stream(s, &f[..11]);
+                            if says_so {
+                                s.idle();
+                            }
+                        } else {
+                            gate_stream(s, f);
+                        }
+                        t0.elapsed()
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        let (batches, batched) = scorers[0].batch_counts();
+        eprintln!(
+            "stopper says so: {says_so}; finished after {took:?}; {batches} batches of {batched} \
+             frames"
+        );
+        for t in &took[1..] {
+            assert!(
+                *t < std::time::Duration::from_secs(10),
+                "stopper says so: {says_so}: 40 frames took {t:?} (one per batch timeout: 30 s)"
+            );
+        }
+        assert!(batched > batches, "frames were still batched");
+        let (members, streaming) = scorers[0].batch_members();
+        assert_eq!(members, 4);
+        if says_so {
+            assert!(
+                streaming <= 3,
+                "the stopped stream does not count: {streaming}"
+            );
+        }
+        drop(scorers.remove(0));
+        assert_eq!(scorers[0].batch_members().0, 3, "a dropped scorer leaves");
+    }
+}
+
 /// When another session of a shared model cannot be created, a new scorer shares an existing
 /// one and says so in its warnings, instead of failing to start. The second load is made to
 /// fail by corrupting the split model's head file after the first load (the registry knows the
@@ -396,12 +470,8 @@ fn a_single_batching_stream_never_waits() {
 /// session of the same model).
 #[test]
 fn a_failed_extra_session_falls_back_to_sharing_one_that_works() {
-    let dir = tempfile::tempdir().unwrap();
-    let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
-    for f in ["leangate-s-encoder.onnx", "leangate-s-head.onnx"] {
-        std::fs::copy(models.join(f), dir.path().join(f)).unwrap();
-    }
-    let source = ModelSource::File(dir.path().join("leangate-s-encoder.onnx"));
+    let (dir, encoder) = common::student_copy();
+    let source = ModelSource::File(encoder);
     let opts = ScorerOptions {
         execution_provider: ExecutionProvider::Cpu,
         shared: true,

@@ -14,7 +14,7 @@ use super::{
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
 use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
-use crate::remote::{Backend, RemoteOptions, RemoteScorer};
+use crate::remote::{Backend, Interrupt, RemoteOptions, RemoteScorer};
 use crate::scorer::{ModelSource, Scorer, ScorerError, ScorerOptions};
 use crate::stats::{InferenceStats, StatsMessage};
 use crate::utility::Utility;
@@ -164,11 +164,15 @@ struct Outbox {
 }
 
 /// Locking: `settings` and `state` are never held at the same time, and nothing is posted,
-/// pushed or called out while either is held.
+/// pushed or called out while either is held. `interrupt` is taken alone, briefly.
 #[derive(Default)]
 pub struct LeanGate {
     settings: Mutex<Settings>,
     state: Mutex<Option<State>>,
+    /// Stops the scorer's stream from a state change or flush while the streaming thread holds
+    /// `state` (leaves the batch, interrupts a server request in flight); set between start
+    /// and stop.
+    interrupt: Mutex<Option<Interrupt>>,
     frames_in: AtomicU64,
     frames_kept: AtomicU64,
     force_pending: AtomicBool,
@@ -203,6 +207,14 @@ impl LeanGate {
             },
             warmup: settings.warmup as u64,
             max_gap: settings.max_gap as u64,
+        }
+    }
+
+    /// Apply `f` to the scorer's [`Interrupt`] (between start and stop), with no lock held.
+    fn interrupt(&self, f: impl FnOnce(&Interrupt)) {
+        let i = lock(&self.interrupt).clone();
+        if let Some(i) = i {
+            f(&i);
         }
     }
 
@@ -310,12 +322,13 @@ impl LeanGate {
     }
 
     /// Score and decide one frame under the state lock; what is to be posted goes to `out`.
+    /// `None`: the scoring was interrupted (stopping or flushing, see `interrupt`).
     fn gate_frame(
         &self,
         buf: &gst::BufferRef,
         fs: &FrameSettings,
         out: &mut Outbox,
-    ) -> Result<Verdict, gst::FlowError> {
+    ) -> Result<Option<Verdict>, gst::FlowError> {
         let mut guard = lock(&self.state);
         let Some(state) = guard.as_mut() else {
             return Err(gst::FlowError::Flushing);
@@ -352,6 +365,8 @@ impl LeanGate {
                     }
                     (Score::Utility(u), u)
                 }
+                // Stopping or flushing (see `interrupt`): the frame goes nowhere.
+                Err(ScorerError::Interrupted) => return Ok(None),
                 Err(e) => {
                     self.warn_rate_limited(state, out, &e.to_string());
                     (Score::Failed, f64::NAN)
@@ -407,7 +422,7 @@ impl LeanGate {
             decision.keep,
             decision.reason
         );
-        Ok(Verdict {
+        Ok(Some(Verdict {
             keep: decision.keep,
             meta: GateMeta {
                 utility,
@@ -418,7 +433,7 @@ impl LeanGate {
                 frames_since_keyframe: decision.frames_since_keyframe.min(u32::MAX as u64) as u32,
                 inference_us,
             },
-        })
+        }))
     }
 }
 
@@ -815,6 +830,25 @@ impl LeanGate {
 impl GstObjectImpl for LeanGate {}
 
 impl ElementImpl for LeanGate {
+    fn change_state(
+        &self,
+        transition: gst::StateChange,
+    ) -> Result<gst::StateChangeSuccess, gst::StateChangeError> {
+        // Before the pads deactivate (which waits for the streaming thread): the elements
+        // batching with this one stop waiting for it, and a server request in flight is
+        // interrupted instead of running to its timeout.
+        match transition {
+            gst::StateChange::PlayingToPaused => self.interrupt(Interrupt::idle),
+            gst::StateChange::PausedToReady => self.interrupt(Interrupt::cancel),
+            _ => {}
+        }
+        let r = self.parent_change_state(transition);
+        if r.is_err() && transition == gst::StateChange::PausedToReady {
+            self.interrupt(Interrupt::resume);
+        }
+        r
+    }
+
     fn metadata() -> Option<&'static gst::subclass::ElementMetadata> {
         static ELEMENT_METADATA: LazyLock<gst::subclass::ElementMetadata> = LazyLock::new(|| {
             gst::subclass::ElementMetadata::new(
@@ -948,6 +982,7 @@ impl BaseTransformImpl for LeanGate {
         };
         let reference = alloc("reference")?;
         let current = alloc("current")?;
+        *lock(&self.interrupt) = Some(scorer.interrupt());
         let cfg = Self::gate_config(&FrameSettings::from(&settings), info.threshold);
         self.frames_in.store(0, Ordering::Relaxed);
         self.frames_kept.store(0, Ordering::Relaxed);
@@ -972,6 +1007,7 @@ impl BaseTransformImpl for LeanGate {
     }
 
     fn stop(&self) -> Result<(), gst::ErrorMessage> {
+        lock(&self.interrupt).take();
         let state = lock(&self.state).take();
         // Dropping the session happens outside the lock.
         drop(state);
@@ -1030,6 +1066,8 @@ impl BaseTransformImpl for LeanGate {
 
     fn sink_event(&self, event: gst::Event) -> bool {
         match event.view() {
+            // Not serialized: the streaming thread may be scoring a frame; interrupt it.
+            gst::EventView::FlushStart(_) => self.interrupt(Interrupt::cancel),
             gst::EventView::CustomDownstream(_)
             | gst::EventView::CustomDownstreamOob(_)
             | gst::EventView::CustomBoth(_)
@@ -1037,6 +1075,7 @@ impl BaseTransformImpl for LeanGate {
                 self.note_custom_event(&event);
             }
             gst::EventView::FlushStop(_) | gst::EventView::StreamStart(_) => {
+                self.interrupt(Interrupt::resume);
                 if let Some(state) = lock(&self.state).as_mut() {
                     state.gate.restart();
                     state.last_stats_pts = None;
@@ -1045,6 +1084,7 @@ impl BaseTransformImpl for LeanGate {
                 self.reset_pending.store(false, Ordering::SeqCst);
             }
             gst::EventView::Eos(_) => {
+                self.interrupt(Interrupt::idle);
                 let stats = lock(&self.state)
                     .as_mut()
                     .map(|state| self.stats_structure(state));
@@ -1077,7 +1117,8 @@ impl BaseTransformImpl for LeanGate {
         // The state lock is released: post, then push.
         self.send(out);
         let verdict = match verdict {
-            Ok(v) => v,
+            Ok(Some(v)) => v,
+            Ok(None) => return Err(gst::FlowError::Flushing),
             Err(e) => {
                 gst::element_imp_error!(
                     self,
@@ -1090,7 +1131,9 @@ impl BaseTransformImpl for LeanGate {
         if !verdict.keep && fs.mode == GateMode::Drop {
             // Tell time-driven elements downstream (aggregators such as compositor, muxers,
             // live sinks) that nothing comes for this span, instead of letting them wait for it.
-            if let Some(pts) = buf.pts() {
+            // The span starts at the PTS, else the DTS (as GstBaseSink times a buffer); a buffer
+            // with neither has no span to announce.
+            if let Some(pts) = buf.pts().or(buf.dts()) {
                 let gap = gst::event::Gap::builder(pts)
                     .duration(buf.duration())
                     .build();

@@ -1,7 +1,7 @@
 //! Where frames are scored: locally on ONNX Runtime, or on a V2 server.
 
-use super::RemoteScorer;
-use crate::scorer::{ModelInfo, Scorer, ScorerError};
+use super::{Canceller, RemoteScorer};
+use crate::scorer::{IdleHandle, ModelInfo, Scorer, ScorerError};
 use crate::stats::ServerStats;
 
 /// The element's scorer: the same calls whichever runs the model.
@@ -53,11 +53,67 @@ impl Backend {
         }
     }
 
+    /// The handle a state change or flush uses to stop this backend's stream from another
+    /// thread, without the lock the streaming thread scores under.
+    pub fn interrupt(&self) -> Interrupt {
+        match self {
+            Backend::Local(s) => Interrupt {
+                batch: s.idle_handle(),
+                remote: None,
+            },
+            Backend::Remote(r) => Interrupt {
+                batch: None,
+                remote: Some(r.canceller()),
+            },
+        }
+    }
+
+    /// The stream stops for now (EOS): see [`Interrupt::idle`].
+    pub fn idle(&self) {
+        if let Backend::Local(s) = self {
+            s.idle();
+        }
+    }
+
     /// The server's figures for `leangate-stats` (None when local).
     pub fn server_stats(&self) -> Option<ServerStats> {
         match self {
             Backend::Local(_) => None,
             Backend::Remote(r) => Some(r.stats()),
+        }
+    }
+}
+
+/// Stops a [`Backend`]'s stream from another thread (see [`Backend::interrupt`]).
+#[derive(Debug, Clone, Default)]
+pub struct Interrupt {
+    batch: Option<IdleHandle>,
+    remote: Option<Canceller>,
+}
+
+impl Interrupt {
+    /// The stream pauses (PAUSED, EOS): the elements batching with it stop waiting for its
+    /// frames until it scores again.
+    pub fn idle(&self) {
+        if let Some(b) = &self.batch {
+            b.idle();
+        }
+    }
+
+    /// The stream stops or flushes: as [`Interrupt::idle`], and a server request in flight fails
+    /// at once with [`ScorerError::Interrupted`] (as do the next ones, until
+    /// [`Interrupt::resume`]).
+    pub fn cancel(&self) {
+        self.idle();
+        if let Some(c) = &self.remote {
+            c.cancel();
+        }
+    }
+
+    /// After a flush: requests may go again.
+    pub fn resume(&self) {
+        if let Some(c) = &self.remote {
+            c.resume();
         }
     }
 }

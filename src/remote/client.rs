@@ -6,6 +6,8 @@
 //! little-endian float32 after the JSON header (`Inference-Header-Content-Length`); a response
 //! without binary data (`"data": [...]` in the JSON) is read too.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use serde_json::{json, Value};
@@ -100,10 +102,11 @@ fn status_text(code: u16) -> String {
 /// A V2 HTTP client for one server (`http://host:port` or `https://host:port`, optionally with
 /// a path prefix). Keeps its connections alive between requests. The URL's userinfo, if any,
 /// goes in an `Authorization: Basic` header, never in the request's URI (so no transport
-/// error can show it). Redirects are not followed.
+/// error can show it). Redirects are not followed. Clones share their connections and their
+/// [`Canceller`].
 #[derive(Clone)]
 pub struct V2Client {
-    agent: ureq::Agent,
+    agent: Canceller,
     base: String,
     authorization: Option<String>,
 }
@@ -113,6 +116,65 @@ impl std::fmt::Debug for V2Client {
         f.debug_struct("V2Client")
             .field("base", &self.base)
             .finish()
+    }
+}
+
+/// Interrupts a [`V2Client`]'s requests from another thread (a pipeline stopping or flushing):
+/// [`Canceller::cancel`] closes its connections, so that a request waiting for the server fails
+/// at once instead of at its timeout, and the requests that follow fail at once too, until
+/// [`Canceller::resume`]. (A TCP connect in progress is not interrupted: it is bounded by the
+/// timeout.)
+#[derive(Clone)]
+pub struct Canceller(Arc<Slot>);
+
+struct Slot {
+    config: ureq::config::Config,
+    agent: Mutex<ureq::Agent>,
+    cancelled: AtomicBool,
+}
+
+impl std::fmt::Debug for Canceller {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Canceller")
+            .field("cancelled", &self.is_cancelled())
+            .finish()
+    }
+}
+
+impl Canceller {
+    fn new(config: ureq::config::Config) -> Canceller {
+        Canceller(Arc::new(Slot {
+            agent: Mutex::new(config.clone().into()),
+            config,
+            cancelled: AtomicBool::new(false),
+        }))
+    }
+
+    fn agent(&self) -> ureq::Agent {
+        self.0
+            .agent
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    /// Fail the requests in flight and those that follow, until [`Canceller::resume`].
+    pub fn cancel(&self) {
+        self.0.cancelled.store(true, Ordering::SeqCst);
+        self.agent().shutdown();
+    }
+
+    /// Requests may go again (on new connections).
+    pub fn resume(&self) {
+        let mut agent = self.0.agent.lock().unwrap_or_else(|e| e.into_inner());
+        if self.0.cancelled.swap(false, Ordering::SeqCst) {
+            *agent = self.0.config.clone().into();
+        }
+    }
+
+    /// Between [`Canceller::cancel`] and [`Canceller::resume`].
+    pub fn is_cancelled(&self) -> bool {
+        self.0.cancelled.load(Ordering::SeqCst)
     }
 }
 
@@ -129,14 +191,19 @@ impl V2Client {
             .user_agent(concat!("leangate/", env!("CARGO_PKG_VERSION")))
             .build();
         V2Client {
-            agent: config.into(),
+            agent: Canceller::new(config),
             base: server.base(),
             authorization: server.authorization(),
         }
     }
 
+    /// The handle that interrupts this client's requests (see [`Canceller`]).
+    pub fn canceller(&self) -> Canceller {
+        self.agent.clone()
+    }
+
     fn get(&self, url: &str) -> Result<ureq::http::Response<ureq::Body>, ClientError> {
-        let mut req = self.agent.get(url);
+        let mut req = self.agent.agent().get(url);
         if let Some(a) = &self.authorization {
             req = req.header("Authorization", a);
         }
@@ -193,6 +260,7 @@ impl V2Client {
         let (body, json_len) = encode_request(inputs, outputs)?;
         let mut req = self
             .agent
+            .agent()
             .post(&self.model_url(model, "/infer"))
             .header("Content-Type", "application/octet-stream")
             .header(HEADER_LEN, json_len.to_string());

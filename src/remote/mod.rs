@@ -35,7 +35,8 @@ mod backend;
 pub mod client;
 pub mod url;
 
-pub use backend::Backend;
+pub use backend::{Backend, Interrupt};
+pub use client::Canceller;
 use client::{ClientError, InputTensor, ModelMetadata, TensorMeta, V2Client};
 pub use url::{display_url, ServerUrl};
 
@@ -524,7 +525,10 @@ impl RemoteScorer {
                 Ok(o)
             }
             Err(e) => {
-                self.failed += 1;
+                // A request interrupted by a stop or flush is not the server's failure.
+                if !self.client.canceller().is_cancelled() {
+                    self.failed += 1;
+                }
                 Err(e.to_string())
             }
         }
@@ -617,6 +621,10 @@ impl RemoteScorer {
     /// Score one pair of preprocessed tensors. While the server is in backoff after a failure,
     /// fails at once (the element keeps the frame) without a request.
     pub fn score(&mut self, reference: &[f32], current: &[f32]) -> Result<f32, ScorerError> {
+        let canceller = self.client.canceller();
+        if canceller.is_cancelled() {
+            return Err(ScorerError::Interrupted);
+        }
         if let Some(left) = self.backoff.wait_left() {
             return Err(ScorerError::Inference(format!(
                 "server `{}` (model `{}`) unavailable: {}; next attempt in {} ms",
@@ -639,6 +647,11 @@ impl RemoteScorer {
                 }
                 Ok(u)
             }
+            Err(_) if canceller.is_cancelled() => {
+                // Interrupted by a state change or flush (see `canceller`): no backoff.
+                self.current = None;
+                Err(ScorerError::Interrupted)
+            }
             Err(e) => {
                 self.current = None;
                 self.backoff.fail(e.clone());
@@ -649,6 +662,12 @@ impl RemoteScorer {
                 )))
             }
         }
+    }
+
+    /// The handle that interrupts this scorer's requests in flight from another thread (a
+    /// pipeline stopping or flushing); they fail with [`ScorerError::Interrupted`].
+    pub fn canceller(&self) -> Canceller {
+        self.client.canceller()
     }
 
     /// See [`Scorer::on_keep`].

@@ -13,9 +13,8 @@
 use std::collections::HashMap;
 use std::fmt;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, Condvar, LazyLock, Mutex, MutexGuard, Weak};
-use std::time::{Duration, Instant};
+use std::sync::{Arc, LazyLock, Mutex, MutexGuard, Weak};
+use std::time::Duration;
 
 use ort::session::Session;
 use ort::value::TensorRef;
@@ -23,10 +22,12 @@ use ort::value::TensorRef;
 use crate::preprocess::{try_zeroed, TensorSpec};
 use crate::runtime;
 
+mod batch;
 mod contract;
 mod head;
 mod session;
 
+use batch::{Batcher, Job};
 pub use contract::{CONTRACT, MAX_INPUT_SIDE, MAX_TENSOR_BYTES};
 use session::{build_session, BuildError, Input};
 
@@ -203,6 +204,10 @@ pub enum ScorerError {
     /// Run-time failure.
     #[error("inference failed: {0}")]
     Inference(String),
+    /// The element is stopping or flushing and interrupted the request in flight (remote
+    /// scoring): not a failure of the model or the server.
+    #[error("interrupted: the element is stopping or flushing")]
+    Interrupted,
 }
 
 /// What the model says about itself (metadata merged with the graph's shapes).
@@ -310,17 +315,32 @@ pub struct Scorer {
     encoder_runs: u64,
     batch_size: usize,
     batch_timeout: Duration,
-    /// Registered as a batching user of `model.batcher` (unregistered on drop).
-    batching: bool,
+    /// This scorer's membership of `model.batcher` when batching (it leaves on drop).
+    member: Option<u64>,
     /// Warnings collected while choosing the provider (`auto` fallbacks).
     pub warnings: Vec<String>,
 }
 
 impl Drop for Scorer {
     fn drop(&mut self) {
-        if self.batching {
-            self.model.batcher.users.fetch_sub(1, Ordering::SeqCst);
-            self.model.batcher.cv.notify_all();
+        if let Some(m) = self.member {
+            self.model.batcher.leave(m);
+        }
+    }
+}
+
+/// See [`Scorer::idle_handle`].
+#[derive(Debug, Clone)]
+pub struct IdleHandle {
+    model: Weak<Model>,
+    member: u64,
+}
+
+impl IdleHandle {
+    /// See [`Scorer::idle`].
+    pub fn idle(&self) {
+        if let Some(m) = self.model.upgrade() {
+            m.batcher.idle(self.member);
         }
     }
 }
@@ -333,29 +353,6 @@ impl fmt::Debug for Scorer {
             .field("batch_size", &self.batch_size)
             .finish()
     }
-}
-
-/// Coalesces concurrent encoder runs of the scorers sharing a model into batches.
-#[derive(Default)]
-struct Batcher {
-    state: Mutex<BatchState>,
-    cv: Condvar,
-    /// Scorers with batching on.
-    users: AtomicUsize,
-}
-
-#[derive(Default)]
-struct BatchState {
-    queue: Vec<(u64, Vec<f32>)>,
-    next_ticket: u64,
-    /// A scorer is collecting or running a batch.
-    leader: bool,
-    done: HashMap<u64, Result<Features, String>>,
-    /// The batched input, reused.
-    input: Vec<f32>,
-    /// Batches run and frames in them (for tests and benchmarks).
-    batches: u64,
-    frames: u64,
 }
 
 impl Scorer {
@@ -427,9 +424,7 @@ impl Scorer {
                     ..
                 }
             );
-        if batching {
-            model.batcher.users.fetch_add(1, Ordering::SeqCst);
-        }
+        let member = batching.then(|| model.batcher.join());
         let mut warnings = model.warnings.clone();
         warnings.extend(fallback);
         if matches!(source, ModelSource::File(_)) && opts.precision != Precision::Auto {
@@ -448,7 +443,7 @@ impl Scorer {
             encoder_runs: 0,
             batch_size: opts.batch_size.max(1),
             batch_timeout: opts.batch_timeout,
-            batching,
+            member,
         })
     }
 
@@ -505,7 +500,7 @@ impl Scorer {
                         encoder_runs: 0,
                         batch_size: 1,
                         batch_timeout: Duration::ZERO,
-                        batching: false,
+                        member: None,
                         warnings: Vec::new(),
                     };
                     let r = scorer.dry_run(&model);
@@ -654,13 +649,35 @@ impl Scorer {
     /// Whether this scorer's frames go through the batcher (shared, `batch_size` > 1, and a
     /// model whose encoder takes a dynamic batch).
     pub fn is_batching(&self) -> bool {
-        self.batching
+        self.member.is_some()
     }
 
     /// Batched encoder runs of the shared model so far, and the frames in them.
     pub fn batch_counts(&self) -> (u64, u64) {
-        let st = lock(&self.model.batcher.state);
-        (st.batches, st.frames)
+        self.model.batcher.counts()
+    }
+
+    /// The batching scorers of the shared model, and how many of them count as streaming (the
+    /// others' frames wait for theirs; see [`Scorer::idle`]).
+    pub fn batch_members(&self) -> (usize, usize) {
+        self.model.batcher.members()
+    }
+
+    /// This stream stops for now (EOS, PAUSED, flush): the scorers batching with it stop waiting
+    /// for its frames until it scores again. Nothing to do when not batching.
+    pub fn idle(&self) {
+        if let Some(m) = self.member {
+            self.model.batcher.idle(m);
+        }
+    }
+
+    /// A handle that does [`Scorer::idle`] from another thread (a state change) without access
+    /// to the scorer; `None` when not batching. It keeps no session alive.
+    pub fn idle_handle(&self) -> Option<IdleHandle> {
+        self.member.map(|member| IdleHandle {
+            model: Arc::downgrade(&self.model),
+            member,
+        })
     }
 
     /// Score one pair of preprocessed tensors (CHW, `spec.len()` elements each). A split model
@@ -727,77 +744,35 @@ impl Scorer {
         shape: [usize; 4],
         image: &[f32],
     ) -> Result<Features, ScorerError> {
-        if self.batching {
-            self.encode_batched(encoder, shape, image)
+        if let Some(member) = self.member {
+            self.encode_batched(member, encoder, shape, image)
         } else {
             encode(&mut lock(encoder), shape, image)
         }
     }
 
-    /// Queue the image; the first waiting scorer leads: it waits (at most `batch_timeout`)
-    /// until as many frames as there are batching scorers (at most `batch_size`) are queued,
-    /// runs them as one batch, and hands each its features.
+    /// Queue the image in the model's batcher (see [`batch`]) and wait for its features.
     fn encode_batched(
         &self,
+        member: u64,
         encoder: &Mutex<Session>,
         shape: [usize; 4],
         image: &[f32],
     ) -> Result<Features, ScorerError> {
-        let b = &self.model.batcher;
         let mut own = Vec::new();
         own.try_reserve_exact(image.len())
             .map_err(|e| ScorerError::Inference(format!("cannot queue a frame: {e}")))?;
         own.extend_from_slice(image);
-        let mut st = lock(&b.state);
-        let ticket = st.next_ticket;
-        st.next_ticket += 1;
-        st.queue.push((ticket, own));
-        b.cv.notify_all();
-        loop {
-            if let Some(r) = st.done.remove(&ticket) {
-                return r.map_err(ScorerError::Inference);
-            }
-            if st.leader {
-                st = b.cv.wait(st).unwrap_or_else(|e| e.into_inner());
-                continue;
-            }
-            st.leader = true;
-            let deadline = Instant::now() + self.batch_timeout;
-            loop {
-                let want = self.batch_size.min(b.users.load(Ordering::SeqCst)).max(1);
-                let now = Instant::now();
-                if st.queue.len() >= want || now >= deadline {
-                    break;
-                }
-                st =
-                    b.cv.wait_timeout(st, deadline - now)
-                        .unwrap_or_else(|e| e.into_inner())
-                        .0;
-            }
-            let take = st.queue.len().min(self.batch_size);
-            let jobs: Vec<(u64, Vec<f32>)> = st.queue.drain(..take).collect();
-            let mut input = std::mem::take(&mut st.input);
-            drop(st);
-            let results = run_batch(encoder, shape, &jobs, &mut input);
-            st = lock(&b.state);
-            st.input = input;
-            st.batches += 1;
-            st.frames += jobs.len() as u64;
-            match results {
-                Ok(feats) => {
-                    for ((t, _), f) in jobs.iter().zip(feats) {
-                        st.done.insert(*t, Ok(f));
-                    }
-                }
-                Err(e) => {
-                    for (t, _) in &jobs {
-                        st.done.insert(*t, Err(e.clone()));
-                    }
-                }
-            }
-            st.leader = false;
-            b.cv.notify_all();
-        }
+        self.model
+            .batcher
+            .encode(
+                member,
+                self.batch_size,
+                self.batch_timeout,
+                own,
+                |jobs, input| run_batch(encoder, shape, jobs, input),
+            )
+            .map_err(ScorerError::Inference)
     }
 
     /// The frame just decided was kept and is the new reference. `scored`: it was scored by the
@@ -821,7 +796,7 @@ impl Scorer {
 fn run_batch(
     encoder: &Mutex<Session>,
     shape: [usize; 4],
-    jobs: &[(u64, Vec<f32>)],
+    jobs: &[Job],
     input: &mut Vec<f32>,
 ) -> Result<Vec<Features>, String> {
     let n = jobs.len();
@@ -830,8 +805,8 @@ fn run_batch(
     input
         .try_reserve(n * one)
         .map_err(|e| format!("cannot allocate a batch of {n}: {e}"))?;
-    for (_, x) in jobs {
-        input.extend_from_slice(x);
+    for j in jobs {
+        input.extend_from_slice(&j.image);
     }
     let shape = [n, shape[1], shape[2], shape[3]];
     let t = TensorRef::from_array_view((shape, &input[..])).map_err(|e| e.to_string())?;

@@ -55,6 +55,19 @@ mod paths;
 #[allow(unused_imports)]
 pub use paths::{fixture, shared_data};
 
+/// A copy of the shipped student `leangate-s` (split: encoder and head) in a temporary folder:
+/// a model of its own for the session registry (which knows a model file by its path), so that
+/// elements of one test share no session with those of another.
+pub fn student_copy() -> (tempfile::TempDir, std::path::PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
+    for f in ["leangate-s-encoder.onnx", "leangate-s-head.onnx"] {
+        std::fs::copy(models.join(f), dir.path().join(f)).unwrap();
+    }
+    let encoder = dir.path().join("leangate-s-encoder.onnx");
+    (dir, encoder)
+}
+
 pub fn solid(w: u32, h: u32, rgb: [u8; 3]) -> Vec<u8> {
     (0..w * h).flat_map(|_| rgb).collect()
 }
