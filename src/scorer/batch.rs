@@ -1,8 +1,16 @@
 //! Coalescing the encoder runs of the scorers that share a model into batches.
 //!
-//! Each batching scorer is a **member** of its model's [`Batcher`]. A frame is queued; the first
-//! waiting member leads: it waits (at most `batch_timeout`) until every *streaming* member has a
-//! frame queued (at most `batch_size`), runs them as one batch and hands each its features.
+//! Each batching scorer is a **member** of its model's [`Batcher`]. A frame is queued; the
+//! model's batch worker (one thread per batching model, while it has members) waits at most the
+//! first queued frame's `batch_timeout` until every *streaming* member has a frame queued (at
+//! most its `batch_size`), runs them as one batch and hands each its features.
+//!
+//! One thread runs every batch of a model so that ONNX Runtime's memory for the batches (its
+//! arena grows with the batch size) is allocated and freed by one thread. When whichever
+//! member's streaming thread happened to lead ran the batch, each model's arena grew on another
+//! thread, and the C allocator kept the freed blocks in as many per-thread arenas: creating and
+//! destroying elements with mixed batch sizes grew the resident memory round after round
+//! (issue 22, item 4; `tests/churn_memory.rs`).
 //!
 //! What "streaming" means: a member streams from the moment it queues a frame. It stops counting
 //! (the others no longer wait for it) when
@@ -22,10 +30,12 @@ use std::time::{Duration, Instant};
 
 use super::{lock, Features};
 
-/// One queued frame.
+/// One queued frame, with its member's batch settings.
 pub(super) struct Job {
     ticket: u64,
     member: u64,
+    batch_size: usize,
+    timeout: Duration,
     pub(super) image: Vec<f32>,
 }
 
@@ -42,9 +52,10 @@ struct BatchState {
     members: HashMap<u64, bool>,
     next_member: u64,
     next_ticket: u64,
-    /// A member is collecting or running a batch.
-    leader: bool,
-    done: HashMap<u64, Result<Features, String>>,
+    /// The batch worker runs.
+    worker: bool,
+    /// Each finished frame's features, and its image buffer back for reuse.
+    done: HashMap<u64, (Result<Features, String>, Vec<f32>)>,
     /// The batched input, reused.
     input: Vec<f32>,
     /// Batches run and frames in them (for tests and benchmarks).
@@ -89,13 +100,18 @@ impl Batcher {
         lock(&self.state)
     }
 
-    /// A new member; it counts as streaming from its first frame.
-    pub(super) fn join(&self) -> u64 {
+    /// A new member; it counts as streaming from its first frame. `spawn` starts the batch
+    /// worker (a thread that calls [`Batcher::serve`]) when none runs; `None` if it could not.
+    pub(super) fn join(&self, spawn: impl FnOnce() -> std::io::Result<()>) -> Option<u64> {
         let mut st = self.state();
+        if !st.worker {
+            spawn().ok()?;
+            st.worker = true;
+        }
         let id = st.next_member;
         st.next_member += 1;
         st.members.insert(id, false);
-        id
+        Some(id)
     }
 
     /// The member is gone: the others stop waiting for it.
@@ -129,24 +145,24 @@ impl Batcher {
         )
     }
 
-    /// Queue `image` for `member` and return its features, computed in a batch by whichever
-    /// member leads; `run` computes the features of a batch (`jobs` in order, `input` a buffer
-    /// to reuse for the batched tensor).
+    /// Queue `image` for `member` and wait for its features, computed in a batch by the worker;
+    /// `image` comes back with them, to be reused (no allocation per frame in the streaming
+    /// thread).
     pub(super) fn encode(
         &self,
         member: u64,
         batch_size: usize,
         timeout: Duration,
         image: Vec<f32>,
-        run: impl Fn(&[Job], &mut Vec<f32>) -> Result<Vec<Features>, String>,
-    ) -> Result<Features, String> {
-        let batch_size = batch_size.max(1);
+    ) -> (Result<Features, String>, Vec<f32>) {
         let mut st = self.state();
         let ticket = st.next_ticket;
         st.next_ticket += 1;
         st.queue.push(Job {
             ticket,
             member,
+            batch_size: batch_size.max(1),
+            timeout,
             image,
         });
         if let Some(s) = st.members.get_mut(&member) {
@@ -157,11 +173,28 @@ impl Batcher {
             if let Some(r) = st.done.remove(&ticket) {
                 return r;
             }
-            if st.leader {
+            st = self.cv.wait(st).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+
+    /// The batch worker: collect and run batches until the last member leaves. `run` computes
+    /// the features of a batch (`jobs` in order, `input` a buffer to reuse for the batched
+    /// tensor).
+    pub(super) fn serve(
+        &self,
+        run: impl Fn(&[Job], &mut Vec<f32>) -> Result<Vec<Features>, String>,
+    ) {
+        let mut st = self.state();
+        loop {
+            if st.members.is_empty() {
+                st.worker = false;
+                return;
+            }
+            let Some((batch_size, timeout)) = st.queue.first().map(|j| (j.batch_size, j.timeout))
+            else {
                 st = self.cv.wait(st).unwrap_or_else(|e| e.into_inner());
                 continue;
-            }
-            st.leader = true;
+            };
             let deadline = Instant::now() + timeout;
             while !st.ready(batch_size) {
                 let now = Instant::now();
@@ -179,30 +212,24 @@ impl Batcher {
             let jobs: Vec<Job> = st.queue.drain(..take).collect();
             let mut input = std::mem::take(&mut st.input);
             drop(st);
-            let results = run(&jobs, &mut input);
+            let results =
+                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run(&jobs, &mut input)))
+                    .unwrap_or_else(|_| Err("the batch run panicked".into()));
             st = self.state();
             st.input = input;
             st.batches += 1;
             st.frames += jobs.len() as u64;
-            match results {
-                Ok(feats) if feats.len() == jobs.len() => {
-                    for (j, f) in jobs.iter().zip(feats) {
-                        st.done.insert(j.ticket, Ok(f));
-                    }
-                }
+            let results = match results {
+                Ok(feats) if feats.len() == jobs.len() => feats.into_iter().map(Ok).collect(),
                 Ok(feats) => {
                     let e = format!("{} features for a batch of {}", feats.len(), jobs.len());
-                    for j in &jobs {
-                        st.done.insert(j.ticket, Err(e.clone()));
-                    }
+                    vec![Err(e); jobs.len()]
                 }
-                Err(e) => {
-                    for j in &jobs {
-                        st.done.insert(j.ticket, Err(e.clone()));
-                    }
-                }
+                Err(e) => vec![Err(e); jobs.len()],
+            };
+            for (j, r) in jobs.into_iter().zip(results) {
+                st.done.insert(j.ticket, (r, j.image));
             }
-            st.leader = false;
             self.cv.notify_all();
         }
     }
@@ -216,6 +243,8 @@ mod tests {
         st.queue.push(Job {
             ticket: st.next_ticket,
             member,
+            batch_size: 4,
+            timeout: Duration::ZERO,
             image: Vec::new(),
         });
         st.next_ticket += 1;
@@ -284,26 +313,44 @@ mod tests {
 
     #[test]
     fn members_join_idle_and_stream_from_their_first_frame() {
-        let b = Batcher::default();
-        let (a, c) = (b.join(), b.join());
-        assert_eq!(b.members(), (2, 0));
-        let f = b
-            .encode(a, 4, Duration::from_secs(5), vec![1.0], |jobs, _| {
-                Ok(jobs
-                    .iter()
-                    .map(|j| Features {
-                        shape: vec![1],
-                        data: j.image.clone(),
+        let b = std::sync::Arc::new(Batcher::default());
+        let spawn = || {
+            let b = b.clone();
+            std::thread::Builder::new()
+                .spawn(move || {
+                    b.serve(|jobs, _| {
+                        Ok(jobs
+                            .iter()
+                            .map(|j| Features {
+                                shape: vec![1],
+                                data: j.image.clone(),
+                            })
+                            .collect())
                     })
-                    .collect())
-            })
-            .unwrap();
-        assert_eq!(f.data, vec![1.0]);
+                })
+                .map(|_| ())
+        };
+        let a = b.join(spawn).unwrap();
+        let c = b.join(|| panic!("one worker")).unwrap();
+        assert_eq!(b.members(), (2, 0));
+        // `c` does not stream yet: no wait for it.
+        let (f, back) = b.encode(a, 4, Duration::from_secs(5), vec![1.0]);
+        assert_eq!(f.unwrap().data, vec![1.0]);
+        assert_eq!(back, vec![1.0], "the image buffer comes back");
         assert_eq!(b.members(), (2, 1));
         b.idle(a);
         assert_eq!(b.members(), (2, 0));
         b.leave(c);
         assert_eq!(b.members(), (1, 0));
         assert_eq!(b.counts(), (1, 1));
+        b.leave(a);
+        let t = Instant::now();
+        while b.state().worker {
+            assert!(
+                t.elapsed() < Duration::from_secs(5),
+                "the worker ends with the last member"
+            );
+            std::thread::sleep(Duration::from_millis(1));
+        }
     }
 }

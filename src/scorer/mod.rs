@@ -317,6 +317,8 @@ pub struct Scorer {
     batch_timeout: Duration,
     /// This scorer's membership of `model.batcher` when batching (it leaves on drop).
     member: Option<u64>,
+    /// The buffer a frame is queued in for the batcher, reused.
+    staging: Vec<f32>,
     /// Warnings collected while choosing the provider (`auto` fallbacks).
     pub warnings: Vec<String>,
 }
@@ -424,7 +426,7 @@ impl Scorer {
                     ..
                 }
             );
-        let member = batching.then(|| model.batcher.join());
+        let member = if batching { join_batch(&model) } else { None };
         let mut warnings = model.warnings.clone();
         warnings.extend(fallback);
         if matches!(source, ModelSource::File(_)) && opts.precision != Precision::Auto {
@@ -444,6 +446,7 @@ impl Scorer {
             batch_size: opts.batch_size.max(1),
             batch_timeout: opts.batch_timeout,
             member,
+            staging: Vec::new(),
         })
     }
 
@@ -501,6 +504,7 @@ impl Scorer {
                         batch_size: 1,
                         batch_timeout: Duration::ZERO,
                         member: None,
+                        staging: Vec::new(),
                         warnings: Vec::new(),
                     };
                     let r = scorer.dry_run(&model);
@@ -739,40 +743,31 @@ impl Scorer {
 
     /// Encode one image, through the batcher when batching.
     fn encode(
-        &self,
+        &mut self,
         encoder: &Mutex<Session>,
         shape: [usize; 4],
         image: &[f32],
     ) -> Result<Features, ScorerError> {
         if let Some(member) = self.member {
-            self.encode_batched(member, encoder, shape, image)
+            self.encode_batched(member, image)
         } else {
             encode(&mut lock(encoder), shape, image)
         }
     }
 
     /// Queue the image in the model's batcher (see [`batch`]) and wait for its features.
-    fn encode_batched(
-        &self,
-        member: u64,
-        encoder: &Mutex<Session>,
-        shape: [usize; 4],
-        image: &[f32],
-    ) -> Result<Features, ScorerError> {
-        let mut own = Vec::new();
+    fn encode_batched(&mut self, member: u64, image: &[f32]) -> Result<Features, ScorerError> {
+        let mut own = std::mem::take(&mut self.staging);
+        own.clear();
         own.try_reserve_exact(image.len())
             .map_err(|e| ScorerError::Inference(format!("cannot queue a frame: {e}")))?;
         own.extend_from_slice(image);
-        self.model
+        let (r, own) = self
+            .model
             .batcher
-            .encode(
-                member,
-                self.batch_size,
-                self.batch_timeout,
-                own,
-                |jobs, input| run_batch(encoder, shape, jobs, input),
-            )
-            .map_err(ScorerError::Inference)
+            .encode(member, self.batch_size, self.batch_timeout, own);
+        self.staging = own;
+        r.map_err(ScorerError::Inference)
     }
 
     /// The frame just decided was kept and is the new reference. `scored`: it was scored by the
@@ -789,6 +784,29 @@ impl Scorer {
     pub fn reset_reference(&mut self) {
         self.on_keep(false);
     }
+}
+
+/// Join the model's batcher, starting its batch worker if none runs; `None` (the scorer then
+/// runs unbatched) when no thread could be started.
+fn join_batch(model: &Arc<Model>) -> Option<u64> {
+    model.batcher.join(|| {
+        let m = model.clone();
+        std::thread::Builder::new()
+            .name("leangate-batch".into())
+            .spawn(move || {
+                let spec = &m.info.spec;
+                let shape = [1usize, 3, spec.height as usize, spec.width as usize];
+                match &m.kind {
+                    Kind::Split { encoder, .. } => m
+                        .batcher
+                        .serve(|jobs, input| run_batch(encoder, shape, jobs, input)),
+                    Kind::Pair(_) => m
+                        .batcher
+                        .serve(|_, _| Err("a pair model has no encoder to batch".into())),
+                }
+            })
+            .map(|_| ())
+    })
 }
 
 /// Run `jobs` (images of `shape` [1,3,H,W] each) through the encoder as one batch; the
