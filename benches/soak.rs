@@ -9,6 +9,13 @@
 //!
 //! Prints RSS every 100,000 frames and fails (exit 1) if RSS after warm-up (the first 100,000
 //! frames) grows by more than 1 MiB, or if a frame is lost.
+//!
+//! `cargo bench --bench soak -- churn` (issue 22, item 4) instead creates and destroys elements:
+//! `LEANGATE_CHURN_ROUNDS` (default 50) rounds of 50 pipelines `videotestsrc num-buffers=5 !
+//! leangate batch-size=B ! fakesink` run together (the embedded student on the CPU, shared
+//! sessions, batch sizes 1, 4, 7 and 10 mixed; `LEANGATE_CHURN_BATCH=1` for all at 1), and prints
+//! RSS after each round; it fails (exit 1) if RSS grows by more than 8 MiB from round 10 to the
+//! end.
 
 use std::time::Instant;
 
@@ -37,9 +44,82 @@ fn texture(seed: u32) -> Vec<u8> {
     v
 }
 
+/// One round of `churn`: 50 elements with mixed batch sizes, created, run, destroyed.
+fn churn_round(sizes: &[u32]) {
+    let pipelines: Vec<gst::Element> = (0..50)
+        .map(|i| {
+            gst::parse::launch(&format!(
+                "videotestsrc num-buffers=5 pattern={} ! video/x-raw,format=RGB,width=160,\
+                 height=120 ! leangate execution-provider=cpu batch-size={} ! fakesink",
+                i % 20,
+                sizes[i % sizes.len()]
+            ))
+            .unwrap()
+        })
+        .collect();
+    for p in &pipelines {
+        p.set_state(gst::State::Playing).unwrap();
+    }
+    for p in &pipelines {
+        let bus = p.bus().unwrap();
+        let msg = bus.timed_pop_filtered(
+            gst::ClockTime::from_seconds(60),
+            &[gst::MessageType::Eos, gst::MessageType::Error],
+        );
+        match msg.as_ref().map(|m| m.view()) {
+            Some(gst::MessageView::Eos(_)) => {}
+            other => panic!("churn: a pipeline did not finish: {other:?}"),
+        }
+    }
+    for p in &pipelines {
+        p.set_state(gst::State::Null).unwrap();
+    }
+}
+
+fn churn() {
+    let rounds: usize = std::env::var("LEANGATE_CHURN_ROUNDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(50);
+    // `LEANGATE_CHURN_BATCH=1`: every element at batch size 1 (the control).
+    let sizes: Vec<u32> = match std::env::var("LEANGATE_CHURN_BATCH") {
+        Ok(b) => vec![b.parse().expect("LEANGATE_CHURN_BATCH: a batch size")],
+        Err(_) => vec![1, 4, 7, 10],
+    };
+    println!(
+        "churn: {rounds} rounds of 50 elements (batch sizes {sizes:?}), created, run, destroyed"
+    );
+    let t0 = Instant::now();
+    let mut rss = Vec::new();
+    for r in 0..rounds {
+        churn_round(&sizes);
+        rss.push(rss_kib());
+        println!("  round {:>3}  RSS {:>7} KiB", r + 1, rss[r]);
+    }
+    let warm = rss[9.min(rounds - 1)];
+    let end = *rss.last().unwrap();
+    println!(
+        "churn: RSS after round 1 {} KiB, round 10 {warm} KiB, round {rounds} {end} KiB ({:+} KiB \
+         from round 10), {:.1} s",
+        rss[0],
+        end as i64 - warm as i64,
+        t0.elapsed().as_secs_f64()
+    );
+    if end > warm + 8 * 1024 {
+        println!("FAIL: RSS grew by more than 8 MiB after round 10");
+        std::process::exit(1);
+    }
+}
+
 fn main() {
     if std::env::args().any(|a| a == "--list" || a == "--test") {
         return; // `cargo test --benches` / `cargo bench -- --list`
+    }
+    if std::env::args().any(|a| a == "churn") {
+        gst::init().unwrap();
+        gstleangate::plugin_register_static().unwrap();
+        churn();
+        return;
     }
     let frames: u64 = std::env::var("LEANGATE_SOAK_FRAMES")
         .ok()

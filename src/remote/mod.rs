@@ -19,7 +19,8 @@
 //! one waiting for a timeout while the server is away; the first request that succeeds resets it.
 //! Requests in flight to one server are bounded process-wide (`server-max-in-flight`): one bound
 //! per server however its URL is spelled ([`url::ServerUrl::server_key`]), the smallest bound of
-//! the elements using it.
+//! the elements using it. Stopping or flushing the element interrupts a request in flight
+//! ([`Canceller`]) instead of waiting for its timeout.
 //!
 //! A server URL is shown (errors, warnings, logs, stats) by [`display_url`] only: any
 //! credentials in it are sent as HTTP basic authentication and never shown.
