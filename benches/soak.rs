@@ -14,8 +14,8 @@
 //! `LEANGATE_CHURN_ROUNDS` (default 50) rounds of 50 pipelines `videotestsrc num-buffers=5 !
 //! leangate batch-size=B ! fakesink` run together (the embedded student on the CPU, shared
 //! sessions, batch sizes 1, 4, 7 and 10 mixed; `LEANGATE_CHURN_BATCH=1` for all at 1), and prints
-//! RSS after each round; it fails (exit 1) if RSS grows by more than 8 MiB from round 10 to the
-//! end.
+//! RSS after each round; it fails (exit 1) if RSS grows by more than 24 MiB from round 20 to
+//! the end (before the fix of issue 22: +250 MiB).
 
 use std::time::Instant;
 
@@ -96,17 +96,17 @@ fn churn() {
         rss.push(rss_kib());
         println!("  round {:>3}  RSS {:>7} KiB", r + 1, rss[r]);
     }
-    let warm = rss[9.min(rounds - 1)];
+    let warm = rss[19.min(rounds - 1)];
     let end = *rss.last().unwrap();
     println!(
-        "churn: RSS after round 1 {} KiB, round 10 {warm} KiB, round {rounds} {end} KiB ({:+} KiB \
-         from round 10), {:.1} s",
+        "churn: RSS after round 1 {} KiB, round 20 {warm} KiB, round {rounds} {end} KiB ({:+} KiB \
+         from round 20), {:.1} s",
         rss[0],
         end as i64 - warm as i64,
         t0.elapsed().as_secs_f64()
     );
-    if end > warm + 8 * 1024 {
-        println!("FAIL: RSS grew by more than 8 MiB after round 10");
+    if end > warm + 24 * 1024 {
+        println!("FAIL: RSS grew by more than 24 MiB after round 20");
         std::process::exit(1);
     }
 }

@@ -1,7 +1,8 @@
 //! Coalescing the encoder runs of the scorers that share a model into batches.
 //!
 //! Each batching scorer is a **member** of its model's [`Batcher`]. A frame is queued; the
-//! model's batch worker (one thread per batching model, while it has members) waits at most the
+//! model's batch worker (one thread per batching model while it has members; an idle worker
+//! waits 30 s for the next model, so that models coming and going reuse it) waits at most the
 //! first queued frame's `batch_timeout` until every *streaming* member has a frame queued (at
 //! most its `batch_size`), runs them as one batch and hands each its features.
 //!

@@ -786,26 +786,76 @@ impl Scorer {
     }
 }
 
+type Task = Box<dyn FnOnce() + Send>;
+
+/// Idle batch worker threads, each waiting for a model to serve. A worker outlives its model
+/// for [`WORKER_IDLE`], so that the next model's batches run on the same thread (and in the
+/// same C allocator arena) instead of a new one each time elements come and go.
+static IDLE_WORKERS: LazyLock<Mutex<Vec<(u64, std::sync::mpsc::Sender<Task>)>>> =
+    LazyLock::new(|| Mutex::new(Vec::new()));
+const WORKER_IDLE: Duration = Duration::from_secs(30);
+
+/// Run `task` on an idle batch worker, or on a new one.
+fn on_worker(task: Task) -> std::io::Result<()> {
+    {
+        let mut idle = lock(&IDLE_WORKERS);
+        if let Some((_, tx)) = idle.pop() {
+            // Sent under the lock: a worker that times out checks the list under it too.
+            if tx.send(task).is_ok() {
+                return Ok(());
+            }
+            unreachable!("an idle worker listed is waiting on its channel");
+        }
+    }
+    std::thread::Builder::new()
+        .name("leangate-batch".into())
+        .spawn(move || {
+            static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+            let id = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let mut task = task;
+            loop {
+                task();
+                let (tx, rx) = std::sync::mpsc::channel();
+                lock(&IDLE_WORKERS).push((id, tx));
+                match rx.recv_timeout(WORKER_IDLE) {
+                    Ok(t) => task = t,
+                    Err(_) => {
+                        let mut idle = lock(&IDLE_WORKERS);
+                        match idle.iter().position(|(i, _)| *i == id) {
+                            Some(k) => {
+                                idle.remove(k);
+                                return;
+                            }
+                            // Taken just now: the task was sent under the lock.
+                            None => match rx.try_recv() {
+                                Ok(t) => task = t,
+                                Err(_) => return,
+                            },
+                        }
+                    }
+                }
+            }
+        })
+        .map(|_| ())
+}
+
 /// Join the model's batcher, starting its batch worker if none runs; `None` (the scorer then
 /// runs unbatched) when no thread could be started.
 fn join_batch(model: &Arc<Model>) -> Option<u64> {
     model.batcher.join(|| {
         let m = model.clone();
-        std::thread::Builder::new()
-            .name("leangate-batch".into())
-            .spawn(move || {
-                let spec = &m.info.spec;
-                let shape = [1usize, 3, spec.height as usize, spec.width as usize];
-                match &m.kind {
-                    Kind::Split { encoder, .. } => m
-                        .batcher
-                        .serve(|jobs, input| run_batch(encoder, shape, jobs, input)),
-                    Kind::Pair(_) => m
-                        .batcher
-                        .serve(|_, _| Err("a pair model has no encoder to batch".into())),
-                }
-            })
-            .map(|_| ())
+        on_worker(Box::new(move || {
+            let spec = &m.info.spec;
+            let shape = [1usize, 3, spec.height as usize, spec.width as usize];
+            match &m.kind {
+                Kind::Split { encoder, .. } => m
+                    .batcher
+                    .serve(|jobs, input| run_batch(encoder, shape, jobs, input)),
+                Kind::Pair(_) => m
+                    .batcher
+                    .serve(|_, _| Err("a pair model has no encoder to batch".into())),
+            }
+        }))
     })
 }
 
