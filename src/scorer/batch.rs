@@ -288,8 +288,8 @@ mod tests {
         queued(&mut st, 1);
         assert!(!st.ready(4));
         st.timed_out();
-        assert_eq!(st.members[&0], true);
-        assert_eq!(st.members[&2], false);
+        assert!(st.members[&0]);
+        assert!(!st.members[&2]);
         st.queue.clear();
         queued(&mut st, 0);
         queued(&mut st, 1);

@@ -787,26 +787,29 @@ impl Scorer {
 }
 
 type Task = Box<dyn FnOnce() + Send>;
+/// An idle worker: its number, and where to send it a task.
+type IdleWorker = (u64, std::sync::mpsc::Sender<Task>);
 
 /// Idle batch worker threads, each waiting for a model to serve. A worker outlives its model
 /// for [`WORKER_IDLE`], so that the next model's batches run on the same thread (and in the
 /// same C allocator arena) instead of a new one each time elements come and go.
-static IDLE_WORKERS: LazyLock<Mutex<Vec<(u64, std::sync::mpsc::Sender<Task>)>>> =
-    LazyLock::new(|| Mutex::new(Vec::new()));
+static IDLE_WORKERS: LazyLock<Mutex<Vec<IdleWorker>>> = LazyLock::new(|| Mutex::new(Vec::new()));
 const WORKER_IDLE: Duration = Duration::from_secs(30);
 
 /// Run `task` on an idle batch worker, or on a new one.
 fn on_worker(task: Task) -> std::io::Result<()> {
-    {
+    let task = {
         let mut idle = lock(&IDLE_WORKERS);
-        if let Some((_, tx)) = idle.pop() {
-            // Sent under the lock: a worker that times out checks the list under it too.
-            if tx.send(task).is_ok() {
-                return Ok(());
-            }
-            unreachable!("an idle worker listed is waiting on its channel");
+        match idle.pop() {
+            // Sent under the lock: a worker that times out checks the list under it too, so a
+            // listed worker is still listening.
+            Some((_, tx)) => match tx.send(task) {
+                Ok(()) => return Ok(()),
+                Err(e) => e.0,
+            },
+            None => task,
         }
-    }
+    };
     std::thread::Builder::new()
         .name("leangate-batch".into())
         .spawn(move || {
