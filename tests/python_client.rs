@@ -1245,14 +1245,7 @@ fn pipeline_errors_name_the_input_without_debug_detail() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let noise = dir.path().join("noise.mp4");
-    let bytes: Vec<u8> = (0..65536u32)
-        .map(|i| (i.wrapping_mul(2654435761) >> 13) as u8)
-        .collect();
-    std::fs::write(&noise, bytes).unwrap();
-    let empty = dir.path().join("empty.mp4");
-    std::fs::write(&empty, b"").unwrap();
-    for input in [&noise, &empty] {
+    for input in paths::not_videos(dir.path()) {
         let start = std::time::Instant::now();
         let out = client(&[input.to_str().unwrap()]);
         assert!(start.elapsed().as_secs() < 30, "no hang");
@@ -1266,7 +1259,11 @@ fn pipeline_errors_name_the_input_without_debug_detail() {
     }
     // The element's own error: its message, no source location (kept for -vv).
     let bad = repo().join("tests/fixtures/wrong_names.onnx");
-    let args = ["test://ball?num-buffers=5", "--model", bad.to_str().unwrap()];
+    let args = [
+        "test://ball?num-buffers=5",
+        "--model",
+        bad.to_str().unwrap(),
+    ];
     let out = client(&args);
     let err = stderr(&out);
     assert_eq!(out.status.code(), Some(1), "{err}");

@@ -407,7 +407,11 @@ fn model_change_while_running_is_refused_and_the_property_stays() {
     // The value that stays, as a user writes it (not glib's Debug form of a GValue).
     assert!(warnings[2].ends_with("it stays auto"), "{}", warnings[2]);
     assert!(warnings[1].ends_with("it stays auto"), "{}", warnings[1]);
-    assert!(warnings[0].ends_with(&format!("it stays {first}")), "{}", warnings[0]);
+    assert!(
+        warnings[0].ends_with(&format!("it stays {first}")),
+        "{}",
+        warnings[0]
+    );
     h.push(buffer(texture(W, H, 2), 33)).unwrap();
     drain(&mut h);
     assert_eq!(

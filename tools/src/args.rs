@@ -107,7 +107,17 @@ mod tests {
         assert_eq!(unit_interval("0.5"), Ok(0.5));
         assert_eq!(unit_interval(" 1 "), Ok(1.0));
         assert_eq!(unit_interval("0"), Ok(0.0));
-        for bad in ["nan", "NaN", "inf", "-inf", "2", "1.0000001", "-0.1", "", "abc"] {
+        for bad in [
+            "nan",
+            "NaN",
+            "inf",
+            "-inf",
+            "2",
+            "1.0000001",
+            "-0.1",
+            "",
+            "abc",
+        ] {
             let e = unit_interval(bad).unwrap_err();
             assert_eq!(e, "expected a number from 0 to 1");
         }

@@ -721,13 +721,20 @@ fn read_pairs(path: &Path, n: usize) -> Result<Vec<(usize, usize)>, String> {
             continue;
         }
         let at = || format!("`{}` line {}", path.display(), k + 1);
-        let fields: Vec<&str> = line.split([',', ' ', '\t']).filter(|s| !s.is_empty()).collect();
-        let numeric = |f: &&str| f.starts_with(|c: char| c.is_ascii_digit() || c == '-' || c == '+');
+        let fields: Vec<&str> = line
+            .split([',', ' ', '\t'])
+            .filter(|s| !s.is_empty())
+            .collect();
+        let numeric =
+            |f: &&str| f.starts_with(|c: char| c.is_ascii_digit() || c == '-' || c == '+');
         if std::mem::take(&mut first) && !fields.iter().any(numeric) {
             continue; // header
         }
         let [a, b, ..] = fields[..] else {
-            return Err(format!("{}: expected `i,j` frame indices, got {line:?}", at()));
+            return Err(format!(
+                "{}: expected `i,j` frame indices, got {line:?}",
+                at()
+            ));
         };
         let index = |f: &str| {
             f.parse::<usize>()

@@ -11,6 +11,17 @@ fn leangate() -> Command {
 #[allow(dead_code)]
 mod paths;
 use paths::{fixture, shared_data};
+
+/// `leangate label --sequence SEQ --pairs PAIRS`.
+fn label_pairs(seq: &Path, pairs: &Path) -> std::process::Output {
+    leangate()
+        .args(["label", "--sequence"])
+        .arg(seq)
+        .arg("--pairs")
+        .arg(pairs)
+        .output()
+        .unwrap()
+}
 /// Run `leangate eval --sequence SEQ EXTRA... --json OUT` and return the parsed report.
 fn eval_json(seq: &Path, extra: &[&str]) -> serde_json::Value {
     let dir = tempfile::tempdir().unwrap();
@@ -62,13 +73,7 @@ fn synth_label_eval_end_to_end() {
     // label: explicit pairs, and the oracle gate mode.
     let pairs = dir.path().join("pairs.csv");
     std::fs::write(&pairs, "i,j\n0,0\n10,0\n39,0\n").unwrap();
-    let out = leangate()
-        .args(["label", "--sequence"])
-        .arg(&seq)
-        .arg("--pairs")
-        .arg(&pairs)
-        .output()
-        .unwrap();
+    let out = label_pairs(&seq, &pairs);
     assert!(
         out.status.success(),
         "{}",
@@ -524,15 +529,9 @@ fn eval_fails_naming(path: &Path, names: &Path) -> String {
 fn eval_fails_fast_on_inputs_it_cannot_read() {
     let dir = tempfile::tempdir().unwrap();
     // Files that are not videos: typefind fails and posts an error; nothing reaches the sink.
-    let noise = dir.path().join("noise.mp4");
-    let bytes: Vec<u8> = (0..65536u32)
-        .map(|i| (i.wrapping_mul(2654435761) >> 13) as u8)
-        .collect();
-    std::fs::write(&noise, bytes).unwrap();
-    eval_fails_naming(&noise, &noise);
-    let empty = dir.path().join("empty.mp4");
-    std::fs::write(&empty, b"").unwrap();
-    eval_fails_naming(&empty, &empty);
+    for file in paths::not_videos(dir.path()) {
+        eval_fails_naming(&file, &file);
+    }
 
     // Image folders: a 0-byte PNG first, and after two good frames.
     let frame = image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([x as u8 * 4, y as u8 * 5, 0]));
@@ -657,13 +656,7 @@ fn label_pairs_take_only_the_first_line_as_a_header() {
     let label = |pairs: &str| {
         let p = dir.path().join("pairs.csv");
         std::fs::write(&p, pairs).unwrap();
-        let out = leangate()
-            .args(["label", "--sequence"])
-            .arg(&seq)
-            .arg("--pairs")
-            .arg(&p)
-            .output()
-            .unwrap();
+        let out = label_pairs(&seq, &p);
         (
             out.status.code(),
             String::from_utf8_lossy(&out.stdout).into_owned(),
@@ -701,7 +694,13 @@ fn plot_errors_name_the_path() {
         let out = leangate()
             .args(["eval", "--sequence"])
             .arg(&seq)
-            .args(["--model", &fixture("mad.onnx"), "--sweep-thresholds", "0.1", flag])
+            .args([
+                "--model",
+                &fixture("mad.onnx"),
+                "--sweep-thresholds",
+                "0.1",
+                flag,
+            ])
             .arg(&bad)
             .output()
             .unwrap();
