@@ -1178,3 +1178,99 @@ print(json.dumps(out))
         stderr(&o)
     );
 }
+
+#[test]
+fn numeric_arguments_are_checked_at_parse_time() {
+    if !python_ok() {
+        return;
+    }
+    for (flag, value) in [
+        ("--stats-interval", "nan"),
+        ("--stats-interval", "inf"),
+        ("--stats-interval", "-1"),
+        ("--threshold", "nan"),
+        ("--threshold", "2"),
+        ("--warmup", "-1"),
+        ("--max-gap", "4294967296"),
+        ("--max-frames", "-1"),
+        ("--force-every", "-2"),
+    ] {
+        let args = ["test://ball?num-buffers=3", flag, value];
+        for out in [client(&args), client_module(&args)] {
+            let err = stderr(&out);
+            assert_eq!(out.status.code(), Some(2), "{flag} {value}: {err}");
+            assert!(
+                err.contains(&format!("argument {flag}: expected "))
+                    && err.contains(&format!("got '{value}'")),
+                "{flag} {value}: names the argument, the range and the value: {err}"
+            );
+            assert!(!err.contains("Traceback"), "{err}");
+        }
+    }
+    // The library checks the same way.
+    let script = r#"
+from leangate_client import LeanGateSource, SetupError
+for kw in ({"stats_interval": float("nan")}, {"threshold": 1.5}, {"warmup": -1},
+           {"max_frames": 2.5}, {"timeout_s": 0}):
+    try:
+        LeanGateSource("test://ball?num-buffers=3", **kw)
+        print("accepted", kw)
+    except SetupError as e:
+        print("refused", e)
+"#;
+    let mut c = command(PYTHON);
+    c.env("PYTHONPATH", pkg_dir()).args(["-c", script]);
+    let out = run(c);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = stdout(&out);
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 5, "{text}");
+    for (line, name) in lines.iter().zip([
+        "stats_interval",
+        "threshold",
+        "warmup",
+        "max_frames",
+        "timeout_s",
+    ]) {
+        assert!(
+            line.starts_with(&format!("refused {name} must be ")),
+            "{line}"
+        );
+    }
+}
+
+#[test]
+fn pipeline_errors_name_the_input_without_debug_detail() {
+    if !python_ok() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    for input in paths::not_videos(dir.path()) {
+        let start = std::time::Instant::now();
+        let out = client(&[input.to_str().unwrap()]);
+        assert!(start.elapsed().as_secs() < 30, "no hang");
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(
+            err.contains(&format!("pipeline error: {}: ", input.display())),
+            "names the input: {err}"
+        );
+        assert!(!err.contains(".c(") && !err.contains("Traceback"), "{err}");
+    }
+    // The element's own error: its message, no source location (kept for -vv).
+    let bad = repo().join("tests/fixtures/wrong_names.onnx");
+    let args = [
+        "test://ball?num-buffers=5",
+        "--model",
+        bad.to_str().unwrap(),
+    ];
+    let out = client(&args);
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("pipeline error: gate: "), "{err}");
+    assert!(!err.contains("imp.rs"), "{err}");
+    let mut verbose = args.to_vec();
+    verbose.push("-vv");
+    let err = stderr(&client(&verbose));
+    assert!(err.contains("(debug)") && err.contains("imp.rs"), "{err}");
+}

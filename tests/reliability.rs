@@ -404,6 +404,14 @@ fn model_change_while_running_is_refused_and_the_property_stays() {
     assert_eq!(warnings.len(), 3, "{warnings:?}");
     assert!(warnings[0].contains("`model` cannot change while the element runs"));
     assert!(warnings[2].contains("`precision` cannot change while the element runs"));
+    // The value that stays, as a user writes it (not glib's Debug form of a GValue).
+    assert!(warnings[2].ends_with("it stays auto"), "{}", warnings[2]);
+    assert!(warnings[1].ends_with("it stays auto"), "{}", warnings[1]);
+    assert!(
+        warnings[0].ends_with(&format!("it stays {first}")),
+        "{}",
+        warnings[0]
+    );
     h.push(buffer(texture(W, H, 2), 33)).unwrap();
     drain(&mut h);
     assert_eq!(

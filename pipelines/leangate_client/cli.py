@@ -20,6 +20,7 @@ import os
 import sys
 from typing import Iterable, List, Optional, Sequence
 
+from .argtypes import non_negative_int, non_negative_seconds, uint32, unit_interval
 from .errors import PipelineError, SetupError
 from .source import EXECUTION_PROVIDERS, PRECISIONS, LeanGateSource
 
@@ -102,21 +103,21 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
         help="LeanGate model (.onnx); default $LEANGATE_MODEL, else the element's default "
         "(the embedded student leangate-s)",
     )
-    ap.add_argument("--threshold", type=float, default=None,
+    ap.add_argument("--threshold", type=unit_interval, default=None,
                     help="keep threshold in [0,1]; default: the model's")
     ap.add_argument("--mode", choices=("drop", "annotate"), default="drop")
-    ap.add_argument("--warmup", type=int, default=None)
-    ap.add_argument("--max-gap", type=int, default=None)
+    ap.add_argument("--warmup", type=uint32, default=None)
+    ap.add_argument("--max-gap", type=uint32, default=None)
     ap.add_argument("--execution-provider", choices=EXECUTION_PROVIDERS)
     ap.add_argument("--precision", choices=PRECISIONS, default=None,
                     help="which build of the embedded student runs; default: the element's (auto: "
                     "INT8 on the CPU)")
-    ap.add_argument("--stats-interval", type=float, default=None, metavar="SECONDS",
+    ap.add_argument("--stats-interval", type=non_negative_seconds, default=None, metavar="SECONDS",
                     help="have the element post leangate-stats this often (logged at -v)")
     ap.add_argument("--csv", metavar="OUT", help="write one row per received frame to OUT")
-    ap.add_argument("--max-frames", type=int, default=None,
+    ap.add_argument("--max-frames", type=non_negative_int, default=None,
                     help="stop after receiving this many frames")
-    ap.add_argument("--force-every", type=int, default=0, metavar="N",
+    ap.add_argument("--force-every", type=non_negative_int, default=0, metavar="N",
                     help="send a leangate-force-keyframe event upstream after every N received "
                     "frames (what a SLAM process does when it loses tracking)")
     ap.add_argument("--quiet", action="store_true", help="no per-frame lines, only the summary")
@@ -145,8 +146,6 @@ def main(
         src = args.input
     else:
         ap.error("INPUT is required (or --source videotestsrc)")
-    if args.force_every < 0:
-        ap.error("--force-every must be >= 0")
 
     out = None
     writer = None

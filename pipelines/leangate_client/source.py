@@ -19,6 +19,13 @@ from typing import Any, Dict, Iterator, List, Mapping, Optional, Tuple
 
 from . import _gst
 from ._gst import PathLike, ensure_plugin
+from .argtypes import (
+    non_negative_int,
+    non_negative_seconds,
+    positive_seconds,
+    threshold_or_model,
+    uint32,
+)
 from .errors import PipelineError, SetupError
 from .meta import FORCE_KEYFRAME_EVENT, META_NAME, RESET_EVENT, meta_dict
 from .stats import LeanGateStats
@@ -176,12 +183,16 @@ class LeanGateSource:
             raise SetupError(f"precision must be one of {', '.join(PRECISIONS)}, not {precision!r}")
         if model is not None and os.fspath(model) and not os.path.exists(model):
             raise SetupError(f"model not found: {os.fspath(model)}")
-        if threshold is not None and not (threshold == -1 or 0.0 <= threshold <= 1.0):
-            raise SetupError(f"threshold must be -1 or in [0, 1], not {threshold}")
-        if stats_interval is not None and stats_interval < 0:
-            raise SetupError(f"stats_interval must be >= 0 s, not {stats_interval}")
-        if max_frames is not None and max_frames < 0:
-            raise SetupError(f"max_frames must be >= 0, not {max_frames}")
+        for name, value, checker in (
+            ("threshold", threshold, threshold_or_model),
+            ("warmup", warmup, uint32),
+            ("max_gap", max_gap, uint32),
+            ("stats_interval", stats_interval, non_negative_seconds),
+            ("max_frames", max_frames, non_negative_int),
+        ):
+            if value is not None:
+                checker.check(name, value)
+        positive_seconds.check("timeout_s", timeout_s)
 
         self.source = "test://ball" if source == "videotestsrc" else source
         self._check_source(self.source)
@@ -430,7 +441,11 @@ class LeanGateSource:
         src = msg.src.get_name() if msg.src else "?"
         if t == Gst.MessageType.ERROR:
             err, dbg = msg.parse_error()
-            raise PipelineError(f"{src}: {err.message}" + (f" ({dbg})" if dbg else ""))
+            if dbg:  # GStreamer's detail (source file, line, function): -vv
+                log.debug("error from %s (debug): %s", src, dbg)
+            if src != "gate":  # the source part of the pipeline: name the input
+                src = f"{self.source}: {src}"
+            raise PipelineError(f"{src}: {err.message}")
         if t == Gst.MessageType.WARNING:
             w, dbg = msg.parse_warning()
             log.warning("warning from %s: %s", src, w.message)

@@ -183,11 +183,14 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// A property value for a message or a log: the server URL without its credentials.
+/// A property value for a message or a log, as it is written (`auto`, not glib's Debug form of a
+/// GValue): the server URL without its credentials.
 fn shown(name: &str, value: &glib::Value) -> String {
     match (name, value.get::<Option<String>>()) {
         ("server", Ok(Some(url))) => format!("{:?}", crate::remote::display_url(&url)),
-        _ => format!("{value:?}"),
+        _ => value
+            .serialize()
+            .map_or_else(|_| "unset".into(), |v| v.to_string()),
     }
 }
 

@@ -1,7 +1,7 @@
 //! Where the test fixtures and the shared development data are, for the tests of both crates of
 //! the workspace (`tests/common` of the plugin, `tools/tests` include this file by path).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// The repository root (the plugin crate's directory) from either crate of the workspace.
 fn repo_root() -> PathBuf {
@@ -57,4 +57,17 @@ pub fn plugin_dir() -> tempfile::TempDir {
     let dir = tempfile::tempdir().unwrap();
     std::os::unix::fs::symlink(lib, dir.path().join("libgstleangate.so")).unwrap();
     dir
+}
+
+/// Two files in `dir` named like videos that are not: 64 KiB of pseudo-random bytes, and an empty
+/// file (typefind fails on both).
+pub fn not_videos(dir: &Path) -> [PathBuf; 2] {
+    let noise = dir.join("noise.mp4");
+    let bytes: Vec<u8> = (0..65536u32)
+        .map(|i| (i.wrapping_mul(2654435761) >> 13) as u8)
+        .collect();
+    std::fs::write(&noise, bytes).unwrap();
+    let empty = dir.join("empty.mp4");
+    std::fs::write(&empty, b"").unwrap();
+    [noise, empty]
 }

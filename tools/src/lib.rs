@@ -1,5 +1,6 @@
 //! LeanGate's tools, beside the plugin crate: everything that needs ground truth or renders data.
 //!
+//! - [`args`]: the command line's value parsers (every numeric argument checked at parse time);
 //! - [`dataset`]: RGB-D sequences in the TUM layout (and plain image folders and video files);
 //! - [`teacher`]: the exact geometric keyframe score (MASt3R-SLAM's `S = min(f_m, f_u)`) from depth
 //!   and poses — the oracle that labels training pairs and judges every gate;
@@ -11,6 +12,7 @@
 //! The gate, scorer, preprocessing and meta come from the plugin crate (`gstleangate`), so the
 //! tools judge exactly the code the element runs.
 
+pub mod args;
 pub mod dataset;
 pub mod eval;
 pub mod geometry;

@@ -12,6 +12,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use gstleangate::GateConfig;
+use leangate_tools::args;
 use leangate_tools::dataset::{RgbFormat, Sequence};
 use leangate_tools::eval;
 use leangate_tools::synth::{self, MotionSpec, Replay, ReplayEnd, SensorConfig, SynthConfig};
@@ -39,8 +40,8 @@ enum Command {
         /// Seed: scene, textures, camera path and noise are determined by it.
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        /// Number of frames.
-        #[arg(long, default_value_t = 300)]
+        /// Number of frames (1 to 1000000).
+        #[arg(long, default_value_t = 300, value_parser = args::synth_frames)]
         frames: usize,
         /// Camera path: static, pan, shaky, walk, rotate, bursts, mixed, or replay:FILE (a TUM
         /// trajectory `t tx ty tz qx qy qz qw`, or a NeRF transforms.json), placed in the room and
@@ -48,7 +49,7 @@ enum Command {
         #[arg(long, default_value = "mixed")]
         motion: MotionSpec,
         /// With replay:FILE: seconds into the file at which the sequence starts.
-        #[arg(long, default_value_t = 0.0)]
+        #[arg(long, default_value_t = 0.0, value_parser = args::finite_non_negative)]
         replay_start: f64,
         /// With replay:FILE, when --frames outlasts the file: stop (fewer frames), loop, bounce.
         #[arg(long, default_value = "stop")]
@@ -56,15 +57,17 @@ enum Command {
         /// Folder of jpg/png images tiled on some surfaces.
         #[arg(long)]
         textures: Option<PathBuf>,
-        #[arg(long, default_value_t = 640)]
+        /// Frame width, 2 to 4096 pixels.
+        #[arg(long, default_value_t = 640, value_parser = args::synth_side)]
         width: u32,
-        #[arg(long, default_value_t = 480)]
+        /// Frame height, 2 to 4096 pixels.
+        #[arg(long, default_value_t = 480, value_parser = args::synth_side)]
         height: u32,
-        #[arg(long, default_value_t = 30.0)]
+        #[arg(long, default_value_t = 30.0, value_parser = args::finite_positive)]
         fps: f64,
         /// Gaussian sensor noise (standard deviation, 0..1 intensity).
-        #[arg(long, default_value_t = 0.01)]
-        noise: f32,
+        #[arg(long, default_value_t = 0.01, value_parser = args::unit_interval)]
+        noise: f64,
         /// Motion blur (3 sub-frame renders per frame).
         #[arg(long)]
         blur: bool,
@@ -89,25 +92,25 @@ enum Command {
         #[arg(long, conflicts_with_all = ["within", "random"])]
         pairs: Option<PathBuf>,
         /// Every frame against each of its K predecessors.
-        #[arg(long, value_name = "K", conflicts_with = "random")]
+        #[arg(long, value_name = "K", conflicts_with = "random", value_parser = args::nonzero)]
         within: Option<usize>,
         /// N random pairs (i != j, |i-j| <= --max-gap), both orders, trajectory-agnostic.
-        #[arg(long, value_name = "N")]
+        #[arg(long, value_name = "N", value_parser = args::random_pairs)]
         random: Option<usize>,
         /// Largest frame gap for --random.
-        #[arg(long, default_value_t = 90)]
+        #[arg(long, default_value_t = 90, value_parser = args::nonzero)]
         max_gap: usize,
         /// Seed for --random.
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        /// Threshold of the oracle gate (gate mode).
-        #[arg(long, default_value_t = 0.5)]
+        /// Threshold of the oracle gate (gate mode), 0 to 1.
+        #[arg(long, default_value_t = 0.5, value_parser = args::unit_interval)]
         threshold: f64,
-        /// Working width of the depth (subsampled by an integer step).
-        #[arg(long, default_value_t = 160)]
+        /// Working width of the depth (subsampled by an integer step), 1 to 8192.
+        #[arg(long, default_value_t = 160, value_parser = args::working_width)]
         working_width: u32,
-        /// 3-D distance below which a match is valid, metres.
-        #[arg(long, default_value_t = 0.1)]
+        /// 3-D distance below which a match is valid, metres (above 0).
+        #[arg(long, default_value_t = 0.1, value_parser = args::finite_positive)]
         max_dist: f64,
         /// Output CSV (default: standard output).
         #[arg(long)]
@@ -124,8 +127,8 @@ enum Command {
         #[arg(long)]
         pairs: PathBuf,
         /// Picture size the tracker runs on: the model's input (the embedded model's 160x120).
-        #[arg(long, default_value = "160x120")]
-        size: String,
+        #[arg(long, default_value = "160x120", value_parser = args::picture_size)]
+        size: (u32, u32),
         /// How frames are mapped to that size: short-side-crop (the embedded model's) or stretch.
         #[arg(long, default_value = "short-side-crop")]
         resize: String,
@@ -147,8 +150,8 @@ enum Command {
         /// the CPU; fp32; int8). Default: the element's default, auto.
         #[arg(long, value_parser = ["auto", "fp32", "int8"])]
         precision: Option<String>,
-        /// tau_keep (default: the model's leangate.threshold, else 0.5).
-        #[arg(long)]
+        /// tau_keep, 0 to 1 (default: the model's leangate.threshold, else 0.5).
+        #[arg(long, value_parser = args::unit_interval)]
         threshold: Option<f64>,
         /// Write the JSON report here.
         #[arg(long)]
@@ -166,15 +169,16 @@ enum Command {
         #[arg(long)]
         sweep: bool,
         /// Thresholds for --sweep (comma-separated).
-        #[arg(long, value_delimiter = ',', default_values_t = eval::SWEEP_THRESHOLDS)]
+        #[arg(long, value_delimiter = ',', default_values_t = eval::SWEEP_THRESHOLDS,
+              value_parser = args::unit_interval)]
         sweep_thresholds: Vec<f64>,
         /// Write the sweep plot (PNG: late keeps and min pair S against frames kept) here; with
         /// several sequences, of the sums over them.
         #[arg(long)]
         sweep_plot: Option<PathBuf>,
-        #[arg(long, default_value_t = 160)]
+        #[arg(long, default_value_t = 160, value_parser = args::working_width)]
         working_width: u32,
-        #[arg(long, default_value_t = 0.1)]
+        #[arg(long, default_value_t = 0.1, value_parser = args::finite_positive)]
         max_dist: f64,
         /// Also reconstruct each policy's kept frames, and a dense reference (every
         /// --dense-every-th frame), with COLMAP incremental SfM (pycolmap, through
@@ -184,7 +188,8 @@ enum Command {
         #[arg(long)]
         reconstruct: bool,
         /// The dense reference of --reconstruct keeps every K-th frame.
-        #[arg(long, value_name = "K", default_value_t = eval::reconstruct::DENSE_EVERY)]
+        #[arg(long, value_name = "K", default_value_t = eval::reconstruct::DENSE_EVERY,
+              value_parser = args::nonzero)]
         dense_every: usize,
         /// Python for --reconstruct (default: $LEANGATE_SFM_PYTHON, else .venv-sfm/bin/python of
         /// the checkout, else /usr/bin/python3); needs pycolmap and PyGObject.
@@ -199,7 +204,7 @@ enum Command {
         #[arg(long, default_value = "auto", value_parser = ["auto", "exhaustive", "sequential"])]
         sfm_matcher: String,
         /// SIFT features per frame for --reconstruct.
-        #[arg(long, default_value_t = 4096)]
+        #[arg(long, default_value_t = 4096, value_parser = args::nonzero_u32)]
         sfm_max_features: u32,
         /// With --reconstruct: write each policy's camera trajectory (TUM format, camera-to-world,
         /// the SfM's frame and scale) as DIR/POLICY.txt and the ground truth as
@@ -262,7 +267,7 @@ fn run(cli: Cli) -> Res {
                 replay,
                 sensor,
                 textures,
-                noise,
+                noise: noise as f32,
                 blur,
                 lighting_changes: lighting,
                 rgb_format: if jpeg {
@@ -353,13 +358,7 @@ fn run(cli: Cli) -> Res {
             resize,
             out,
         } => {
-            let (w, h) = size
-                .split_once(['x', 'X'])
-                .and_then(|(w, h)| Some((w.trim().parse().ok()?, h.trim().parse().ok()?)))
-                .filter(|&(w, h): &(u32, u32)| (8..=4096).contains(&w) && (8..=4096).contains(&h))
-                .ok_or_else(|| {
-                    format!("--size {size:?}: expected WxH like 160x120, sides 8-4096")
-                })?;
+            let (w, h) = size;
             let resize = gstleangate::ResizeMode::parse(&resize).ok_or_else(|| {
                 format!("--resize {resize:?}: expected short-side-crop or stretch")
             })?;
@@ -753,37 +752,47 @@ fn print_sweep(points: &[eval::SweepPoint]) {
     }
 }
 
+/// Pairs `i,j` (frame indices below `n`; further columns are ignored) from a CSV file. Blank
+/// lines and `#` comments are skipped; only the first other line may be a header (it is one when
+/// no field of it looks like a number); any later line that is not two frame indices is an error
+/// naming the line.
 fn read_pairs(path: &Path, n: usize) -> Result<Vec<(usize, usize)>, String> {
     let text = std::fs::read_to_string(path).map_err(|e| format!("`{}`: {e}", path.display()))?;
     let mut out = Vec::new();
+    let mut first = true;
     for (k, line) in text.lines().enumerate() {
         let line = line.trim();
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
-        let mut it = line.split([',', ' ', '\t']).filter(|s| !s.is_empty());
-        let (a, b) = (it.next(), it.next());
-        let parsed = a
-            .zip(b)
-            .and_then(|(a, b)| Some((a.parse::<usize>().ok()?, b.parse::<usize>().ok()?)));
-        match parsed {
-            Some((i, j)) if i < n && j < n => out.push((i, j)),
-            Some((i, j)) => {
-                return Err(format!(
-                    "`{}` line {}: pair ({i}, {j}) out of range ({n} frames)",
-                    path.display(),
-                    k + 1
-                ))
-            }
-            None if out.is_empty() && k == 0 => {} // header
-            None => {
-                return Err(format!(
-                    "`{}` line {}: expected `i,j` frame indices, got {line:?}",
-                    path.display(),
-                    k + 1
-                ))
-            }
+        let at = || format!("`{}` line {}", path.display(), k + 1);
+        let fields: Vec<&str> = line
+            .split([',', ' ', '\t'])
+            .filter(|s| !s.is_empty())
+            .collect();
+        let numeric =
+            |f: &&str| f.starts_with(|c: char| c.is_ascii_digit() || c == '-' || c == '+');
+        if std::mem::take(&mut first) && !fields.iter().any(numeric) {
+            continue; // header
         }
+        let [a, b, ..] = fields[..] else {
+            return Err(format!(
+                "{}: expected `i,j` frame indices, got {line:?}",
+                at()
+            ));
+        };
+        let index = |f: &str| {
+            f.parse::<usize>()
+                .map_err(|e| format!("{}: {f:?} is not a frame index ({e})", at()))
+        };
+        let (i, j) = (index(a)?, index(b)?);
+        if i >= n || j >= n {
+            return Err(format!(
+                "{}: pair ({i}, {j}) out of range ({n} frames)",
+                at()
+            ));
+        }
+        out.push((i, j));
     }
     Ok(out)
 }

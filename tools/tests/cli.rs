@@ -11,6 +11,17 @@ fn leangate() -> Command {
 #[allow(dead_code)]
 mod paths;
 use paths::{fixture, shared_data};
+
+/// `leangate label --sequence SEQ --pairs PAIRS`.
+fn label_pairs(seq: &Path, pairs: &Path) -> std::process::Output {
+    leangate()
+        .args(["label", "--sequence"])
+        .arg(seq)
+        .arg("--pairs")
+        .arg(pairs)
+        .output()
+        .unwrap()
+}
 /// Run `leangate eval --sequence SEQ EXTRA... --json OUT` and return the parsed report.
 fn eval_json(seq: &Path, extra: &[&str]) -> serde_json::Value {
     let dir = tempfile::tempdir().unwrap();
@@ -62,13 +73,7 @@ fn synth_label_eval_end_to_end() {
     // label: explicit pairs, and the oracle gate mode.
     let pairs = dir.path().join("pairs.csv");
     std::fs::write(&pairs, "i,j\n0,0\n10,0\n39,0\n").unwrap();
-    let out = leangate()
-        .args(["label", "--sequence"])
-        .arg(&seq)
-        .arg("--pairs")
-        .arg(&pairs)
-        .output()
-        .unwrap();
+    let out = label_pairs(&seq, &pairs);
     assert!(
         out.status.success(),
         "{}",
@@ -477,4 +482,234 @@ fn eval_over_several_sequences_names_a_missing_one_before_running() {
         String::from_utf8_lossy(&out.stdout).is_empty(),
         "failed before evaluating a"
     );
+}
+
+/// Run `cmd`, killing it and failing the test when it has not exited after `limit` (a hang).
+fn output_within(mut cmd: Command, limit: std::time::Duration) -> std::process::Output {
+    use std::process::Stdio;
+    let mut child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let start = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > limit {
+            child.kill().unwrap();
+            let out = child.wait_with_output().unwrap();
+            panic!(
+                "{cmd:?} still running after {limit:?} (hang); stderr: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    child.wait_with_output().unwrap()
+}
+
+/// `leangate eval --sequence PATH`: fails within 30 s (not a hang), non-zero, naming `names`.
+fn eval_fails_naming(path: &Path, names: &Path) -> String {
+    let mut cmd = leangate();
+    cmd.args(["eval", "--model", &fixture("mad.onnx"), "--sequence"])
+        .arg(path);
+    let out = output_within(cmd, std::time::Duration::from_secs(30));
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "{}: {err}", path.display());
+    assert_eq!(out.status.code(), Some(1), "an error, not a crash: {err}");
+    assert!(
+        err.contains(&names.display().to_string()),
+        "the error names {}: {err}",
+        names.display()
+    );
+    assert!(!err.contains(".rs("), "no GStreamer debug detail: {err}");
+    err
+}
+
+#[test]
+fn eval_fails_fast_on_inputs_it_cannot_read() {
+    let dir = tempfile::tempdir().unwrap();
+    // Files that are not videos: typefind fails and posts an error; nothing reaches the sink.
+    for file in paths::not_videos(dir.path()) {
+        eval_fails_naming(&file, &file);
+    }
+
+    // Image folders: a 0-byte PNG first, and after two good frames.
+    let frame = image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([x as u8 * 4, y as u8 * 5, 0]));
+    let only = dir.path().join("only_empty_png");
+    std::fs::create_dir(&only).unwrap();
+    std::fs::write(only.join("000.png"), b"").unwrap();
+    eval_fails_naming(&only, &only.join("000.png"));
+    let later = dir.path().join("later_empty_png");
+    std::fs::create_dir(&later).unwrap();
+    frame.save(later.join("000.png")).unwrap();
+    frame.save(later.join("001.png")).unwrap();
+    std::fs::write(later.join("002.png"), b"").unwrap();
+    eval_fails_naming(&later, &later.join("002.png"));
+
+    // rgb.txt naming an image that does not exist (after two that do).
+    let listed = dir.path().join("missing_image");
+    std::fs::create_dir_all(listed.join("rgb")).unwrap();
+    frame.save(listed.join("rgb/a.png")).unwrap();
+    frame.save(listed.join("rgb/b.png")).unwrap();
+    std::fs::write(
+        listed.join("rgb.txt"),
+        "0.0 rgb/a.png\n0.033 rgb/b.png\n0.066 rgb/gone.png\n",
+    )
+    .unwrap();
+    eval_fails_naming(&listed, &listed.join("rgb/gone.png"));
+}
+
+#[test]
+fn gstreamer_errors_show_the_message_without_debug_detail() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 3, "pan", 1);
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&seq)
+        .args(["--model", &fixture("wrong_names.onnx")])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.starts_with(&format!("leangate: `{}`", fixture("wrong_names.onnx"))),
+        "the element's message, naming the model: {err}"
+    );
+    assert!(
+        !err.contains("imp.rs") && !err.contains("{{closure}}"),
+        "no source location: {err}"
+    );
+}
+
+#[test]
+fn numeric_arguments_are_checked_at_parse_time() {
+    // (subcommand and its required arguments, the bad argument, its value)
+    let eval = ["eval", "--sequence", "/x"];
+    let synth = ["synth", "--out", "/x"];
+    let label = ["label", "--sequence", "/x"];
+    let cases: &[(&[&str], &str, &str)] = &[
+        (&eval, "--threshold", "2"),
+        (&eval, "--threshold", "nan"),
+        (&eval, "--threshold", "1.0000001"),
+        (&eval, "--threshold", "-0.5"),
+        (&eval, "--sweep-thresholds", "2,3"),
+        (&eval, "--sweep-thresholds", "nan"),
+        (&eval, "--sweep-thresholds", "0.3,inf"),
+        (&eval, "--max-dist", "nan"),
+        (&eval, "--working-width", "0"),
+        (&eval, "--dense-every", "0"),
+        (&eval, "--sfm-max-features", "0"),
+        (&synth, "--width", "100000"),
+        (&synth, "--height", "100000"),
+        (&synth, "--width", "1"),
+        (&synth, "--frames", "0"),
+        (&synth, "--frames", "1000000000000"),
+        (&synth, "--fps", "nan"),
+        (&synth, "--fps", "0"),
+        (&synth, "--noise", "inf"),
+        (&synth, "--replay-start", "-1"),
+        (&label, "--threshold", "nan"),
+        (&label, "--threshold", "2"),
+        (&label, "--threshold", "inf"),
+        (&label, "--max-dist", "nan"),
+        (&label, "--max-dist", "0"),
+        (&label, "--working-width", "0"),
+        (&label, "--within", "0"),
+        (&label, "--random", "0"),
+        (&label, "--random", "100000000000000"),
+        (&label, "--max-gap", "0"),
+        (
+            &["geometry", "--sequence", "/x", "--pairs", "/p"],
+            "--size",
+            "160x99999",
+        ),
+    ];
+    for (cmd, flag, value) in cases {
+        let mut c = leangate();
+        c.args(*cmd).arg(format!("{flag}={value}"));
+        if *cmd == synth && *flag == "--width" {
+            c.args(["--height", "100000"]); // the size of the reported abort
+        }
+        let out = output_within(c, std::time::Duration::from_secs(30));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(
+            out.status.code(),
+            Some(2),
+            "{flag} {value}: a usage error: {err}"
+        );
+        // clap reports the first bad value of a list.
+        let first_bad = value.split(',').find(|v| !["0.3"].contains(v)).unwrap();
+        assert!(
+            err.contains(&format!("invalid value '{first_bad}' for '{flag}")),
+            "{flag} {value}: names the argument and the value: {err}"
+        );
+        assert!(err.contains("expected "), "says what is accepted: {err}");
+    }
+}
+
+#[test]
+fn label_pairs_take_only_the_first_line_as_a_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 3, "pan", 2);
+    let label = |pairs: &str| {
+        let p = dir.path().join("pairs.csv");
+        std::fs::write(&p, pairs).unwrap();
+        let out = label_pairs(&seq, &p);
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    // An index past u64 on the first line is a bad number, not a header.
+    let (rc, stdout, err) = label("18446744073709551616,0\n1,0\n");
+    assert_eq!(rc, Some(1), "{err}");
+    assert!(stdout.is_empty(), "no CSV: {stdout}");
+    assert!(
+        err.contains("pairs.csv` line 1") && err.contains("18446744073709551616"),
+        "{err}"
+    );
+    // After a header (and a comment), a bad line is an error naming its line.
+    let (rc, _, err) = label("# pairs\ni,j\n1,0\n2,x\n");
+    assert_eq!(rc, Some(1), "{err}");
+    assert!(err.contains("line 4") && err.contains("\"x\""), "{err}");
+    let (rc, _, err) = label("i,j\n1,0\nfoo,bar\n");
+    assert_eq!(rc, Some(1), "only the first line may be a header: {err}");
+    assert!(err.contains("line 3"), "{err}");
+    // A header and good pairs (extra columns ignored): one row per pair.
+    let (rc, stdout, err) = label("i,j\n1,0,0.25\n2,1\n");
+    assert_eq!(rc, Some(0), "{err}");
+    assert_eq!(stdout.lines().count(), 3, "{stdout}");
+}
+
+#[test]
+fn plot_errors_name_the_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 4, "pan", 3);
+    for flag in ["--plot", "--contact-sheet", "--sweep-plot"] {
+        let bad = dir.path().join("no/such/dir").join(format!("{flag}.png"));
+        let out = leangate()
+            .args(["eval", "--sequence"])
+            .arg(&seq)
+            .args([
+                "--model",
+                &fixture("mad.onnx"),
+                "--sweep-thresholds",
+                "0.1",
+                flag,
+            ])
+            .arg(&bad)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(
+            err.contains(&format!("`{}`: ", bad.display())) && err.contains("No such file"),
+            "{flag}: the path and the cause: {err}"
+        );
+        assert!(!err.contains("IOError") && !err.contains("Os {"), "{err}");
+    }
 }

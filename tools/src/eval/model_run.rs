@@ -188,41 +188,60 @@ pub fn run_model(
             let seq = seq.clone();
             feeder = Some(std::thread::spawn(move || -> Result<(), EvalError> {
                 let t0 = seq.frames.first().map(|f| f.timestamp).unwrap_or(0.0);
-                for i in 0..seq.len() {
-                    let img = seq.load_rgb(i).map_err(err("frame"))?;
-                    if img.dimensions() != (w, h) {
-                        return Err(EvalError(format!(
-                            "frame {i} is {}x{}, the first frame is {w}x{h}",
-                            img.width(),
-                            img.height()
-                        )));
+                let feed = || {
+                    for i in 0..seq.len() {
+                        let img = seq.load_rgb(i).map_err(err("frame"))?;
+                        if img.dimensions() != (w, h) {
+                            return Err(EvalError(format!(
+                                "frame {i} is {}x{}, the first frame is {w}x{h}",
+                                img.width(),
+                                img.height()
+                            )));
+                        }
+                        let mut b = gst::Buffer::from_mut_slice(img.into_raw());
+                        let pts = ((seq.frames[i].timestamp - t0).max(0.0) * 1e9) as u64;
+                        b.get_mut()
+                            .unwrap()
+                            .set_pts(gst::ClockTime::from_nseconds(pts));
+                        if src.push_buffer(b).is_err() {
+                            break; // pipeline stopped (error reported on the bus)
+                        }
                     }
-                    let mut b = gst::Buffer::from_mut_slice(img.into_raw());
-                    let pts = ((seq.frames[i].timestamp - t0).max(0.0) * 1e9) as u64;
-                    b.get_mut()
-                        .unwrap()
-                        .set_pts(gst::ClockTime::from_nseconds(pts));
-                    if src.push_buffer(b).is_err() {
-                        break; // pipeline stopped (error reported on the bus)
-                    }
-                }
+                    Ok(())
+                };
+                let fed = feed();
+                // EOS after a failure too: the sink must not wait for frames that never come.
                 let _ = src.end_of_stream();
-                Ok(())
+                fed
             }));
         }
     }
 
     let bus = pipeline.bus().unwrap();
+    let mut log = BusLog::new(source, &gate);
     let start = Instant::now();
-    pipeline.set_state(gst::State::Playing).map_err(|_| {
-        bus_error(&bus).unwrap_or_else(|| EvalError("pipeline failed to start".into()))
-    })?;
+    if pipeline.set_state(gst::State::Playing).is_err() {
+        log.drain(&bus);
+        let _ = pipeline.set_state(gst::State::Null);
+        return Err(log
+            .error
+            .unwrap_or_else(|| EvalError("pipeline failed to start".into())));
+    }
     let mut metas = Vec::new();
     let mut thumbs = Vec::new();
     let mut kept_thumbs = Vec::new();
     let mut cache = None;
     let mut failure = None;
-    while let Ok(sample) = sink.pull_sample() {
+    // Pull until EOS, watching the bus: a source that fails (a file that is not a video, an
+    // unreadable image) posts an error and never reaches EOS.
+    while log.error.is_none() {
+        let Some(sample) = sink.try_pull_sample(gst::ClockTime::from_mseconds(100)) else {
+            log.drain(&bus);
+            if sink.is_eos() {
+                break;
+            }
+            continue;
+        };
         let Some(buf) = sample.buffer() else { continue };
         let Some(m) = GateMeta::read(buf) else {
             failure = Some(EvalError(
@@ -230,7 +249,13 @@ pub fn run_model(
             ));
             break;
         };
-        let rgb = thumbnail(&mut cache, &sample)?;
+        let rgb = match thumbnail(&mut cache, &sample) {
+            Ok(rgb) => rgb,
+            Err(e) => {
+                failure = Some(e);
+                break;
+            }
+        };
         thumbs.push(grey(&rgb));
         if m.keep {
             kept_thumbs.push((metas.len(), rgb));
@@ -239,67 +264,104 @@ pub fn run_model(
         progress(metas.len());
     }
     let elapsed = start.elapsed().as_secs_f64();
-    // One pass over the bus: `pop_filtered` would discard the messages it does not match.
-    let mut bus_err = None;
-    let mut stats_threshold = None;
-    let mut provider = String::new();
-    let mut name = String::new();
-    let mut precision = String::new();
-    while let Some(msg) = bus.pop() {
-        match msg.view() {
-            gst::MessageView::Error(e) if bus_err.is_none() => {
-                bus_err = Some(EvalError(format!(
-                    "{}{}",
-                    e.error(),
-                    e.debug().map(|d| format!(" ({d})")).unwrap_or_default()
-                )));
-            }
-            gst::MessageView::Element(_) => {
-                if let Some(stats) = msg
-                    .structure()
-                    .and_then(|s| StatsMessage::from_structure(s).ok())
-                {
-                    stats_threshold = Some(stats.threshold);
-                    provider = stats.execution_provider;
-                    name = stats.model;
-                    precision = stats.model_precision;
-                }
-            }
-            _ => {}
-        }
-    }
+    log.drain(&bus);
     let _ = pipeline.set_state(gst::State::Null);
     if let Some(f) = feeder {
         f.join()
             .map_err(|_| EvalError("frame feeder panicked".into()))??;
     }
-    if let Some(e) = bus_err.or(failure) {
+    if let Some(e) = log.error.or(failure) {
         return Err(e);
     }
     if metas.is_empty() {
         return Err(EvalError("no frame came out of the pipeline".into()));
     }
+    let stats = log.stats;
     Ok(ModelRun {
         fps: metas.len() as f64 / elapsed.max(1e-9),
-        threshold: stats_threshold.or(threshold).unwrap_or(0.5),
+        threshold: stats
+            .as_ref()
+            .map(|s| s.threshold)
+            .or(threshold)
+            .unwrap_or(0.5),
         metas,
         thumbs,
         kept_thumbs,
-        provider,
-        model_name: name,
-        model_precision: precision,
+        provider: stats
+            .as_ref()
+            .map(|s| s.execution_provider.clone())
+            .unwrap_or_default(),
+        model_name: stats.as_ref().map(|s| s.model.clone()).unwrap_or_default(),
+        model_precision: stats.map(|s| s.model_precision).unwrap_or_default(),
     })
 }
 
-fn bus_error(bus: &gst::Bus) -> Option<EvalError> {
-    while let Some(msg) = bus.pop_filtered(&[gst::MessageType::Error]) {
-        if let gst::MessageView::Error(e) = msg.view() {
-            return Some(EvalError(format!(
-                "{}{}",
-                e.error(),
-                e.debug().map(|d| format!(" ({d})")).unwrap_or_default()
-            )));
+/// What the bus said during a run: the first error (shown to the user) and the last
+/// `leangate-stats`. Read in one pass: `pop_filtered` would discard the messages it does not match.
+struct BusLog {
+    /// Names the input in errors from the source part of the pipeline.
+    input: Option<String>,
+    gate: gst::Element,
+    error: Option<EvalError>,
+    stats: Option<StatsMessage>,
+}
+
+impl BusLog {
+    fn new(source: &Source, gate: &gst::Element) -> BusLog {
+        BusLog {
+            input: match source {
+                Source::Video(path) => Some(path.display().to_string()),
+                Source::Sequence(_) => None,
+            },
+            gate: gate.clone(),
+            error: None,
+            stats: None,
         }
     }
-    None
+
+    fn drain(&mut self, bus: &gst::Bus) {
+        while let Some(msg) = bus.pop() {
+            match msg.view() {
+                gst::MessageView::Error(e) if self.error.is_none() => {
+                    // The element's errors name their subject (the model); the source's name
+                    // the input, or the element that failed.
+                    let who = match (&self.input, msg.src()) {
+                        (_, Some(src)) if src == self.gate.upcast_ref::<gst::Object>() => None,
+                        (Some(input), _) => Some(format!("`{input}`")),
+                        (None, src) => src.map(|s| s.name().to_string()),
+                    };
+                    self.error = Some(EvalError(user_error(e, who.as_deref())));
+                }
+                gst::MessageView::Element(_) => {
+                    if let Some(stats) = msg
+                        .structure()
+                        .and_then(|s| StatsMessage::from_structure(s).ok())
+                    {
+                        self.stats = Some(stats);
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+}
+
+/// An error message as the user sees it, `[WHO: ]message`, without GStreamer's debug detail
+/// (source file, line and function), which goes to the debug log (`GST_DEBUG=leangate-tools:1`).
+fn user_error(e: &gst::message::Error, who: Option<&str>) -> String {
+    static CAT: std::sync::LazyLock<gst::DebugCategory> = std::sync::LazyLock::new(|| {
+        gst::DebugCategory::new(
+            "leangate-tools",
+            gst::DebugColorFlags::empty(),
+            Some("leangate command-line tools"),
+        )
+    });
+    let text = match who {
+        Some(who) => format!("{who}: {}", e.error()),
+        None => e.error().to_string(),
+    };
+    if let Some(d) = e.debug() {
+        gst::error!(CAT, "{text} ({d})");
+    }
+    text
 }

@@ -3,6 +3,9 @@
 use std::path::Path;
 use std::sync::Once;
 
+use plotters::coord::Shift;
+use plotters::prelude::{BitMapBackend, DrawingArea, IntoDrawingArea};
+
 use super::{err, EvalError, PlotData, SweepPoint, THUMB_H, THUMB_W};
 
 /// One colour per policy row or curve, in display order (model, oracle, then the baselines).
@@ -42,18 +45,43 @@ pub fn contact_sheet(
             (pad + r * (THUMB_H + pad)) as i64,
         );
     }
-    sheet
-        .save(out)
+    save(&sheet, out)
+}
+
+/// Write a picture (format by the extension of `out`); an error names the file.
+fn save(img: &image::RgbImage, out: &Path) -> Result<(), EvalError> {
+    img.save(out)
         .map_err(|e| EvalError(format!("`{}`: {e}", out.display())))
+}
+
+type Canvas<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
+
+/// Draw on a `size` canvas in memory, then [`save`] it to `out` (plotters' own file output
+/// reports a failure in Debug form, without the path).
+fn render(
+    size: (u32, u32),
+    out: &Path,
+    draw: impl FnOnce(Canvas<'_>) -> Result<(), EvalError>,
+) -> Result<(), EvalError> {
+    let mut rgb = vec![0; size.0 as usize * size.1 as usize * 3];
+    draw(BitMapBackend::with_buffer(&mut rgb, size).into_drawing_area())?;
+    save(
+        &image::RgbImage::from_raw(size.0, size.1, rgb).expect("canvas size"),
+        out,
+    )
 }
 
 /// Draw teacher and predicted tau over time, the threshold, and kept frames per policy.
 pub fn plot(data: &PlotData, title: &str, out: &Path) -> Result<(), EvalError> {
+    let size = (1200, 520 + 28 * data.kept.len() as u32);
+    render(size, out, |root| draw_plot(root, data, title))
+}
+
+fn draw_plot(root: Canvas<'_>, data: &PlotData, title: &str) -> Result<(), EvalError> {
     use plotters::prelude::*;
     register_font();
     let n = data.predicted_tau.len().max(2);
     let rows = data.kept.len();
-    let root = BitMapBackend::new(out, (1200, 520 + 28 * rows as u32)).into_drawing_area();
     root.fill(&WHITE).map_err(err("plot"))?;
     let (top, bottom) = root.split_vertically(480);
     let e = err::<String>("plot");
@@ -170,6 +198,10 @@ fn register_font() {
 /// The equal-budget curves of `--sweep`: late keeps (top) and min pair S (bottom) against the
 /// number of frames kept, one line per policy.
 pub fn plot_sweep(points: &[SweepPoint], title: &str, out: &Path) -> Result<(), EvalError> {
+    render((1000, 900), out, |root| draw_sweep(root, points, title))
+}
+
+fn draw_sweep(root: Canvas<'_>, points: &[SweepPoint], title: &str) -> Result<(), EvalError> {
     use plotters::prelude::*;
     register_font();
     let e = err::<String>("sweep plot");
@@ -186,7 +218,6 @@ pub fn plot_sweep(points: &[SweepPoint], title: &str, out: &Path) -> Result<(), 
         .max()
         .unwrap_or(1)
         .max(1) as f64;
-    let root = BitMapBackend::new(out, (1000, 900)).into_drawing_area();
     root.fill(&WHITE).map_err(err("sweep plot"))?;
     let (top, bottom) = root.split_vertically(450);
     let palette = PALETTE;

@@ -68,7 +68,9 @@ mod tests;
 pub use materials::load_textures;
 pub use motion::{camera_path, pose_from_angles, MotionProfile, Segment};
 pub use noise::SplitMix64;
-pub use render::{render_sequence, try_camera_path, SynthConfig, SynthSummary};
+pub use render::{
+    render_sequence, try_camera_path, SynthConfig, SynthSummary, MAX_FRAMES, MAX_SIDE,
+};
 pub use replay::{MotionSpec, Replay, ReplayEnd, Trajectory};
 pub use scene::{Lighting, Scene};
 pub use sensor::SensorConfig;
