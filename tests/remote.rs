@@ -805,12 +805,17 @@ fn one_in_flight_bound_per_server_however_its_url_is_spelled() {
                     let mut h = started(&e);
                     barrier.wait();
                     barrier.wait();
-                    push_frames(&mut h, 10, Duration::ZERO)
+                    let metas = push_frames(&mut h, 10, Duration::ZERO);
+                    // No element stops (withdrawing its bound, which lets the others' rise)
+                    // before every element has pushed its frames.
+                    barrier.wait();
+                    metas
                 })
             })
             .collect();
         barrier.wait();
         server.reset_max_in_flight();
+        barrier.wait();
         barrier.wait();
         for t in threads {
             let metas = t.join().unwrap();
