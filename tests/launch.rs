@@ -103,3 +103,60 @@ fn gst_launch_runs_a_real_pipeline() {
         "{text}"
     );
 }
+
+/// The README's keyframe-extraction pipeline (`... ! leangate ! videoconvert ! jpegenc !
+/// multifilesink`) on a real clip: one decodable JPEG per kept frame, as many as the element's
+/// `leangate-stats` counts, in the clip's size.
+#[test]
+fn gst_launch_writes_one_jpeg_per_kept_frame() {
+    let Some(clip) = common::shared_data("cotracker_clips/bear.mp4") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let out = gst_cmd("gst-launch-1.0")
+        .args(["-m", "filesrc"])
+        .arg(format!("location={}", clip.display()))
+        .args(["!", "decodebin", "!", "leangate", "threshold=0.05", "!"])
+        .args([
+            "videoconvert",
+            "!",
+            "jpegenc",
+            "quality=95",
+            "!",
+            "multifilesink",
+        ])
+        .arg(format!("location={}/kf_%06d.jpg", dir.path().display()))
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let count = |field: &str| -> usize {
+        let key = format!("{field}=(guint64)");
+        let at = text
+            .find(&key)
+            .unwrap_or_else(|| panic!("no {field} in:\n{text}"));
+        let digits: String = text[at + key.len()..]
+            .chars()
+            .take_while(char::is_ascii_digit)
+            .collect();
+        digits.parse().unwrap()
+    };
+    let (frames_in, kept) = (count("frames-in"), count("frames-kept"));
+    assert_eq!(frames_in, 82, "bear.mp4 has 82 frames");
+    assert!(kept > 1 && kept < frames_in, "{kept} kept of {frames_in}");
+    let mut names: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    let expected: Vec<String> = (0..kept).map(|i| format!("kf_{i:06}.jpg")).collect();
+    assert_eq!(names, expected, "one image per kept frame");
+    for n in &names {
+        let bytes = std::fs::read(dir.path().join(n)).unwrap();
+        assert_eq!(common::jpeg_size(&bytes), Some((854, 480)), "{n}");
+    }
+}

@@ -1274,3 +1274,372 @@ fn pipeline_errors_name_the_input_without_debug_detail() {
     let err = stderr(&client(&verbose));
     assert!(err.contains("(debug)") && err.contains("imp.rs"), "{err}");
 }
+
+/// Names of the files in `dir`, sorted.
+fn dir_names(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    v.sort();
+    v
+}
+
+/// The saved keyframes' tables, checked against each other and against the image files: the
+/// same rows in keyframes.csv and keyframes.json, one per image, named kf_000000.EXT, ...,
+/// and nothing else in the directory. Returns the CSV's rows as their fields.
+fn check_saved(dir: &Path, ext: &str) -> Vec<Vec<String>> {
+    let text = std::fs::read_to_string(dir.join("keyframes.csv")).expect("keyframes.csv");
+    let mut lines = text.lines();
+    assert_eq!(
+        lines.next(),
+        Some("image,frame,pts_ns,utility,reason,keyframe_index,frames_since_keyframe,inference_us")
+    );
+    let rows: Vec<Vec<String>> = lines
+        .map(|l| l.split(',').map(String::from).collect())
+        .collect();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("keyframes.json")).unwrap())
+            .unwrap();
+    let frames = json["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), rows.len(), "JSON and CSV rows");
+    assert_eq!(json["kept"].as_u64(), Some(rows.len() as u64));
+    let mut expected: Vec<String> = (0..rows.len())
+        .map(|i| format!("kf_{i:06}.{ext}"))
+        .collect();
+    for (i, (r, j)) in rows.iter().zip(frames).enumerate() {
+        assert_eq!(r.len(), 8, "{r:?}");
+        assert_eq!(r[0], expected[i]);
+        assert_eq!(j["image"], r[0].as_str());
+        assert_eq!(j["frame"].as_u64(), Some(r[1].parse().unwrap()), "{j}");
+        assert_eq!(j["pts_ns"].as_u64(), Some(r[2].parse().unwrap()), "{j}");
+        assert_eq!(j["reason"], r[4].as_str());
+        assert_eq!(j["keyframe_index"].as_u64(), Some(r[5].parse().unwrap()));
+        if r[4] == "first" {
+            assert!(r[3] == "nan" && j["utility"].is_null(), "{r:?} {j}");
+        } else {
+            let u: f64 = r[3].parse().unwrap();
+            assert!(
+                (j["utility"].as_f64().unwrap() - u).abs() < 1e-6,
+                "{r:?} {j}"
+            );
+        }
+        let bytes = std::fs::read(dir.join(&r[0])).unwrap();
+        let size = if ext == "png" {
+            paths::png_size(&bytes)
+        } else {
+            paths::jpeg_size(&bytes)
+        };
+        assert!(size.is_some(), "{} is not a {ext}", r[0]);
+    }
+    expected.extend(["keyframes.csv".into(), "keyframes.json".into()]);
+    expected.sort();
+    assert_eq!(dir_names(dir), expected, "one image per row, nothing else");
+    rows
+}
+
+/// `--save-kept DIR` on a real clip: one JPEG per kept frame, in the clip's size, whose rows in
+/// keyframes.csv/.json carry the same frame, PTS, utility and reason as the frames the client
+/// received; a progress line on stderr; and the README's plain gst-launch pipeline writes the
+/// very same files.
+#[test]
+fn save_kept_writes_the_kept_frames_of_a_real_clip_with_their_meta() {
+    if !python_ok() || !have_elements(&["jpegenc", "multifilesink", "tee"]) {
+        return;
+    }
+    let Some(clip) = paths::shared_data("cotracker_clips/bear.mp4") else {
+        return;
+    };
+    let clip = clip.to_str().unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let kf = tmp.path().join("new/kf"); // created, parents too
+    let received = tmp.path().join("received.csv");
+    let out = client_module(&[
+        clip,
+        "--threshold",
+        "0.05",
+        "--quiet",
+        "--csv",
+        received.to_str().unwrap(),
+        "--save-kept",
+        kf.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let s = summary(&out);
+    let (frames_in, kept) = (num(&s, "frames-in"), num(&s, "kept"));
+    assert_eq!(frames_in, 82);
+    assert!(kept > 1 && kept < frames_in, "{kept}");
+    assert_eq!(num(&s, "saved"), kept);
+    let rows = check_saved(&kf, "jpg");
+    assert_eq!(rows.len() as u64, kept, "one image per kept frame");
+    let got = read_csv(&received);
+    assert_eq!(got.len(), rows.len());
+    for (r, g) in rows.iter().zip(&got) {
+        assert_eq!(r[1], g.frame.to_string());
+        assert_eq!(r[2], g.pts.to_string());
+        assert_eq!(r[4], g.reason);
+        assert_eq!(r[5], g.keyframe_index.to_string());
+        assert_eq!(r[3] == "nan", g.utility.is_nan());
+        if !g.utility.is_nan() {
+            assert_eq!(r[3], format!("{:.6}", g.utility));
+        }
+    }
+    for r in &rows {
+        let bytes = std::fs::read(kf.join(&r[0])).unwrap();
+        assert_eq!(paths::jpeg_size(&bytes), Some((854, 480)), "{}", r[0]);
+    }
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(kf.join("keyframes.json")).unwrap()).unwrap();
+    assert_eq!(json["frames_in"].as_u64(), Some(frames_in));
+    assert_eq!(json["format"], "jpg");
+    let progress = format!(
+        "leangate-client: {frames_in} frames in, {kept} kept, {kept} images written to {}",
+        kf.display()
+    );
+    assert!(stderr(&out).contains(&progress), "{}", stderr(&out));
+
+    // The plain pipeline of the README, same model and threshold: the same files, byte for byte.
+    let plain = tmp.path().join("plain");
+    std::fs::create_dir(&plain).unwrap();
+    let mut c = command("gst-launch-1.0");
+    c.args([
+        "filesrc",
+        &format!("location={clip}"),
+        "!",
+        "decodebin",
+        "!",
+    ])
+    .args([
+        "leangate",
+        &format!("model={}", model()),
+        "threshold=0.05",
+        "!",
+    ])
+    .args([
+        "videoconvert",
+        "!",
+        "jpegenc",
+        "quality=95",
+        "!",
+        "multifilesink",
+    ])
+    .arg(format!("location={}/kf_%06d.jpg", plain.display()));
+    let out = run(c);
+    assert!(out.status.success());
+    let images: Vec<&String> = rows.iter().map(|r| &r[0]).collect();
+    assert_eq!(dir_names(&plain).iter().collect::<Vec<_>>(), images);
+    for n in images {
+        assert!(
+            std::fs::read(plain.join(n)).unwrap() == std::fs::read(kf.join(n)).unwrap(),
+            "{n} differs between gst-launch and the client"
+        );
+    }
+}
+
+/// The library: `save_kept=` on a `LeanGateSource` in annotate mode saves only the kept frames
+/// (as PNG); the `save_kept()` helper honours `max_frames`; a caller that stops iterating
+/// early still gets every kept frame it was handed on disk, listed in the tables, and no
+/// half-written file.
+#[test]
+fn save_kept_from_the_library_annotate_mode_and_early_stops() {
+    if !python_ok() || !have_elements(&["pngenc", "jpegenc", "multifilesink", "tee"]) {
+        return;
+    }
+    let Some(clip) = paths::shared_data("cotracker_clips/teddy.mp4") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let d: Vec<PathBuf> = (1..=3).map(|i| tmp.path().join(format!("d{i}"))).collect();
+    let script = r#"
+import json, sys
+from leangate_client import LeanGateSource, save_kept
+clip, d1, d2, d3, model = sys.argv[1:]
+src = LeanGateSource(clip, model=model, threshold=0.15, mode="annotate", arrays=False,
+                     save_kept=d1, save_format="png")
+with src:
+    kept = [m["frame"] for _, m in src if m["keep"]]
+saver = save_kept(clip, d2, format="jpg", model=model, threshold=0.15, max_frames=5)
+src3 = LeanGateSource(clip, model=model, threshold=0.15, save_kept=d3)
+with src3:
+    for i, (f, m) in enumerate(src3):
+        if i == 2:
+            break
+print(json.dumps({"kept": kept, "rows1": [r["frame"] for r in src.saver.rows],
+                  "frames_in": src.frames_in, "n2": len(saver.rows),
+                  "n3": len(src3.saver.rows), "received3": src3.received}))
+"#;
+    let mut c = command(PYTHON);
+    c.env("PYTHONPATH", pkg_dir())
+        .args(["-c", script, clip.to_str().unwrap()])
+        .args(&d)
+        .arg(model());
+    let out = run(c);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    let kept = v["kept"].as_array().unwrap();
+    assert_eq!(v["frames_in"], 141, "teddy.mp4 has 141 frames");
+    assert!(kept.len() > 5 && kept.len() < 141, "{kept:?}");
+    assert_eq!(
+        &v["rows1"], &v["kept"],
+        "annotate mode: exactly the kept frames"
+    );
+    let rows = check_saved(&d[0], "png");
+    assert_eq!(rows.len(), kept.len());
+    for r in &rows {
+        let bytes = std::fs::read(d[0].join(&r[0])).unwrap();
+        assert_eq!(paths::png_size(&bytes), Some((368, 480)), "{}", r[0]);
+    }
+    assert_eq!(v["n2"], 5);
+    assert_eq!(
+        check_saved(&d[1], "jpg").len(),
+        5,
+        "max_frames caps the images"
+    );
+    let n3 = v["n3"].as_u64().unwrap();
+    assert_eq!(v["received3"], 3);
+    assert!(n3 >= 3, "every frame handed out is on disk: {v}");
+    assert_eq!(check_saved(&d[2], "jpg").len() as u64, n3);
+}
+
+/// Directories `--save-kept` cannot use are refused before anything runs, with a message
+/// naming the directory and the way out, and nothing in them is touched; `--overwrite`
+/// replaces an earlier run's output and leaves other files alone.
+#[test]
+fn save_kept_refuses_unusable_directories() {
+    if !python_ok() || !have_elements(&["jpegenc", "multifilesink", "tee"]) {
+        return;
+    }
+    let src = "test://ball?num-buffers=12&width=160&height=120";
+    let tmp = tempfile::tempdir().unwrap();
+    let kf = tmp.path().join("kf");
+    std::fs::create_dir(&kf).unwrap();
+    std::fs::write(kf.join("notes.txt"), "mine").unwrap();
+    let kf_s = kf.to_str().unwrap();
+
+    let out = client_module(&[src, "--quiet", "--save-kept", kf_s]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = stderr(&out);
+    assert!(
+        err.contains(&format!("leangate-client: error: {kf_s} is not empty"))
+            && err.contains("notes.txt")
+            && err.contains("--overwrite"),
+        "{err}"
+    );
+    assert_eq!(dir_names(&kf), ["notes.txt"], "nothing written");
+    assert!(stdout(&out).is_empty());
+
+    // A first run into a fresh directory, then --overwrite with fewer frames: the earlier
+    // images are gone, notes.txt stays (with a warning that it is there).
+    let fresh = tmp.path().join("fresh");
+    let out = client_module(&[
+        src,
+        "--threshold",
+        "0.001",
+        "--quiet",
+        "--save-kept",
+        fresh.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let first = dir_names(&fresh).len() - 2;
+    assert!(first > 3, "{:?}", dir_names(&fresh));
+    std::fs::write(fresh.join("notes.txt"), "mine").unwrap();
+    let out = client_module(&[
+        src,
+        "--threshold",
+        "0.001",
+        "--quiet",
+        "--max-frames",
+        "2",
+        "--overwrite",
+        "--save-kept",
+        fresh.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    assert!(
+        stderr(&out).contains("not leangate output"),
+        "{}",
+        stderr(&out)
+    );
+    assert_eq!(
+        dir_names(&fresh),
+        [
+            "keyframes.csv",
+            "keyframes.json",
+            "kf_000000.jpg",
+            "kf_000001.jpg",
+            "notes.txt"
+        ]
+    );
+
+    // A file, a path that cannot be created, and --overwrite alone.
+    let file = tmp.path().join("file.txt");
+    std::fs::write(&file, "x").unwrap();
+    let out = client_module(&[src, "--save-kept", file.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        stderr(&out).contains(&format!(
+            "{}: it exists and is not a directory",
+            file.display()
+        )),
+        "{}",
+        stderr(&out)
+    );
+    let out = client_module(&[src, "--save-kept", "/proc/leangate-kf/sub"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        stderr(&out).contains("cannot create the directory /proc/leangate-kf/sub"),
+        "{}",
+        stderr(&out)
+    );
+    let out = client_module(&[src, "--overwrite"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(stderr(&out).contains("--overwrite applies to --save-kept"));
+
+    // Writing fails half-way (files over 100 KiB fail with EFBIG, as on a full disk; Python
+    // ignores SIGXFSZ): a pipeline error naming the directory and the file, exit 1, the tables
+    // still written for the images that are complete, and no partial image left.
+    if let Some(clip) = paths::shared_data("cotracker_clips/bear.mp4") {
+        let full = tmp.path().join("full");
+        let mut c = command("bash");
+        c.env("PYTHONPATH", pkg_dir())
+            .arg("-c")
+            .arg(format!(
+                "ulimit -f 100 && exec {PYTHON} -m leangate_client \"$1\" --quiet \
+                 --threshold 0.05 --save-kept \"$2\""
+            ))
+            .args(["bash", clip.to_str().unwrap(), full.to_str().unwrap()]);
+        let out = run(c);
+        assert_eq!(out.status.code(), Some(1));
+        let err = stderr(&out);
+        assert!(
+            err.contains(&format!(
+                "error: pipeline error: cannot save the kept frames to {}: ",
+                full.display()
+            )) && err.contains("kf_000000.jpg")
+                && err.contains("File too large"),
+            "{err}"
+        );
+        assert_eq!(
+            check_saved(&full, "jpg").len(),
+            0,
+            "854x480 JPEGs are > 100 KiB"
+        );
+        assert!(!err.contains("Traceback"), "{err}");
+    }
+
+    // A directory without write permission (root writes anyway: then only say so).
+    let ro = tmp.path().join("ro");
+    std::fs::create_dir(&ro).unwrap();
+    std::fs::set_permissions(&ro, std::os::unix::fs::PermissionsExt::from_mode(0o555)).unwrap();
+    if std::fs::write(ro.join("probe"), "x").is_ok() {
+        eprintln!("SKIPPED (read-only directory case): running as root, permissions do not bind");
+        return;
+    }
+    let out = client_module(&[src, "--save-kept", ro.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        stderr(&out).contains(&format!("cannot write to {}", ro.display())),
+        "{}",
+        stderr(&out)
+    );
+}

@@ -9,6 +9,8 @@ LeanGateMeta, for a Python SLAM process (e.g. a MASt3R-SLAM front end)::
                 src.force_keyframe()               # keep the next frame whatever its score
     print(src.stats.frames_kept, src.stats.keep_ratio)   # the `leangate-stats` message at EOS
 
+    save_kept("clip.mp4", "keyframes/")   # kept frames as kf_000000.jpg, ... + keyframes.csv/.json
+
 Needs PyGObject with the Gst/GstVideo typelibs and numpy from the system (Debian:
 python3-gi gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 python3-numpy) and the plugin on
 GST_PLUGIN_PATH (or ``plugin_path=``). Importing this package needs neither: the bindings are
@@ -35,7 +37,8 @@ from .meta import (  # noqa: E402
 )
 from .stats import LeanGateStats  # noqa: E402
 from ._gst import ensure_plugin  # noqa: E402
-from .source import LeanGateSource, buffer_to_rgb, parse_test_uri  # noqa: E402
+from .keyframes import KeptFrameSaver  # noqa: E402
+from .source import LeanGateSource, buffer_to_rgb, parse_test_uri, save_kept  # noqa: E402
 
 _logging.getLogger(__name__).addHandler(_logging.NullHandler())
 
@@ -43,6 +46,8 @@ __all__ = [
     "__version__",
     "LeanGateSource",
     "LeanGateStats",
+    "KeptFrameSaver",
+    "save_kept",
     "PipelineError",
     "SetupError",
     "ensure_plugin",

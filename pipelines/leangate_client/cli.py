@@ -5,6 +5,9 @@ stdout is the product: one line per received frame (unless --quiet) and a ``summ
 
     summary: frames-in=82 received=31 kept=31 forced=0 force-events=0 mode=drop shape=480x854x3:uint8 ...
 
+With ``--save-kept DIR`` every kept frame is also written to DIR as an image (``--format jpg|png``)
+with ``keyframes.csv`` and ``keyframes.json`` of their meta, and a progress line goes to stderr.
+
 Diagnostics go through ``logging`` to stderr (warnings by default; -v info, -vv debug).
 Exit status: 0 on success, 1 on a pipeline error, 2 on a usage/setup error (missing file,
 missing plugin, missing Python bindings), 130 when interrupted.
@@ -18,24 +21,18 @@ import logging
 import math
 import os
 import sys
+import time
 from typing import Iterable, List, Optional, Sequence
 
 from .argtypes import non_negative_int, non_negative_seconds, uint32, unit_interval
 from .errors import PipelineError, SetupError
+from .keyframes import CSV_NAME, FORMATS, JSON_NAME
+from .meta import ROW_COLUMNS, csv_value, meta_row
 from .source import EXECUTION_PROVIDERS, PRECISIONS, LeanGateSource
 
 log = logging.getLogger("leangate_client")
 
-CSV_COLUMNS = (
-    "frame",
-    "pts_ns",
-    "utility",
-    "keep",
-    "reason",
-    "keyframe_index",
-    "frames_since_keyframe",
-    "inference_us",
-)
+CSV_COLUMNS = ROW_COLUMNS
 
 
 class _Formatter(logging.Formatter):
@@ -78,6 +75,32 @@ def _fmt(v, spec: str) -> str:
     return "-" if v is None else format(v, spec)
 
 
+class _Progress:
+    """A progress line on stderr: redrawn in place (at most 4 times a second) on a terminal,
+    a new line every 10 s otherwise (a log file), and a last one at the end."""
+
+    def __init__(self, prog: str, stream=None):
+        self.prog = prog
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = self.stream.isatty()
+        self.interval = 0.25 if self.tty else 10.0
+        self.last = time.monotonic()
+        self.drawn = False
+
+    def update(self, text: str, final: bool = False) -> None:
+        now = time.monotonic()
+        if not final and now - self.last < self.interval:
+            return
+        self.last = now
+        line = f"{self.prog}: {text}"
+        if self.tty:
+            self.stream.write("\r\x1b[K" + line + ("\n" if final else ""))
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+        self.drawn = not final
+
+
 def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog=prog,
@@ -115,6 +138,15 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
     ap.add_argument("--stats-interval", type=non_negative_seconds, default=None, metavar="SECONDS",
                     help="have the element post leangate-stats this often (logged at -v)")
     ap.add_argument("--csv", metavar="OUT", help="write one row per received frame to OUT")
+    ap.add_argument("--save-kept", metavar="DIR",
+                    help="write every kept frame to DIR as kf_000000.jpg, ... with "
+                    f"{CSV_NAME} and {JSON_NAME} of their meta (frame, pts_ns, utility, reason, "
+                    "...); DIR is created, and must be empty unless --overwrite")
+    ap.add_argument("--format", choices=tuple(FORMATS), default="jpg",
+                    help="image format of --save-kept (jpg: quality 95; png: lossless)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="let --save-kept use a non-empty DIR: an earlier run's kf_* images and "
+                    "tables there are deleted first, other files are left alone")
     ap.add_argument("--max-frames", type=non_negative_int, default=None,
                     help="stop after receiving this many frames")
     ap.add_argument("--force-every", type=non_negative_int, default=0, metavar="N",
@@ -146,8 +178,11 @@ def main(
         src = args.input
     else:
         ap.error("INPUT is required (or --source videotestsrc)")
+    if args.overwrite and not args.save_kept:
+        ap.error("--overwrite applies to --save-kept DIR")
 
     out = None
+    progress = None
     writer = None
     kept = forced = 0
     shapes: List[str] = []
@@ -167,40 +202,43 @@ def main(
             stats_interval=args.stats_interval,
             plugin_path=args.plugin_path,
             plugin_fallbacks=plugin_fallbacks,
+            save_kept=args.save_kept,
+            save_format=args.format,
+            overwrite=args.overwrite,
         )
         if args.csv:
             out = open(args.csv, "w", newline="")
             writer = csv.writer(out)
             writer.writerow(CSV_COLUMNS)
-        with source:
-            for frame, m in source:
-                shape = f"{frame.shape[0]}x{frame.shape[1]}x{frame.shape[2]}:{frame.dtype}"
-                if shape not in shapes:
-                    shapes.append(shape)
-                kept += m["keep"]
-                forced += m["reason"] == "forced"
-                if writer:
-                    writer.writerow([
-                        "" if m["frame"] is None else m["frame"],
-                        "" if m["pts"] is None else m["pts"],
-                        _fmt_util(m["utility"]),
-                        int(m["keep"]),
-                        m["reason"],
-                        m["keyframe_index"],
-                        m["frames_since_keyframe"],
-                        m["inference_us"],
-                    ])
-                if not args.quiet:
-                    print(
-                        f"frame {m['frame']} pts {m['pts']} shape {frame.shape} mean "
-                        f"{frame.mean():.1f} utility {_fmt_util(m['utility'])} keep "
-                        f"{int(m['keep'])} reason {m['reason']} keyframe {m['keyframe_index']} "
-                        f"since {m['frames_since_keyframe']} inference-us {m['inference_us']}",
-                        flush=True,
-                    )
-                if args.force_every and source.received % args.force_every == 0:
-                    source.force_keyframe()
-            stats = source.stats
+        saver = source.saver
+        progress = _Progress(ap.prog) if saver is not None else None
+        try:
+            with source:
+                for frame, m in source:
+                    shape = f"{frame.shape[0]}x{frame.shape[1]}x{frame.shape[2]}:{frame.dtype}"
+                    if shape not in shapes:
+                        shapes.append(shape)
+                    kept += m["keep"]
+                    forced += m["reason"] == "forced"
+                    if writer:
+                        row = meta_row(m)
+                        writer.writerow([csv_value(row[k]) for k in CSV_COLUMNS])
+                    if not args.quiet:
+                        print(
+                            f"frame {m['frame']} pts {m['pts']} shape {frame.shape} mean "
+                            f"{frame.mean():.1f} utility {_fmt_util(m['utility'])} keep "
+                            f"{int(m['keep'])} reason {m['reason']} keyframe {m['keyframe_index']} "
+                            f"since {m['frames_since_keyframe']} inference-us {m['inference_us']}",
+                            flush=True,
+                        )
+                    if args.force_every and source.received % args.force_every == 0:
+                        source.force_keyframe()
+                    if progress:
+                        progress.update(_saving(source))
+        finally:
+            if progress:  # the last counts; it also ends the line before any error message
+                progress.update(_saving(source), final=True)
+        stats = source.stats
     except SetupError as e:
         log.error("%s", e)
         return 2
@@ -232,7 +270,16 @@ def main(
         f"summary: frames-in={source.frames_in} received={source.received} kept={kept} "
         f"forced={forced} force-events={source.forced_events} mode={args.mode} "
         f"shape={','.join(sorted(shapes)) or '-'}{stats_txt}"
-        + (f" csv={args.csv}" if args.csv else ""),
+        + (f" csv={args.csv}" if args.csv else "")
+        + (f" saved={len(saver.rows)} save-dir={saver.directory}" if saver else ""),
         flush=True,
     )
     return 0
+
+
+def _saving(source: LeanGateSource) -> str:
+    s = source.saver
+    return (
+        f"{source.frames_in} frames in, {source.kept_received} kept, {s.written} images "
+        f"written to {s.directory}"
+    )

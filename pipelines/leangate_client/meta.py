@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any, Dict, Optional
 
 U64_MAX = (1 << 64) - 1
@@ -46,3 +47,48 @@ def meta_dict(buf) -> Optional[Dict[str, Any]]:
     if m is None:
         return None
     return meta_from_structure(m.get_structure())
+
+
+#: Columns of the per-frame tables (``leangate-client --csv`` and the saved keyframes' CSV),
+#: in order; ``meta_row`` gives them from a meta dict.
+ROW_COLUMNS = (
+    "frame",
+    "pts_ns",
+    "utility",
+    "keep",
+    "reason",
+    "keyframe_index",
+    "frames_since_keyframe",
+    "inference_us",
+)
+
+
+def meta_row(meta: Dict[str, Any]) -> Dict[str, Any]:
+    """A meta dict as yielded by ``LeanGateSource`` → the ``ROW_COLUMNS`` values (Python values:
+    None for a missing frame index or PTS, NaN utility for a `first` frame)."""
+    return {
+        "frame": meta["frame"],
+        "pts_ns": meta["pts"],
+        "utility": meta["utility"],
+        "keep": bool(meta["keep"]),
+        "reason": meta["reason"],
+        "keyframe_index": meta["keyframe_index"],
+        "frames_since_keyframe": meta["frames_since_keyframe"],
+        "inference_us": meta["inference_us"],
+    }
+
+
+def csv_value(v: Any) -> str:
+    """One table cell: empty for None, ``nan`` / 6 decimals for a float, 0/1 for a bool."""
+    if v is None:
+        return ""
+    if isinstance(v, bool):
+        return str(int(v))
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else f"{v:.6f}"
+    return str(v)
+
+
+def json_value(v: Any) -> Any:
+    """A value for JSON: NaN (not valid JSON) becomes null."""
+    return None if isinstance(v, float) and math.isnan(v) else v

@@ -6,7 +6,9 @@ The pipeline is built element by element::
 
 where ``<source>`` is ``filesrc ! decodebin`` for a path, ``uridecodebin`` for a URI, and
 ``videotestsrc ! capsfilter`` for a ``test://`` pseudo-URI; the decoders' video pad is linked
-to the gate when it appears (``pad-added``).
+to the gate when it appears (``pad-added``). With ``save_kept`` the gate's output is split by a
+``tee`` into that appsink branch (behind a ``queue``) and the image-writing branch of
+``keyframes.KeptFrameSaver``.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 import urllib.parse
 from typing import Any, Dict, Iterator, List, Mapping, Optional, Tuple
 
@@ -27,6 +30,7 @@ from .argtypes import (
     uint32,
 )
 from .errors import PipelineError, SetupError
+from .keyframes import KeptFrameSaver
 from .meta import FORCE_KEYFRAME_EVENT, META_NAME, RESET_EVENT, meta_dict
 from .stats import LeanGateStats
 
@@ -122,6 +126,30 @@ def buffer_to_rgb(buf, info) -> "Any":
         buf.unmap(mapinfo)
 
 
+class _FrameIndex:
+    """PTS → index of the frame in the input stream, for one consumer downstream of the gate:
+    filled by the probe on the gate's sink pad, taken (in stream order) by the consumer."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._map: Dict[int, int] = {}
+
+    def add(self, pts: int, index: int) -> None:
+        with self._lock:
+            self._map[pts] = index
+
+    def take(self, pts: Optional[int]) -> Optional[int]:
+        """The index of the frame with this PTS (None when unknown); entries for earlier PTS
+        (frames the gate dropped) are forgotten."""
+        if pts is None:
+            return None
+        with self._lock:
+            index = self._map.pop(pts, None)
+            for k in [k for k in self._map if k < pts]:
+                del self._map[k]
+        return index
+
+
 class LeanGateSource:
     """Iterate over the frames that leave `leangate` as ``(rgb_array, meta_dict)``.
 
@@ -141,6 +169,14 @@ class LeanGateSource:
     ``arrays=False`` the frame is None (cheaper, for score dumps). ``timeout_s``: give up when
     neither a frame nor EOS arrives for that long. ``plugin_path``: libgstleangate.so or its
     directory, when it is not on ``GST_PLUGIN_PATH`` (see ``ensure_plugin``).
+
+    ``save_kept``: a directory to write every kept frame into as an image (``save_format``
+    ``"jpg"`` or ``"png"``), with ``keyframes.csv`` and ``keyframes.json`` of their meta written
+    when the source closes (see ``keyframes.KeptFrameSaver``; ``self.saver``). The directory is
+    created when missing and must be empty unless ``overwrite``. Encoding runs in the pipeline,
+    beside the appsink; iterate (``arrays=False`` is enough) to run the stream, or use
+    ``save_kept()``. In annotate mode too only kept frames are saved; ``max_frames`` also caps
+    the images.
 
     Each ``meta`` is a dict: ``frame`` (index of the frame in the input stream, counted at
     leangate's sink pad; None when the buffer has no PTS), ``pts`` (ns or None), ``utility``
@@ -170,6 +206,9 @@ class LeanGateSource:
         precision: Optional[str] = None,
         plugin_path: Optional[PathLike] = None,
         plugin_fallbacks=(),
+        save_kept: Optional[PathLike] = None,
+        save_format: str = "jpg",
+        overwrite: bool = False,
     ):
         self.plugin = ensure_plugin(plugin_path, plugin_fallbacks)
         if mode not in MODES:
@@ -196,6 +235,10 @@ class LeanGateSource:
 
         self.source = "test://ball" if source == "videotestsrc" else source
         self._check_source(self.source)
+        self.saver: Optional[KeptFrameSaver] = None
+        if save_kept is not None:
+            self.saver = KeptFrameSaver(save_kept, save_format, overwrite)
+            self.saver.limit = max_frames
         self.gate_properties: Dict[str, Any] = {"mode": mode}
         if model is not None and os.fspath(model):
             self.gate_properties["model"] = os.path.abspath(model)
@@ -221,13 +264,17 @@ class LeanGateSource:
         self.frames_in = 0  # frames that entered the gate (sink-pad probe)
         self.received = 0  # frames handed to the caller
         self.forced_events = 0
-        self._pts_to_index: Dict[int, int] = {}
-        self._lock = threading.Lock()  # _pts_to_index and frames_in: written by the probe
+        self.kept_received = 0  # frames handed out with keep set
+        self._index = _FrameIndex()  # for the appsink branch
+        self._indexes = [self._index]  # every consumer's, filled by the sink-pad probe
+        self._lock = threading.Lock()  # frames_in: written by the probe
         self._stream_error: Optional[str] = None  # set from decodebin's streaming thread
         self._pipeline = None
         self._sink = None
         self._bus = None
         self._started = False
+        self._eos = False  # the pipeline's EOS message was seen (every sink got EOS)
+        self._failed = False  # an ERROR message was seen
 
     # -- description and building --------------------------------------------------------
     @staticmethod
@@ -260,9 +307,15 @@ class LeanGateSource:
         else:
             head = f"filesrc location={os.path.abspath(s)} ! decodebin"
         props = " ".join(f"{k}={v}" for k, v in self.gate_properties.items())
+        tail = (
+            "videoconvert ! appsink name=sink caps=video/x-raw,format=RGB sync=false "
+            "max-buffers=8 drop=false"
+        )
+        if self.saver is None:
+            return f"{head} ! leangate name=gate {props} ! {tail}"
         return (
-            f"{head} ! leangate name=gate {props} ! videoconvert ! "
-            "appsink name=sink caps=video/x-raw,format=RGB sync=false max-buffers=8 drop=false"
+            f"{head} ! leangate name=gate {props} ! tee name=split ! queue ! {tail} "
+            f"split. ! {self.saver.description}"
         )
 
     @staticmethod
@@ -281,20 +334,35 @@ class LeanGateSource:
     _pipeline_name = "leangate-client"
 
     def _build_tail(self, pipeline):
-        """``leangate ! videoconvert ! appsink`` (RGB), added to ``pipeline`` and linked."""
+        """``leangate ! videoconvert ! appsink`` (RGB), added to ``pipeline`` and linked (with
+        ``save_kept``: ``leangate ! tee``, one branch ``queue ! videoconvert ! appsink``, the
+        other the saver's)."""
         Gst = _gst.Gst
         gate = _make("leangate", "gate")
         for k, v in self.gate_properties.items():
             _set(gate, k, v)
+        pipeline.add(gate)
+        head = gate
+        if self.saver is not None:
+            tee = _make("tee", "split")
+            queue = _make("queue", "sink-queue")
+            pipeline.add(tee)
+            pipeline.add(queue)
+            if not gate.link(tee) or not tee.link(queue):
+                raise SetupError("cannot link leangate ! tee ! queue")
+            index = _FrameIndex()
+            self._indexes.append(index)
+            self.saver.attach(pipeline, tee, index.take)
+            head = queue
         convert = _make("videoconvert", "convert")
         sink = _make("appsink", "sink")
         _set(sink, "caps", Gst.Caps.from_string("video/x-raw,format=RGB"))
         _set(sink, "sync", False)
         _set(sink, "max-buffers", 8)
         _set(sink, "drop", False)
-        for el in (gate, convert, sink):
+        for el in (convert, sink):
             pipeline.add(el)
-        if not gate.link(convert) or not convert.link(sink):
+        if not head.link(convert) or not convert.link(sink):
             raise SetupError("cannot link leangate ! videoconvert ! appsink")
         return gate, sink
 
@@ -411,21 +479,78 @@ class LeanGateSource:
         if buf is not None:
             with self._lock:
                 if buf.pts != _gst.Gst.CLOCK_TIME_NONE:
-                    self._pts_to_index[buf.pts] = self.frames_in
+                    for index in self._indexes:
+                        index.add(buf.pts, self.frames_in)
                 self.frames_in += 1
         return _gst.Gst.PadProbeReturn.OK
 
     def close(self) -> None:
-        if self._pipeline is not None:
-            self._pipeline.set_state(_gst.Gst.State.NULL)
-            self._pipeline = None
+        """Stop the pipeline. With ``save_kept``: first let the image branch finish (at EOS,
+        every kept frame; stopped early, at least the kept frames handed out so far), then
+        write the tables; raises PipelineError when that branch failed."""
+        if self._pipeline is None:
+            return
+        Gst = _gst.Gst
+        error: Optional[PipelineError] = None
+        failed = self._failed  # already reported: later errors are its consequences
+
+        def note(e: PipelineError) -> None:
+            nonlocal error
+            if failed:
+                log.debug("after the error: %s", e)
+            elif error is None:
+                error = e
+
+        if self.saver is not None and self._started:
+            try:
+                self._settle_saver()
+            except PipelineError as e:
+                note(e)
+            # READY stops the streaming threads but keeps the bus: the last reports are read.
+            self._pipeline.set_state(Gst.State.READY)
+            while True:
+                try:
+                    self._drain_bus()
+                    break
+                except PipelineError as e:
+                    note(e)
+        self._pipeline.set_state(Gst.State.NULL)
+        self._pipeline = None
+        if self.saver is not None and self._started:
+            self.saver.finish(self.source, self.frames_in, self.stats)
+        if error is not None:
+            raise error
+
+    def _settle_saver(self) -> None:
+        """Wait (at most ``timeout_s``) until the image branch has written what it must."""
+        deadline = time.monotonic() + self.timeout_s
+        at_eos = self._sink.get_property("eos")
+        while not self._failed:
+            if self._eos or (not at_eos and self.saver.written >= self.kept_received):
+                return
+            if time.monotonic() > deadline:
+                log.warning(
+                    "the images of %d kept frames were not written within %.0f s",
+                    self.saver.queued - self.saver.written,
+                    self.timeout_s,
+                )
+                return
+            msg = self._bus.timed_pop(100 * _gst.Gst.MSECOND)
+            if msg is not None:
+                self._handle_bus(msg)
 
     def __enter__(self) -> "LeanGateSource":
         self.start()
         return self
 
-    def __exit__(self, *exc) -> bool:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> bool:
+        if exc_type is None:
+            self.close()
+        else:
+            try:
+                self.close()
+            except PipelineError as e:  # the exception in flight says more
+                log.warning("while stopping: %s", e)
         return False
 
     def __del__(self):
@@ -440,9 +565,17 @@ class LeanGateSource:
         t = msg.type
         src = msg.src.get_name() if msg.src else "?"
         if t == Gst.MessageType.ERROR:
+            self._failed = True
             err, dbg = msg.parse_error()
             if dbg:  # GStreamer's detail (source file, line, function): -vv
                 log.debug("error from %s (debug): %s", src, dbg)
+            if self.saver is not None and self.saver.owns(msg.src):
+                # The system's reason (disk full, ...) is the last line of the detail.
+                why = dbg.strip().splitlines()[-1].strip() if dbg and dbg.strip() else ""
+                raise PipelineError(
+                    f"cannot save the kept frames to {self.saver.directory}: {src}: "
+                    f"{err.message}" + (f" ({why})" if why else "")
+                )
             if src != "gate":  # the source part of the pipeline: name the input
                 src = f"{self.source}: {src}"
             raise PipelineError(f"{src}: {err.message}")
@@ -451,7 +584,11 @@ class LeanGateSource:
             log.warning("warning from %s: %s", src, w.message)
             if dbg:
                 log.debug("warning from %s (debug): %s", src, dbg)
+        elif t == Gst.MessageType.EOS:
+            self._eos = True
         elif t == Gst.MessageType.ELEMENT:
+            if self.saver is not None and self.saver.on_message(msg):
+                return
             stats = LeanGateStats.from_message(msg)
             if stats is not None:
                 self.stats = stats
@@ -513,16 +650,10 @@ class LeanGateSource:
                         "the appsink dropped the meta"
                     )
                 pts = None if buf.pts == Gst.CLOCK_TIME_NONE else int(buf.pts)
-                index = None
-                if pts is not None:
-                    with self._lock:
-                        index = self._pts_to_index.pop(pts, None)
-                        # Forget the frames the gate dropped (they are older than this one).
-                        for k in [k for k in self._pts_to_index if k < pts]:
-                            del self._pts_to_index[k]
-                meta = {"frame": index, "pts": pts, **meta}
+                meta = {"frame": self._index.take(pts), "pts": pts, **meta}
                 frame = buffer_to_rgb(buf, info) if self.arrays else None
                 self.received += 1
+                self.kept_received += meta["keep"]
                 yield frame, meta
         finally:
             self._drain_bus_quietly()
@@ -534,3 +665,27 @@ class LeanGateSource:
             self._drain_bus()
         except PipelineError:
             pass
+
+
+def save_kept(
+    source: str,
+    directory: PathLike,
+    format: str = "jpg",
+    overwrite: bool = False,
+    **kwargs: Any,
+) -> KeptFrameSaver:
+    """Run ``source`` through `leangate` to the end and write every kept frame into
+    ``directory`` as ``kf_000000.jpg``, ... (``format`` ``"jpg"`` or ``"png"``) with
+    ``keyframes.csv`` and ``keyframes.json`` of their meta: the frames to give COLMAP,
+    nerfstudio or a Gaussian-splatting trainer. ``kwargs``: any ``LeanGateSource`` argument
+    (``model``, ``threshold``, ``max_frames``, ...). Returns the saver: ``rows`` (one dict per
+    image), ``csv_path``, ``json_path``, ``directory``. Raises SetupError (bad argument, a
+    directory that is not empty without ``overwrite`` or cannot be written) or PipelineError."""
+    kwargs.setdefault("arrays", False)
+    src = LeanGateSource(
+        source, save_kept=directory, save_format=format, overwrite=overwrite, **kwargs
+    )
+    with src:
+        for _ in src:
+            pass
+    return src.saver

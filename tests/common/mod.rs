@@ -53,7 +53,7 @@ pub fn init() {
 
 mod paths;
 #[allow(unused_imports)]
-pub use paths::{fixture, shared_data};
+pub use paths::{fixture, jpeg_size, png_size, shared_data};
 
 /// A copy of the shipped student `leangate-s` (split: encoder and head) in a temporary folder:
 /// a model of its own for the session registry (which knows a model file by its path), so that
