@@ -143,7 +143,8 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
                     f"{CSV_NAME} and {JSON_NAME} of their meta (frame, pts_ns, utility, reason, "
                     "...); DIR is created, and must be empty unless --overwrite")
     ap.add_argument("--format", choices=tuple(FORMATS), default="jpg",
-                    help="image format of --save-kept (jpg: quality 95; png: lossless)")
+                    help="image format of --save-kept (jpg: quality 95; png: lossless, "
+                    "compression level 1)")
     ap.add_argument("--overwrite", action="store_true",
                     help="let --save-kept use a non-empty DIR: an earlier run's kf_* images and "
                     "tables there are deleted first, other files are left alone")

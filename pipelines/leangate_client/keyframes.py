@@ -31,7 +31,7 @@ from .meta import ROW_COLUMNS, csv_value, json_value, meta_dict, meta_row
 log = logging.getLogger(__name__)
 
 #: --format → (encoder element, its properties)
-FORMATS = {"jpg": ("jpegenc", {"quality": 95}), "png": ("pngenc", {})}
+FORMATS = {"jpg": ("jpegenc", {"quality": 95}), "png": ("pngenc", {"compression-level": 1})}
 IMAGE_PREFIX = "kf_"
 IMAGE_DIGITS = 6
 CSV_NAME = "keyframes.csv"
