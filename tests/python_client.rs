@@ -1398,8 +1398,12 @@ fn save_kept_writes_the_kept_frames_of_a_real_clip_with_their_meta() {
     );
     assert!(stderr(&out).contains(&progress), "{}", stderr(&out));
 
-    // The plain pipeline of the README, same model and threshold: the same files, byte for byte.
+    // The plain pipeline of the README, same model and threshold: the same images. (Compared
+    // as PNG, byte for byte: jpegenc fills the partial 16-pixel block at the right edge of an
+    // 854-pixel row from the decoder's row padding, which differs from run to run, so two runs
+    // of either pipeline differ there by a few levels.)
     let plain = tmp.path().join("plain");
+    let png = tmp.path().join("png");
     std::fs::create_dir(&plain).unwrap();
     let mut c = command("gst-launch-1.0");
     c.args([
@@ -1415,22 +1419,28 @@ fn save_kept_writes_the_kept_frames_of_a_real_clip_with_their_meta() {
         "threshold=0.05",
         "!",
     ])
-    .args([
-        "videoconvert",
-        "!",
-        "jpegenc",
-        "quality=95",
-        "!",
-        "multifilesink",
-    ])
-    .arg(format!("location={}/kf_%06d.jpg", plain.display()));
-    let out = run(c);
+    .args(["videoconvert", "!", "pngenc", "compression-level=1", "!"])
+    .arg("multifilesink")
+    .arg(format!("location={}/kf_%06d.png", plain.display()));
+    assert!(run(c).status.success());
+    let out = client_module(&[
+        clip,
+        "--threshold",
+        "0.05",
+        "--quiet",
+        "--format",
+        "png",
+        "--save-kept",
+        png.to_str().unwrap(),
+    ]);
     assert!(out.status.success());
+    let rows = check_saved(&png, "png");
+    assert_eq!(rows.len() as u64, kept);
     let images: Vec<&String> = rows.iter().map(|r| &r[0]).collect();
     assert_eq!(dir_names(&plain).iter().collect::<Vec<_>>(), images);
     for n in images {
         assert!(
-            std::fs::read(plain.join(n)).unwrap() == std::fs::read(kf.join(n)).unwrap(),
+            std::fs::read(plain.join(n)).unwrap() == std::fs::read(png.join(n)).unwrap(),
             "{n} differs between gst-launch and the client"
         );
     }
