@@ -18,6 +18,19 @@ fn gst_cmd(tool: &str) -> Command {
         .env("GST_REGISTRY", target_dir().join("test-registry.bin"));
     c
 }
+
+/// Run `c`, check that it succeeded (else fail with its output), return its stdout.
+fn succeeds(c: &mut Command) -> String {
+    let out = c.output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    text
+}
+
 #[test]
 fn gst_inspect_documents_every_property() {
     let out = gst_cmd("gst-inspect-1.0").arg("leangate").output().unwrap();
@@ -77,26 +90,20 @@ fn gst_launch_without_onnx_runtime_names_ort_dylib_path() {
 
 #[test]
 fn gst_launch_runs_a_real_pipeline() {
-    let out = gst_cmd("gst-launch-1.0")
-        .args([
-            "-m",
-            "videotestsrc",
-            "num-buffers=20",
-            "pattern=ball",
-            "!",
-            "video/x-raw,width=160,height=120",
-            "!",
-            "leangate",
-        ])
-        .arg(format!("model={}", common::fixture("mad.onnx")))
-        .args(["threshold=0.01", "!", "fakesink"])
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{text}{}",
-        String::from_utf8_lossy(&out.stderr)
+    let text = succeeds(
+        gst_cmd("gst-launch-1.0")
+            .args([
+                "-m",
+                "videotestsrc",
+                "num-buffers=20",
+                "pattern=ball",
+                "!",
+                "video/x-raw,width=160,height=120",
+                "!",
+                "leangate",
+            ])
+            .arg(format!("model={}", common::fixture("mad.onnx")))
+            .args(["threshold=0.01", "!", "fakesink"]),
     );
     assert!(
         text.contains("leangate-stats") && text.contains("frames-in=(guint64)20"),
@@ -113,26 +120,20 @@ fn gst_launch_writes_one_jpeg_per_kept_frame() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let out = gst_cmd("gst-launch-1.0")
-        .args(["-m", "filesrc"])
-        .arg(format!("location={}", clip.display()))
-        .args(["!", "decodebin", "!", "leangate", "threshold=0.05", "!"])
-        .args([
-            "videoconvert",
-            "!",
-            "jpegenc",
-            "quality=95",
-            "!",
-            "multifilesink",
-        ])
-        .arg(format!("location={}/kf_%06d.jpg", dir.path().display()))
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{text}{}",
-        String::from_utf8_lossy(&out.stderr)
+    let text = succeeds(
+        gst_cmd("gst-launch-1.0")
+            .args(["-m", "filesrc"])
+            .arg(format!("location={}", clip.display()))
+            .args(["!", "decodebin", "!", "leangate", "threshold=0.05", "!"])
+            .args([
+                "videoconvert",
+                "!",
+                "jpegenc",
+                "quality=95",
+                "!",
+                "multifilesink",
+            ])
+            .arg(format!("location={}/kf_%06d.jpg", dir.path().display())),
     );
     let count = |field: &str| -> usize {
         let key = format!("{field}=(guint64)");
