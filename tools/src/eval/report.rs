@@ -412,7 +412,9 @@ fn register_font() {
 /// number of frames kept, one line per policy in its style; the legend in a column right of
 /// both panels.
 pub fn plot_sweep(points: &[SweepPoint], title: &str, out: &Path) -> Result<(), EvalError> {
-    render((1000 + LEGEND_W, SWEEP_H), out, |root| draw_sweep(root, points, title))
+    render((1000 + LEGEND_W, SWEEP_H), out, |root| {
+        draw_sweep(root, points, title)
+    })
 }
 
 fn draw_sweep(root: Canvas<'_>, points: &[SweepPoint], title: &str) -> Result<(), EvalError> {
