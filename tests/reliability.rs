@@ -584,16 +584,7 @@ fn compositor_does_not_stall_on_a_gated_branch() {
         .downcast::<gst::Pipeline>()
         .unwrap();
     let bin = pipeline.upcast_ref::<gst::Bin>();
-    let src = bin
-        .by_name("src")
-        .unwrap()
-        .downcast::<gst_app::AppSrc>()
-        .unwrap();
-    let sink = bin
-        .by_name("out")
-        .unwrap()
-        .downcast::<gst_app::AppSink>()
-        .unwrap();
+    let (src, sink) = app_ends(bin);
     pipeline.set_state(gst::State::Playing).unwrap();
     let pic = texture(W, H, 5);
     for i in 0..60u64 {
@@ -646,16 +637,7 @@ fn annotate_run_with(seed: u32, frames: u64, props: &str) -> Vec<(String, u64, b
         .unwrap()
         .downcast::<gst::Pipeline>()
         .unwrap();
-    let src = pipeline
-        .by_name("src")
-        .unwrap()
-        .downcast::<gst_app::AppSrc>()
-        .unwrap();
-    let sink = pipeline
-        .by_name("out")
-        .unwrap()
-        .downcast::<gst_app::AppSink>()
-        .unwrap();
+    let (src, sink) = app_ends(&pipeline);
     pipeline.set_state(gst::State::Playing).unwrap();
     let pics: Vec<Vec<u8>> = (0..5).map(|k| texture(W, H, seed * 7 + k)).collect();
     let feeder = std::thread::spawn(move || {
@@ -755,16 +737,7 @@ fn an_element_that_stops_streaming_does_not_slow_its_batch_down() {
             .iter()
             .enumerate()
             .map(|(k, p)| {
-                let src = p
-                    .by_name("src")
-                    .unwrap()
-                    .downcast::<gst_app::AppSrc>()
-                    .unwrap();
-                let sink = p
-                    .by_name("out")
-                    .unwrap()
-                    .downcast::<gst_app::AppSink>()
-                    .unwrap();
+                let (src, sink) = app_ends(p);
                 let p = p.clone();
                 std::thread::spawn(move || {
                     let stopper = k == 0;
@@ -873,16 +846,7 @@ fn property_and_event_storms_during_streaming() {
         .downcast::<gst::Pipeline>()
         .unwrap();
     let lg = pipeline.by_name("lg").unwrap();
-    let src = pipeline
-        .by_name("src")
-        .unwrap()
-        .downcast::<gst_app::AppSrc>()
-        .unwrap();
-    let sink = pipeline
-        .by_name("out")
-        .unwrap()
-        .downcast::<gst_app::AppSink>()
-        .unwrap();
+    let (src, sink) = app_ends(&pipeline);
     // A sync handler that reads properties on every message (the D2 pattern, in Rust).
     let lg2 = lg.clone();
     pipeline.bus().unwrap().set_sync_handler(move |_, _| {

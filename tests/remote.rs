@@ -297,16 +297,7 @@ fn a_hung_request_is_interrupted_by_stopping(server: &V2Server) {
         .unwrap()
         .downcast::<gst::Pipeline>()
         .unwrap();
-    let src = pipeline
-        .by_name("src")
-        .unwrap()
-        .downcast::<gst_app::AppSrc>()
-        .unwrap();
-    let sink = pipeline
-        .by_name("out")
-        .unwrap()
-        .downcast::<gst_app::AppSink>()
-        .unwrap();
+    let (src, sink) = app_ends(&pipeline);
     let gate = pipeline.by_name("gate").unwrap();
     pipeline.set_state(gst::State::Playing).unwrap();
     for (i, f) in frames[..3].iter().enumerate() {

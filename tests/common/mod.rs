@@ -187,3 +187,15 @@ pub fn element_message<'a>(msgs: &'a [gst::Message], name: &str) -> Vec<&'a gst:
 pub mod pack;
 #[allow(unused_imports)]
 use gstleangate::{PixelFormat, RawFrame, YuvMatrix};
+
+/// The `appsrc name=src` and `appsink name=out` of a test pipeline.
+pub fn app_ends(bin: &impl IsA<gst::Bin>) -> (gst_app::AppSrc, gst_app::AppSink) {
+    let get = |name: &str| {
+        bin.by_name(name)
+            .unwrap_or_else(|| panic!("no element `{name}`"))
+    };
+    (
+        get("src").downcast::<gst_app::AppSrc>().unwrap(),
+        get("out").downcast::<gst_app::AppSink>().unwrap(),
+    )
+}
