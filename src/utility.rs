@@ -48,7 +48,7 @@ impl Utility {
                 }
                 let (w, h) = (spec.width as usize, spec.height as usize);
                 let grey = grey_from_tensor(tensor, w, h, spec.mean, spec.std);
-                self.tracker.observe(Pyramid::new(grey, w, h));
+                self.tracker.observe(Pyramid::for_prior(grey, w, h));
             }
             _ => self.tracker.clear(),
         }

@@ -61,20 +61,28 @@ def int8_sessions(models):
     return mk("-int8-encoder"), mk("-int8-head")
 
 
-def sequence_data(seq, out, models, horizon):
+def sequence_data(seq, out, models, horizon, regeo=False):
     """Dense [n, horizon] tables for one sequence directory: teacher tau, student s, tau_geo, f_m,
-    f_u of (current = ref + k, reference = ref), k = 1..horizon; NaN where undefined."""
+    f_u of (current = ref + k, reference = ref), k = 1..horizon; NaN where undefined. The teacher
+    and the student are cached; `regeo` recomputes the prior (after a change to src/geometry.rs)."""
     os.makedirs(out, exist_ok=True)
     cache = os.path.join(out, f"pairs_{horizon}.npz")
+    geo = os.path.join(out, "geometry.csv")
+    pcsv = os.path.join(out, f"pairs_{horizon}.csv")
     if os.path.exists(cache):
-        return dict(np.load(cache))
+        tab = dict(np.load(cache))
+        if not regeo:
+            return tab
+        _run(["geometry", "--sequence", seq, "--pairs", pcsv, "--out", geo])
+        _geo_into(tab, _csv(geo))
+        np.savez(cache, **tab)
+        return tab
     files = read_list(seq)
     n = len(files)
     P = gate_pairs(n, horizon)
-    pcsv = os.path.join(out, f"pairs_{horizon}.csv")
     with open(pcsv, "w") as f:
         f.write("i,j\n" + "".join(f"{i},{j}\n" for i, j in P))
-    lab, geo = os.path.join(out, "teacher.csv"), os.path.join(out, "geometry.csv")
+    lab = os.path.join(out, "teacher.csv")
     _run(["label", "--sequence", seq, "--pairs", pcsv, "--out", lab])
     _run(["geometry", "--sequence", seq, "--pairs", pcsv, "--out", geo])
     T, G = _csv(lab), _csv(geo)
@@ -88,11 +96,17 @@ def sequence_data(seq, out, models, horizon):
         tab["s"][j, c] = s[r]
     for col, key in (("tau", "tau"),):
         tab[key][T["j"].astype(int), (T["i"] - T["j"] - 1).astype(int)] = T[col]
+    _geo_into(tab, G)
+    np.savez(cache, **tab)
+    return tab
+
+
+def _geo_into(tab, G):
+    for key in ("geo", "fm", "fu"):
+        tab[key][:] = np.nan
     gj, gc = G["j"].astype(int), (G["i"] - G["j"] - 1).astype(int)
     for col, key in (("tau_geo", "geo"), ("f_m", "fm"), ("f_u", "fu")):
         tab[key][gj, gc] = G[col]
-    np.savez(cache, **tab)
-    return tab
 
 
 def parts_of(name, tab):
@@ -279,6 +293,9 @@ def main():
     ap.add_argument("--threshold", type=float, default=0.5)
     ap.add_argument("--synth", default="", help="comma-separated synthetic TUM sequences to fit on as well (not the held-out eval ones)")
     ap.add_argument("--synth-weight", type=float, default=0.0, help="their weight in the fit (0: real only, the shipped fit)")
+    ap.add_argument("--regeo", action="store_true", help="recompute the prior's columns (after a change to src/geometry.rs); the teacher and the student stay cached")
+    ap.add_argument("--eval-synth", default=",".join(os.path.join(DATA_ROOT, "eval", f"synth_900{k}") for k in (1, 2, 3)),
+                    help="synthetic held-out sequences reported (never fitted on); those missing are skipped")
     ap.add_argument("--write", action="store_true", help=f"write the `{SHIPPED}` fusion fitted on the fit parts into the models")
     a = ap.parse_args()
     data = {}
@@ -286,9 +303,12 @@ def main():
         seq = os.path.join(SHARED, name)
         if not os.path.isdir(seq):
             raise SystemExit(f"{seq} is missing: the real sequences live in ../shared/data")
-        data[name] = sequence_data(seq, os.path.join(a.out, name), a.models, a.horizon)
-    synth = {os.path.basename(os.path.normpath(p)): sequence_data(p, os.path.join(a.out, os.path.basename(os.path.normpath(p))), a.models, a.horizon)
+        data[name] = sequence_data(seq, os.path.join(a.out, name), a.models, a.horizon, a.regeo)
+    base = lambda p: os.path.basename(os.path.normpath(p))
+    synth = {base(p): sequence_data(p, os.path.join(a.out, base(p)), a.models, a.horizon, a.regeo)
              for p in filter(None, a.synth.split(","))}
+    held_synth = {base(p): sequence_data(p, os.path.join(a.out, base(p)), a.models, a.horizon, a.regeo)
+                  for p in filter(None, a.eval_synth.split(",")) if os.path.isdir(p)}
     names = list(data)
     whole = {n: [(0, len(data[n]["tau"]) - 1)] for n in names}
     fit_parts = {n: [REAL_SPLITS[n][p] for p in FIT_PARTS[n]] for n in names}
@@ -310,12 +330,12 @@ def main():
     held = [(n, p) for n in names for p in REAL_SPLITS[n] if p not in FIT_PARTS[n] and p != "train"]
     print(f"\nThe documented split: fit on {', '.join(f'{n} {p}' for n in names for p in FIT_PARTS[n])}; "
           f"report on the held-out parts and the whole sequences\n")
-    cols = held + [(n, "all") for n in names]
+    cols = held + [(n, "all") for n in names] + [(n, "all") for n in held_synth]
     print("| candidate | w, offset | " + " | ".join(f"{n} {p}" for n, p in cols) + " |")
     print("|---|---|" + "---|" * len(cols))
     for fz in candidates():
         fit(fz, data, fit_parts, a.threshold, a.fit_horizon, synth, a.synth_weight)
-        ev = evaluate(fz, data, a.threshold)
+        ev = evaluate(fz, {**data, **held_synth}, a.threshold)
         print(f"| {fz.name} | {np.round(fz.w, 3).tolist()}, {fz.offset:+.3f} | " + " | ".join(cell(ev[c]) for c in cols) + " |")
         for c in cols:
             results[f"{fz.name} | split | {c[0]} {c[1]}"] = dict(w=fz.w.tolist(), offset=fz.offset, **ev[c])

@@ -65,9 +65,10 @@ pub fn pair_geometry(
     let first = pairs.iter().map(|p| p.1).min().unwrap_or(0);
     // steps[k - first] = homography k → k+1
     let mut steps: Vec<Option<Mat3>> = Vec::with_capacity(last - first);
-    let mut prev = Pyramid::new(grey(seq, first, w, h, resize)?, w as usize, h as usize);
+    let mut prev = Pyramid::for_prior(grey(seq, first, w, h, resize)?, w as usize, h as usize);
+    let (pw, ph) = (prev.width(), prev.height());
     for k in first + 1..=last {
-        let cur = Pyramid::new(grey(seq, k, w, h, resize)?, w as usize, h as usize);
+        let cur = Pyramid::for_prior(grey(seq, k, w, h, resize)?, w as usize, h as usize);
         steps.push(frame_homography(&prev, &cur));
         prev = cur;
     }
@@ -79,7 +80,7 @@ pub fn pair_geometry(
             for s in &steps[j - first..i - first] {
                 chain.push(*s);
             }
-            chain.score(w as usize, h as usize)
+            chain.score(pw, ph)
         })
         .collect())
 }

@@ -264,8 +264,7 @@ pub fn evaluate(
     progress("motion", n, n);
     add("motion", judge(&mo, cache.as_mut(), t, false, None), &mo);
     progress("overlap", 0, n);
-    let pyr = motion::pyramids(&run.thumbs);
-    let (ov, _) = overlap_for_budget(&overlap::steps(&pyr), budget);
+    let (ov, _) = overlap_for_budget(&overlap::steps(&run.thumbs), budget);
     progress("overlap", n, n);
     add("overlap", judge(&ov, cache.as_mut(), t, false, None), &ov);
 
@@ -389,7 +388,7 @@ pub fn sweep(
         );
         let pyr = pyramids.get_or_insert_with(|| motion::pyramids(th));
         point("motion", t, &motion_for_budget(pyr, budget).0, &mut cache);
-        let st = steps.get_or_insert_with(|| overlap::steps(pyr));
+        let st = steps.get_or_insert_with(|| overlap::steps(th));
         point("overlap", t, &overlap_for_budget(st, budget).0, &mut cache);
     }
     progress("sweep", thresholds.len(), thresholds.len());

@@ -11,13 +11,18 @@
 //! becomes the new reference. Depth is not used, so parallax and the teacher's 3-D check are
 //! invisible to it.
 
-use gstleangate::geometry::{frame_homography, Chain, Mat3, Pyramid};
+use gstleangate::geometry::{frame_homography, prior_size, Chain, Mat3, Pyramid};
 
 use super::{Trace, THUMB_H, THUMB_W};
 
 /// Frame-to-frame homographies (`steps[k]`: frame k → k+1; None where tracking failed), computed
 /// once and shared by every threshold tried.
-pub fn steps(pyr: &[Pyramid]) -> Vec<Option<Mat3>> {
+pub fn steps(thumbs: &[Vec<u8>]) -> Vec<Option<Mat3>> {
+    let (w, h) = (THUMB_W as usize, THUMB_H as usize);
+    let pyr: Vec<Pyramid> = thumbs
+        .iter()
+        .map(|t| Pyramid::for_prior(t.iter().map(|&g| g as f32).collect(), w, h))
+        .collect();
     pyr.windows(2)
         .map(|w| frame_homography(&w[0], &w[1]))
         .collect()
@@ -27,7 +32,7 @@ pub fn steps(pyr: &[Pyramid]) -> Vec<Option<Mat3>> {
 /// calibrated to the teacher, so it is not judged for MAE/RMSE.
 pub fn overlap_gate(steps: &[Option<Mat3>], threshold: f64) -> Trace {
     let n = steps.len() + 1;
-    let (w, h) = (THUMB_W as usize, THUMB_H as usize);
+    let (w, h) = prior_size(THUMB_W as usize, THUMB_H as usize);
     let mut keep = Vec::with_capacity(n);
     let mut chain = Chain::default();
     for i in 0..n {
@@ -62,16 +67,8 @@ mod tests {
     #[test]
     fn keeps_when_the_view_has_moved_by_the_threshold() {
         // 2 thumbnail px per frame: tau_geo grows by 2/160 a frame, so at 0.25 a keep every 20.
-        let pyr: Vec<Pyramid> = (0..61)
-            .map(|k| {
-                Pyramid::from_u8(
-                    &texture(2.0 * k as f32, 0.0),
-                    THUMB_W as usize,
-                    THUMB_H as usize,
-                )
-            })
-            .collect();
-        let st = steps(&pyr);
+        let thumbs: Vec<Vec<u8>> = (0..61).map(|k| texture(2.0 * k as f32, 0.0)).collect();
+        let st = steps(&thumbs);
         assert!(st.iter().all(|s| s.is_some()), "a textured pan tracks");
         let t = overlap_gate(&st, 0.25);
         let kept: Vec<usize> = (0..t.keep.len()).filter(|&i| t.keep[i]).collect();
