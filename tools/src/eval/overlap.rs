@@ -5,7 +5,7 @@
 //!
 //! Method (README): the element's geometric prior ([`gstleangate::geometry`]) on the grey
 //! 160x120 thumbnails every policy sees: frame-to-frame homographies from sparse pyramidal
-//! Lucas-Kanade on a 16x12 grid (RANSAC), chained from the last kept frame and scored like the
+//! Lucas-Kanade on an 8x6 grid of the thumbnail halved to 80x60 (RANSAC), chained from the last kept frame and scored like the
 //! teacher scores a pair (`tau_geo = 1 - min(f_m, f_u)` of the nearest-pixel warp). A frame is kept
 //! when `tau_geo` reaches the threshold, or when the chain is lost (the view has changed); it then
 //! becomes the new reference. Depth is not used, so parallax and the teacher's 3-D check are
