@@ -848,6 +848,16 @@ mod tests {
             1,
             "malformed: 1x1"
         );
+        // Odd and degenerate shapes neither panic nor track.
+        for (w, h) in [(131, 3), (129, 1), (2, 200), (1, 1), (300, 2), (127, 95)] {
+            let g: Vec<f32> = (0..w * h).map(|i| ((i * 37) % 251) as f32).collect();
+            let (a, b) = (
+                Pyramid::for_prior(g.clone(), w, h),
+                Pyramid::for_prior(g, w, h),
+            );
+            assert_eq!((a.width(), a.height()), prior_size(w, h));
+            let _ = frame_homography(&a, &b);
+        }
         // The prior's settings follow a known shift of the halved texture (-3, 2 at 160x120).
         let a = Pyramid::for_prior(texture(&IDENTITY), W, H);
         let b = Pyramid::for_prior(texture(&shift(-3.0, 2.0)), W, H);
