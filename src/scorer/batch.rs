@@ -2,7 +2,8 @@
 //!
 //! Each batching scorer is a **member** of its model's [`Batcher`]. A frame is queued; the
 //! model's batch worker (one thread per batching model while it has members; an idle worker
-//! waits 30 s for the next model, so that models coming and going reuse it) waits at most the
+//! waits 30 s for the next model, so that models coming and going reuse it; it holds the model
+//! only while it runs a batch, so that the model's last scorer frees it) waits at most the
 //! first queued frame's `batch_timeout` until every *streaming* member has a frame queued (at
 //! most its `batch_size`), runs them as one batch and hands each its features.
 //!

@@ -279,10 +279,10 @@ impl Drop for GiveBackOnDrop {
 /// that size is freed; then it raises its threshold (up to 32 MiB) so that blocks of that size
 /// come from its heaps, where a freed block stays resident. The first model freed raises it
 /// above the blocks of ONNX Runtime's sessions, so every later session's memory stayed resident
-/// when it went, scattered over the allocator's arenas: creating and destroying elements grew
-/// the resident memory by about 80 MB over 30 rounds of `soak -- churn` before it levelled off
-/// (measured: `MALLOC_MMAP_THRESHOLD_=131072`, a fixed threshold, keeps it flat too). Measured
-/// cost: 1 to 10 ms per call on the thread that drops the model, once per model.
+/// when it went, scattered over the allocator's arenas: creating and destroying elements raised
+/// the resident memory by 64-73 MiB over the first round's within 30 rounds of `soak -- churn`
+/// (now 25-29 MiB; `MALLOC_MMAP_THRESHOLD_=131072`, a fixed threshold, keeps it flat too).
+/// Measured cost: 1 to 10 ms per call on the thread that drops the model, once per model.
 fn give_back_free_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: `malloc_trim` only releases free memory; no argument points anywhere.
