@@ -805,12 +805,15 @@ fn geometric_prior_follows_the_pan_and_can_be_switched_off() {
             m.utility
         );
     }
+    // Off: the model's MAD, which does not follow the prior's ramp.
     let off = run("geometry=false");
-    let mad_24 = off[24].utility;
+    let on_ramp = (1..25)
+        .filter(|&k| (off[k].utility - 2.0 * k as f64 / w as f64).abs() < 0.02)
+        .count();
     assert!(
-        (mad_24 - on[24].utility).abs() > 0.05,
-        "off: the model alone ({mad_24}), not the prior ({})",
-        on[24].utility
+        on_ramp < 12,
+        "off: the model alone, not the prior ({on_ramp} of 24 frames on the prior's ramp: {:?})",
+        off.iter().map(|m| m.utility).collect::<Vec<_>>()
     );
     let e = element("");
     assert!(e.property::<bool>("geometry"), "on by default");
@@ -854,7 +857,7 @@ fn the_default_element_fuses_the_embedded_student_with_the_prior() {
         );
     }
     assert!(
-        (on[19].utility - off[19].utility).abs() > 0.02,
+        (1..20).any(|k| (on[k].utility - off[k].utility).abs() > 0.05),
         "the prior changes the default's utility"
     );
 }
