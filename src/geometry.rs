@@ -305,12 +305,17 @@ fn window(v: &[f32], w: usize, h: usize, cx: f32, cy: f32, hw: usize, out: &mut 
     if x >= 0.0 && y >= 0.0 && (x as usize) + side < w && (y as usize) + side < h {
         let (x0, y0) = (x as usize, y as usize);
         let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-        for r in 0..side {
-            let top = &v[(y0 + r) * w + x0..(y0 + r) * w + x0 + side + 1];
-            let bot = &v[(y0 + r + 1) * w + x0..(y0 + r + 1) * w + x0 + side + 1];
+        // Each of the side + 1 image rows interpolated across once, then the rows down.
+        let mut across = [0.0f32; WIN_N + 2 * HALF_WIN as usize + 1];
+        for r in 0..=side {
+            let row = &v[(y0 + r) * w + x0..(y0 + r) * w + x0 + side + 1];
             for c in 0..side {
-                let a = top[c] * (1.0 - fx) + top[c + 1] * fx;
-                let b = bot[c] * (1.0 - fx) + bot[c + 1] * fx;
+                across[r * side + c] = row[c] * (1.0 - fx) + row[c + 1] * fx;
+            }
+        }
+        for r in 0..side {
+            for c in 0..side {
+                let (a, b) = (across[r * side + c], across[(r + 1) * side + c]);
                 out[r * side + c] = a * (1.0 - fy) + b * fy;
             }
         }
