@@ -408,6 +408,10 @@ impl Scorer {
                         spinning: opts.spinning,
                         precision: opts.precision,
                     };
+                    // The instances upgraded below; declared before the lock so that they are
+                    // let go after it: if one of them was the last reference, its sessions are
+                    // freed (and the memory given back) with the registry unlocked.
+                    let live: Vec<Arc<Model>>;
                     // Held while loading: a second stream starting at the same time waits for
                     // the first's model instead of loading its own.
                     let mut reg = lock(&REGISTRY);
@@ -415,7 +419,7 @@ impl Scorer {
                         v.retain(|w| w.strong_count() > 0);
                         !v.is_empty()
                     });
-                    let live: Vec<Arc<Model>> = reg
+                    live = reg
                         .get(&key)
                         .map(|v| v.iter().filter_map(Weak::upgrade).collect())
                         .unwrap_or_default();
