@@ -427,14 +427,7 @@ fn real_greys(n: usize) -> Option<(Vec<Vec<f32>>, usize, usize)> {
     let greys = frames
         .iter()
         .map(|f| {
-            let raw = RawFrame {
-                format: PixelFormat::Rgb,
-                width: fw,
-                height: fh,
-                planes: [f.as_raw(), &[], &[]],
-                strides: [3 * fw as isize, 0, 0],
-            };
-            pre.run(&raw, &mut t).unwrap();
+            pre.run(&RawFrame::rgb(f.as_raw(), fw, fh), &mut t).unwrap();
             gstleangate::geometry::grey_from_tensor(&t, w, h, info.spec.mean, info.spec.std)
         })
         .collect();
@@ -547,14 +540,8 @@ fn section_scoring(reps: usize) {
             (vec![0f32; info.spec.len()], vec![0f32; info.spec.len()]);
         let (t0, c0) = (Instant::now(), thread_cpu_s());
         for f in &frames {
-            let raw = RawFrame {
-                format: PixelFormat::Rgb,
-                width: w,
-                height: h,
-                planes: [f.as_raw(), &[], &[]],
-                strides: [3 * w as isize, 0, 0],
-            };
-            pre.run(&raw, &mut current).unwrap();
+            pre.run(&RawFrame::rgb(f.as_raw(), w, h), &mut current)
+                .unwrap();
             let has_reference = gate.has_reference();
             utility.observe(Some((&current[..], &info.spec)), has_reference, geometry);
             let score = if has_reference {

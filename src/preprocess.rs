@@ -460,6 +460,19 @@ pub struct RawFrame<'a> {
     pub strides: [isize; 3],
 }
 
+impl<'a> RawFrame<'a> {
+    /// A tightly packed top-down RGB picture (`3 * width` bytes a row), as image decoders give.
+    pub fn rgb(data: &'a [u8], width: u32, height: u32) -> RawFrame<'a> {
+        RawFrame {
+            format: PixelFormat::Rgb,
+            width,
+            height,
+            planes: [data, &[], &[]],
+            strides: [3 * width as isize, 0, 0],
+        }
+    }
+}
+
 /// Largest accepted frame side, pixels (the resampling taps grow with the frame size).
 pub const MAX_FRAME_SIDE: u32 = 1 << 15;
 

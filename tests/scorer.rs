@@ -558,13 +558,7 @@ fn picture_tensor(path: &std::path::Path, spec: &gstleangate::TensorSpec) -> Vec
     let img = image::open(path).unwrap().to_rgb8();
     let (w, h) = img.dimensions();
     let pre = Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT601, spec.clone()).unwrap();
-    let raw = RawFrame {
-        format: PixelFormat::Rgb,
-        width: w,
-        height: h,
-        planes: [img.as_raw(), &[], &[]],
-        strides: [3 * w as isize, 0, 0],
-    };
+    let raw = RawFrame::rgb(img.as_raw(), w, h);
     let mut t = vec![0.0; spec.len()];
     pre.run(&raw, &mut t).unwrap();
     t

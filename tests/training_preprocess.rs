@@ -60,13 +60,7 @@ fn element_tensor(rgb: &[u8], w: u32, h: u32) -> Vec<f32> {
         std: [1.0; 3],
     };
     let pre = Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT601, spec).unwrap();
-    let frame = RawFrame {
-        format: PixelFormat::Rgb,
-        width: w,
-        height: h,
-        planes: [rgb, &[], &[]],
-        strides: [3 * w as isize, 0, 0],
-    };
+    let frame = RawFrame::rgb(rgb, w, h);
     let mut out = vec![0f32; (3 * OUT_W * OUT_H) as usize];
     pre.run(&frame, &mut out).unwrap();
     out

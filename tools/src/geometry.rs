@@ -29,13 +29,7 @@ fn grey(seq: &Sequence, i: usize, w: u32, h: u32, resize: ResizeMode) -> Result<
     )
     .map_err(|e| format!("frame {i}: {e}"))?;
     let mut t = vec![0.0f32; pre.spec().len()];
-    let frame = RawFrame {
-        format: PixelFormat::Rgb,
-        width: rgb.width(),
-        height: rgb.height(),
-        planes: [rgb.as_raw(), &[], &[]],
-        strides: [3 * rgb.width() as isize, 0, 0],
-    };
+    let frame = RawFrame::rgb(rgb.as_raw(), rgb.width(), rgb.height());
     pre.run(&frame, &mut t)
         .map_err(|e| format!("frame {i}: {e}"))?;
     Ok(gstleangate::geometry::grey_from_tensor(
