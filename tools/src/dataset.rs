@@ -6,7 +6,8 @@
 //!
 //! * `rgb.txt`: one `timestamp path` line per colour frame (path relative to the directory);
 //! * `depth.txt` (optional): one `timestamp path` line per depth frame, 16-bit single-channel PNGs;
-//!   a pixel value divided by `depth_scale` gives metres, 0 means "no reading";
+//!   a pixel value divided by `depth_scale` gives metres, 0 means "no reading" (and so does 65535,
+//!   the marker Microsoft 7-Scenes writes for it: 13 m or more at every usual scale);
 //! * `groundtruth.txt` (optional; `groundtruth_tum.txt` is accepted as a fallback name): one
 //!   `t tx ty tz qx qy qz qw` line per pose, **camera-to-world**, camera frame as in OpenCV/TUM
 //!   (x right, y down, z forward);
@@ -511,7 +512,11 @@ fn image_err(path: &Path, source: image::ImageError) -> DatasetError {
     }
 }
 
-/// Reads a 16-bit single-channel depth PNG and converts it to metres (value / `depth_scale`).
+/// The 16-bit value some datasets (Microsoft 7-Scenes) write for "no reading", besides 0.
+pub const NO_READING_MAX: u16 = u16::MAX;
+
+/// Reads a 16-bit single-channel depth PNG and converts it to metres (value / `depth_scale`);
+/// 0 and [`NO_READING_MAX`] are "no reading" (0.0).
 pub fn read_depth_png(path: &Path, depth_scale: f64) -> Result<DepthImage, DatasetError> {
     let img = image::open(path).map_err(|source| image_err(path, source))?;
     let img = match img {
@@ -528,7 +533,17 @@ pub fn read_depth_png(path: &Path, depth_scale: f64) -> Result<DepthImage, Datas
     };
     let inv = (1.0 / depth_scale) as f32;
     let (width, height) = img.dimensions();
-    let data = img.into_raw().into_iter().map(|v| v as f32 * inv).collect();
+    let data = img
+        .into_raw()
+        .into_iter()
+        .map(|v| {
+            if v == NO_READING_MAX {
+                0.0
+            } else {
+                v as f32 * inv
+            }
+        })
+        .collect();
     Ok(DepthImage {
         width,
         height,
@@ -537,7 +552,8 @@ pub fn read_depth_png(path: &Path, depth_scale: f64) -> Result<DepthImage, Datas
 }
 
 /// Writes a depth map (metres) as a 16-bit PNG with `value = round(metres * depth_scale)`;
-/// invalid, non-finite, non-positive or out-of-range (> 65535 units) depths become 0.
+/// invalid, non-finite, non-positive or out-of-range (65535 units or more: [`NO_READING_MAX`] reads
+/// back as no reading) depths become 0.
 pub fn write_depth_png(
     path: &Path,
     depth: &DepthImage,
@@ -560,7 +576,7 @@ pub fn write_depth_png(
         .iter()
         .map(|&d| {
             let v = (d as f64 * depth_scale).round();
-            if v.is_finite() && v > 0.0 && v <= 65535.0 {
+            if v.is_finite() && v > 0.0 && v < NO_READING_MAX as f64 {
                 v as u16
             } else {
                 0
@@ -852,6 +868,30 @@ mod tests {
         let img = gt.load_rgb(0).unwrap();
         assert_eq!(img.dimensions(), (752, 480));
         assert!(gt.load_depth_m(0).is_err());
+    }
+
+    #[test]
+    fn zero_and_the_7scenes_marker_are_no_reading() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("d.png");
+        let raw: Vec<u16> = vec![0, 1000, 65535, 65534];
+        ImageBuffer::<Luma<u16>, Vec<u16>>::from_raw(4, 1, raw)
+            .unwrap()
+            .save(&path)
+            .unwrap();
+        let d = read_depth_png(&path, 1000.0).unwrap();
+        assert_eq!(d.data, vec![0.0, 1.0, 0.0, 65534.0 * (1.0f32 / 1000.0)]);
+        // Writing never produces the marker for a real depth: 65.535 m at scale 1000 is out of
+        // range and written as 0.
+        let out = dir.path().join("w.png");
+        let far = DepthImage {
+            width: 2,
+            height: 1,
+            data: vec![65.535, 65.534],
+        };
+        write_depth_png(&out, &far, 1000.0).unwrap();
+        let back = read_depth_png(&out, 1000.0).unwrap().data;
+        assert_eq!(back, vec![0.0, 65534.0 * (1.0f32 / 1000.0)]);
     }
 
     #[test]
