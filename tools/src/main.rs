@@ -497,10 +497,29 @@ fn eval_cmd(
         bar.set_position(done as u64);
     };
     let several = sequences.len() > 1;
+    // Which sequences the sweep can run on, known before the long part: alone, a sequence the
+    // teacher cannot judge is an error now; among several, it is evaluated without a sweep (said
+    // below its table) and the summed curves cover the others.
+    let sweepable: Vec<bool> = match &sweep {
+        None => vec![false; sequences.len()],
+        Some(_) => {
+            let checks: Vec<_> = sequences.iter().map(|s| eval::sweep_sequence(s)).collect();
+            if let (false, Some(Err(e))) = (several, checks.first()) {
+                return Err(e.to_string().into());
+            }
+            if checks.iter().all(Result::is_err) {
+                return Err(
+                    "--sweep needs depth, poses and intrinsics in at least one sequence; none has them"
+                        .into(),
+                );
+            }
+            checks.iter().map(Result::is_ok).collect()
+        }
+    };
     let mut reports = Vec::with_capacity(sequences.len());
     for (k, sequence) in sequences.iter().enumerate() {
         let (mut report, data) = eval::evaluate(sequence, model, threshold, &cfg, &mut show)?;
-        if let Some(thresholds) = &sweep {
+        if let (Some(thresholds), true) = (&sweep, sweepable[k]) {
             report.sweep = Some(eval::sweep(sequence, model, thresholds, &cfg, &mut show)?);
         }
         if let Some(sfm) = &reconstruct {
@@ -534,6 +553,8 @@ fn eval_cmd(
         }
         if let Some(points) = &report.sweep {
             print_sweep(points);
+        } else if sweep.is_some() {
+            println!("no equal-budget sweep here: no depth, poses or intrinsics for the teacher");
         }
         if let (Some(points), Some(p), false) = (&report.sweep, &sweep_plot, several) {
             eval::plot_sweep(points, &format!("{name}: equal-budget curves"), p)?;
@@ -557,22 +578,26 @@ fn eval_cmd(
         reports.push(report);
     }
     let text = if several {
-        let sweeps: Option<Vec<Vec<eval::SweepPoint>>> =
-            reports.iter().map(|r| r.sweep.clone()).collect();
+        let sweeps: Vec<Vec<eval::SweepPoint>> =
+            reports.iter().filter_map(|r| r.sweep.clone()).collect();
+        let swept = sweeps.len();
         let multi = eval::MultiReport {
             sums: eval::sum_policies(&reports),
-            sweep_sums: sweeps.map(|s| eval::sum_sweeps(&s)),
+            sweep_sums: (swept > 0).then(|| eval::sum_sweeps(&sweeps)),
             sequences: reports,
         };
         print_sums(&multi.sums);
         if let Some(points) = &multi.sweep_sums {
-            println!("summed over the {} sequences:", multi.sequences.len());
+            match swept == multi.sequences.len() {
+                true => println!("summed over the {swept} sequences:"),
+                false => println!(
+                    "summed over the {swept} sequences with ground truth (of {}):",
+                    multi.sequences.len()
+                ),
+            }
             print_sweep(points);
             if let Some(p) = &sweep_plot {
-                let title = format!(
-                    "{} sequences: summed equal-budget curves",
-                    multi.sequences.len()
-                );
+                let title = format!("{swept} sequences: summed equal-budget curves");
                 eval::plot_sweep(points, &title, p)?;
                 eprintln!("sweep plot of the sums written to {}", p.display());
             }

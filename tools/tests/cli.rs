@@ -684,6 +684,75 @@ fn label_pairs_take_only_the_first_line_as_a_header() {
     assert_eq!(stdout.lines().count(), 3, "{stdout}");
 }
 
+/// `--sweep` over several sequences where one has no ground truth: that one is evaluated without
+/// a sweep (said under its table) and the summed curves cover the other; alone, such a sequence
+/// is refused before anything runs.
+#[test]
+fn sweep_skips_a_sequence_without_ground_truth_among_several() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    synth(&a, 20, "pan", 21);
+    synth(&b, 16, "pan", 22);
+    // b keeps its images and rgb.txt only: gated, not judged.
+    for f in ["depth.txt", "groundtruth.txt"] {
+        std::fs::remove_file(b.join(f)).unwrap();
+    }
+    let json = dir.path().join("multi.json");
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&a)
+        .arg("--sequence")
+        .arg(&b)
+        .args(["--model", &fixture("mad.onnx"), "--threshold", "0.05"])
+        .args(["--sweep", "--sweep-thresholds", "0.03,0.05", "--json"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("no equal-budget sweep here"), "{stdout}");
+    assert!(
+        stdout.contains("summed over the 1 sequences with ground truth (of 2)"),
+        "{stdout}"
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let seqs = v["sequences"].as_array().unwrap();
+    assert!(seqs[1]["sweep"].is_null(), "{}", seqs[1]);
+    let own = seqs[0]["sweep"].as_array().unwrap();
+    let sums = v["sweep_sums"].as_array().unwrap();
+    assert_eq!(sums.len(), own.len());
+    for p in sums {
+        let q = own
+            .iter()
+            .find(|q| q["policy"] == p["policy"] && q["threshold"] == p["threshold"])
+            .unwrap();
+        assert_eq!(p["kept"], q["kept"]);
+        assert_eq!(p["late_keeps"], q["late_keeps"]);
+    }
+    // Alone it is an error, given before any evaluation runs.
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&b)
+        .args(["--model", &fixture("mad.onnx"), "--sweep"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--sweep needs depth, poses and intrinsics") && err.contains("/b`"),
+        "{err}"
+    );
+    assert!(
+        !String::from_utf8_lossy(&out.stdout).contains("policy"),
+        "nothing was evaluated"
+    );
+}
+
 #[test]
 fn plot_errors_name_the_path() {
     let dir = tempfile::tempdir().unwrap();

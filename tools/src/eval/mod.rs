@@ -299,6 +299,22 @@ pub fn evaluate(
     ))
 }
 
+/// The sequence at `path` if the teacher can judge a sweep there (depth, poses and intrinsics);
+/// otherwise an error that says what it lacks. Cheap: it reads the lists, not the images.
+pub fn sweep_sequence(path: &Path) -> Result<Sequence, EvalError> {
+    match Source::open(path)? {
+        Source::Video(_) => Err(EvalError(format!(
+            "--sweep needs a sequence with depth and poses; `{}` is a video",
+            path.display()
+        ))),
+        Source::Sequence(seq) if !seq.has_ground_truth() => Err(EvalError(format!(
+            "--sweep needs depth, poses and intrinsics; `{}` lacks them",
+            path.display()
+        ))),
+        Source::Sequence(seq) => Ok(seq),
+    }
+}
+
 /// One point of an equal-budget curve: a policy at one setting, judged by the teacher.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct SweepPoint {
@@ -324,19 +340,10 @@ pub fn sweep(
     teacher_cfg: &crate::teacher::TeacherConfig,
     mut progress: impl FnMut(&str, usize, usize),
 ) -> Result<Vec<SweepPoint>, EvalError> {
-    let source = Source::open(path)?;
+    let source = Source::Sequence(sweep_sequence(path)?);
     let Source::Sequence(seq) = &source else {
-        return Err(EvalError(format!(
-            "--sweep needs a sequence with depth and poses; `{}` is a video",
-            path.display()
-        )));
+        return Err(EvalError(format!("`{}`: not a sequence", path.display())));
     };
-    if !seq.has_ground_truth() {
-        return Err(EvalError(format!(
-            "--sweep needs depth, poses and intrinsics; `{}` lacks them",
-            path.display()
-        )));
-    }
     let teacher = Teacher::from_sequence(seq, teacher_cfg).map_err(|e| EvalError(e.to_string()))?;
     let mut cache = TeacherCache::new(&teacher);
     let n = seq.len();
