@@ -621,17 +621,38 @@ fn print_sums(sums: &[eval::PolicySum]) {
         "sums over {} sequences ({} frames):",
         first.sequences, first.frames
     );
+    // Some sequences without ground truth: the teacher's columns are over the others, and
+    // `judged` is each policy's kept frames there (what kept/oracle divides).
+    let partial = first.judged_sequences < first.sequences;
+    if partial {
+        println!(
+            "(oracle, kept/oracle, late, breaks, min S: over the {} with ground truth; judged = kept there)",
+            first.judged_sequences
+        );
+    }
+    let judged = |s: &eval::PolicySum| match partial {
+        true => format!(" {:>6}", s.judged_kept),
+        false => String::new(),
+    };
     println!(
-        "{:<11} {:>5} {:>8} {:>11} {:>6} {:>6} {:>7}",
-        "policy", "kept", "oracle", "kept/oracle", "late", "breaks", "min S"
+        "{:<11} {:>5}{} {:>8} {:>11} {:>6} {:>6} {:>7}",
+        "policy",
+        "kept",
+        if partial { " judged" } else { "" },
+        "oracle",
+        "kept/oracle",
+        "late",
+        "breaks",
+        "min S"
     );
     let u = |v: Option<usize>| v.map_or("-".to_string(), |x| x.to_string());
     let f = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.3}"));
     for s in sums {
         println!(
-            "{:<11} {:>5} {:>8} {:>11} {:>6} {:>6} {:>7}",
+            "{:<11} {:>5}{} {:>8} {:>11} {:>6} {:>6} {:>7}",
             s.policy,
             s.kept,
+            judged(s),
             u(s.oracle_kept),
             f(s.kept_over_oracle),
             u(s.late_keeps),

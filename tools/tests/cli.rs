@@ -723,6 +723,25 @@ fn sweep_skips_a_sequence_without_ground_truth_among_several() {
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let seqs = v["sequences"].as_array().unwrap();
     assert!(seqs[1]["sweep"].is_null(), "{}", seqs[1]);
+    // The sums: kept over both, the teacher's columns over the judged one (a).
+    assert!(stdout.contains("over the 1 with ground truth"), "{stdout}");
+    let model = &v["sums"].as_array().unwrap()[0];
+    assert_eq!(model["policy"], "model");
+    let own = &seqs[0]["policies"]["model"];
+    let kept = |s: &serde_json::Value| s["policies"]["model"]["kept"].as_u64().unwrap();
+    assert_eq!(
+        model["kept"].as_u64(),
+        Some(kept(&seqs[0]) + kept(&seqs[1]))
+    );
+    assert_eq!(
+        (
+            model["judged_sequences"].as_u64(),
+            model["judged_kept"].as_u64()
+        ),
+        (Some(1), Some(kept(&seqs[0])))
+    );
+    assert_eq!(model["late_keeps"], own["late_keeps"]);
+    assert_eq!(model["oracle_kept"], seqs[0]["policies"]["oracle"]["kept"]);
     let own = seqs[0]["sweep"].as_array().unwrap();
     let sums = v["sweep_sums"].as_array().unwrap();
     assert_eq!(sums.len(), own.len());

@@ -6,21 +6,27 @@ use serde::Serialize;
 
 use super::{EvalReport, SweepPoint, POLICIES};
 
-/// One policy summed over several sequences. Teacher-judged fields are `None` when a sequence
-/// had no ground truth for them (the sum would not mean what it says).
+/// One policy summed over several sequences. The teacher-judged fields (`oracle_kept`,
+/// `kept_over_oracle`, `late_keeps`, `breaks`, `min_pair_S`) cover the `judged_sequences` that have
+/// ground truth (a video or a sequence without depth has no oracle), `judged_kept` being this
+/// policy's kept frames there; they are `None` when no sequence has it.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct PolicySum {
     pub policy: String,
     pub sequences: usize,
     pub frames: usize,
     pub kept: usize,
-    /// The oracle's kept frames over the same sequences.
+    /// The sequences with ground truth, over which the fields below are summed.
+    pub judged_sequences: usize,
+    /// This policy's kept frames over the judged sequences.
+    pub judged_kept: usize,
+    /// The oracle's kept frames over the judged sequences.
     pub oracle_kept: Option<usize>,
-    /// `kept / oracle_kept`.
+    /// `judged_kept / oracle_kept`.
     pub kept_over_oracle: Option<f64>,
     pub late_keeps: Option<usize>,
     pub breaks: Option<usize>,
-    /// The smallest teacher S between consecutive keeps over all the sequences.
+    /// The smallest teacher S between consecutive keeps over the judged sequences.
     #[serde(rename = "min_pair_S")]
     pub min_pair_s: Option<f64>,
 }
@@ -47,24 +53,35 @@ fn field_f(r: &EvalReport, policy: &str, key: &str) -> Option<f64> {
     r.policies.get(policy)?.get(key)?.as_f64()
 }
 
-/// Sum an optional field: `None` as soon as one sequence lacks it.
-fn sum_opt(values: impl Iterator<Item = Option<usize>>) -> Option<usize> {
-    values.sum()
+/// Sum an optional field over `reports`: `None` when there are none or one lacks it.
+fn sum_opt<'a>(
+    reports: &[&'a EvalReport],
+    value: impl Fn(&'a EvalReport) -> Option<usize>,
+) -> Option<usize> {
+    match reports.is_empty() {
+        true => None,
+        false => reports.iter().map(|r| value(r)).sum(),
+    }
 }
 
 /// Sums per policy over `reports`, in [`POLICIES`] order; a policy missing from every report
-/// (the oracle without ground truth) is left out.
+/// (the oracle without ground truth) is left out. The teacher's fields are summed over the
+/// reports with an oracle (ground truth), see [`PolicySum`].
 pub fn sum_policies(reports: &[EvalReport]) -> Vec<PolicySum> {
-    let oracle_kept = sum_opt(reports.iter().map(|r| field_u(r, "oracle", "kept")));
+    let judged: Vec<&EvalReport> = reports
+        .iter()
+        .filter(|r| r.policies.contains_key("oracle"))
+        .collect();
+    let oracle_kept = sum_opt(&judged, |r| field_u(r, "oracle", "kept"));
     POLICIES
         .iter()
         .filter(|p| reports.iter().any(|r| r.policies.contains_key(**p)))
         .map(|&policy| {
-            let kept: usize = reports
-                .iter()
-                .filter_map(|r| field_u(r, policy, "kept"))
-                .sum();
-            let mins: Option<Vec<f64>> = reports
+            let kept_in = |rs: &mut dyn Iterator<Item = &EvalReport>| -> usize {
+                rs.filter_map(|r| field_u(r, policy, "kept")).sum()
+            };
+            let judged_kept = kept_in(&mut judged.iter().copied());
+            let mins: Option<Vec<f64>> = judged
                 .iter()
                 .map(|r| field_f(r, policy, "min_pair_S"))
                 .collect();
@@ -72,13 +89,15 @@ pub fn sum_policies(reports: &[EvalReport]) -> Vec<PolicySum> {
                 policy: policy.to_string(),
                 sequences: reports.len(),
                 frames: reports.iter().map(|r| r.frames).sum(),
-                kept,
+                kept: kept_in(&mut reports.iter()),
+                judged_sequences: judged.len(),
+                judged_kept,
                 oracle_kept,
                 kept_over_oracle: oracle_kept
                     .filter(|&o| o > 0)
-                    .map(|o| kept as f64 / o as f64),
-                late_keeps: sum_opt(reports.iter().map(|r| field_u(r, policy, "late_keeps"))),
-                breaks: sum_opt(reports.iter().map(|r| field_u(r, policy, "breaks"))),
+                    .map(|o| judged_kept as f64 / o as f64),
+                late_keeps: sum_opt(&judged, |r| field_u(r, policy, "late_keeps")),
+                breaks: sum_opt(&judged, |r| field_u(r, policy, "breaks")),
                 min_pair_s: mins.and_then(|m| m.into_iter().reduce(f64::min)),
             }
         })
@@ -180,14 +199,34 @@ mod tests {
     }
 
     #[test]
-    fn a_sequence_without_ground_truth_leaves_teacher_sums_empty() {
-        let a = report("a", 100, &[("model", row(8, Some(1), Some(0.4)))]);
+    fn teacher_sums_cover_the_sequences_with_ground_truth() {
+        let a = report(
+            "a",
+            100,
+            &[
+                ("model", row(8, Some(1), Some(0.4))),
+                ("oracle", row(10, Some(0), Some(0.5))),
+            ],
+        );
         let b = report("video", 60, &[("model", row(5, None, None))]);
-        let s = sum_policies(&[a, b]);
-        assert_eq!(s.len(), 1);
-        assert_eq!(s[0].kept, 13);
+        let s = sum_policies(&[a, b.clone()]);
+        let m = &s[0];
+        assert_eq!((m.sequences, m.frames, m.kept), (2, 160, 13));
+        assert_eq!((m.judged_sequences, m.judged_kept), (1, 8));
         assert_eq!(
-            (s[0].late_keeps, s[0].oracle_kept, s[0].min_pair_s),
+            (m.oracle_kept, m.kept_over_oracle),
+            (Some(10), Some(8.0 / 10.0))
+        );
+        assert_eq!(
+            (m.late_keeps, m.breaks, m.min_pair_s),
+            (Some(1), Some(0), Some(0.4))
+        );
+        // Nothing judged: the teacher's fields are empty, not zero.
+        let s = sum_policies(&[b]);
+        assert_eq!(s.len(), 1);
+        assert_eq!((s[0].kept, s[0].judged_sequences), (5, 0));
+        assert_eq!(
+            (s[0].oracle_kept, s[0].late_keeps, s[0].min_pair_s),
             (None, None, None)
         );
     }
