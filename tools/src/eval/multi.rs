@@ -81,10 +81,12 @@ pub fn sum_policies(reports: &[EvalReport]) -> Vec<PolicySum> {
                 rs.filter_map(|r| field_u(r, policy, "kept")).sum()
             };
             let judged_kept = kept_in(&mut judged.iter().copied());
-            let mins: Option<Vec<f64>> = judged
+            // A sequence with fewer than two keeps has no pair, so no min pair S: the others
+            // decide it.
+            let min_pair_s = judged
                 .iter()
-                .map(|r| field_f(r, policy, "min_pair_S"))
-                .collect();
+                .filter_map(|r| field_f(r, policy, "min_pair_S"))
+                .reduce(f64::min);
             PolicySum {
                 policy: policy.to_string(),
                 sequences: reports.len(),
@@ -98,14 +100,14 @@ pub fn sum_policies(reports: &[EvalReport]) -> Vec<PolicySum> {
                     .map(|o| judged_kept as f64 / o as f64),
                 late_keeps: sum_opt(&judged, |r| field_u(r, policy, "late_keeps")),
                 breaks: sum_opt(&judged, |r| field_u(r, policy, "breaks")),
-                min_pair_s: mins.and_then(|m| m.into_iter().reduce(f64::min)),
+                min_pair_s,
             }
         })
         .collect()
 }
 
 /// The sweeps of several sequences summed at each (threshold, policy): kept, late keeps and
-/// breaks added, min pair S the smallest; the median is not summable and left out. Points present
+/// breaks added, min pair S the smallest of those that have one; the median is not summable and left out. Points present
 /// in only some sequences are dropped.
 pub fn sum_sweeps(sweeps: &[Vec<SweepPoint>]) -> Vec<SweepPoint> {
     let Some(first) = sweeps.first() else {
@@ -127,11 +129,7 @@ pub fn sum_sweeps(sweeps: &[Vec<SweepPoint>]) -> Vec<SweepPoint> {
                 kept: same.iter().map(|q| q.kept).sum(),
                 late_keeps: same.iter().map(|q| q.late_keeps).sum(),
                 breaks: same.iter().map(|q| q.breaks).sum(),
-                min_pair_s: same
-                    .iter()
-                    .map(|q| q.min_pair_s)
-                    .collect::<Option<Vec<f64>>>()
-                    .and_then(|v| v.into_iter().reduce(f64::min)),
+                min_pair_s: same.iter().filter_map(|q| q.min_pair_s).reduce(f64::min),
                 median_pair_s: None,
             })
         })
@@ -229,6 +227,31 @@ mod tests {
             (s[0].oracle_kept, s[0].late_keeps, s[0].min_pair_s),
             (None, None, None)
         );
+    }
+
+    #[test]
+    fn a_sequence_with_one_keep_leaves_min_pair_s_to_the_others() {
+        // 7scenes_redkitchen_dev: one keep, so no pair and no min pair S.
+        let a = report(
+            "a",
+            100,
+            &[
+                ("model", row(8, Some(1), Some(0.4))),
+                ("oracle", row(10, Some(0), Some(0.5))),
+            ],
+        );
+        let b = report(
+            "short",
+            60,
+            &[
+                ("model", row(1, Some(0), None)),
+                ("oracle", row(1, Some(0), None)),
+            ],
+        );
+        let s = sum_policies(&[a, b]);
+        assert_eq!(s[0].min_pair_s, Some(0.4));
+        assert_eq!(s[1].min_pair_s, Some(0.5));
+        assert_eq!(s[0].judged_sequences, 2);
     }
 
     #[test]
