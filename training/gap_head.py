@@ -14,7 +14,7 @@ It reports: leave one sequence out (ridge and fusion fitted on one whole real se
 the other), the documented split (ridge on tum_fr1_rpy 0-559 and tum_fr1_desk 0-285, the fusion
 on the fusion's fit parts; reported on the test parts, the whole sequences and the synthetic
 held-out sequences), and the gap it predicts on sequences it never saw against the teacher's where
-there is one (7scenes_redkitchen_dev, the two synthetic fusion-fit sequences).
+there is one (7scenes_redkitchen_dev and _long, the two synthetic fusion-fit sequences).
 
 Usage (after `python -m training.fuse`, whose cached tables it reads):
     python -m training.gap_head [--lam 300,1000,3000]
@@ -75,7 +75,7 @@ def main():
     ap.add_argument("--out", default=os.path.join(DATA_ROOT, "evals", "fuse"))
     ap.add_argument("--lam", default="300,1000,3000", help="ridge penalties (standardised features)")
     ap.add_argument("--eval-synth", default=",".join(os.path.join(DATA_ROOT, "eval", f"synth_900{k}") for k in (1, 2, 3)))
-    ap.add_argument("--unseen", default=",".join([os.path.join(SHARED, "7scenes_redkitchen_dev")] +
+    ap.add_argument("--unseen", default=",".join([os.path.join(SHARED, n) for n in ("7scenes_redkitchen_dev", "7scenes_redkitchen_long")] +
                                                  [os.path.join(DATA_ROOT, "fusefit", f"synth_500{k}") for k in (0, 1)]))
     a = ap.parse_args()
     base = lambda p: os.path.basename(os.path.normpath(p))
