@@ -69,11 +69,22 @@ def candidates():
     ]
 
 
+def penalties(text):
+    """argparse type of --lam: comma-separated positive numbers."""
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}")
+    if not v or not all(np.isfinite(x) and x > 0 for x in v):
+        raise argparse.ArgumentTypeError(f"every penalty must be a positive number, got {text!r}")
+    return v
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", default=MODELS_DIR)
     ap.add_argument("--out", default=os.path.join(DATA_ROOT, "evals", "fuse"))
-    ap.add_argument("--lam", default="300,1000,3000", help="ridge penalties (standardised features)")
+    ap.add_argument("--lam", type=penalties, default=[300.0, 1000.0, 3000.0], help="ridge penalties (standardised features)")
     ap.add_argument("--eval-synth", default=",".join(os.path.join(DATA_ROOT, "eval", f"synth_900{k}") for k in (1, 2, 3)))
     ap.add_argument("--unseen", default=",".join([os.path.join(SHARED, n) for n in ("7scenes_redkitchen_dev", "7scenes_redkitchen_long")] +
                                                  [os.path.join(DATA_ROOT, "fusefit", f"synth_500{k}") for k in (0, 1)]))
@@ -97,7 +108,7 @@ def main():
     fit_ranges = {n: [REAL_SPLITS[n][p] for p in FUSION_FIT_PARTS[n]] for n in real}
     # the ridge sees every reference of the parts before each sequence's test part
     ridge_last = {n: max(b for p, (a_, b) in REAL_SPLITS[n].items() if p != "test") for n in real}
-    for lam in [float(v) for v in a.lam.split(",")]:
+    for lam in a.lam:
         print(f"\n## ridge penalty {lam:g}\n")
         print("| candidate | LOSO rpy -> desk | LOSO desk -> rpy | " + " | ".join(f"{n} test" for n in real) +
               " | " + " | ".join(f"{n} all" for n in real + synth) + " |")

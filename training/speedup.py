@@ -37,21 +37,30 @@ def subsample(src, k, dst):
         if name != "groundtruth.txt":
             body = [f"{r.split()[0]} {os.path.join(src, r.split()[1])}" for r in body]
         with open(os.path.join(dst, name), "w") as f:
-            f.write("\n".join(head + [f"# every {k}th frame of {src}"] + body) + "\n")
+            f.write("\n".join(head + [f"# every frame k = 0, {k}, {2 * k}, ... of {src}"] + body) + "\n")
     with open(os.path.join(src, "intrinsics.txt")) as f, open(os.path.join(dst, "intrinsics.txt"), "w") as g:
         g.write(f.read())
+
+
+def speedups(text):
+    """argparse type of --every: comma-separated integers of at least 1."""
+    try:
+        ks = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated whole numbers, got {text!r}")
+    if not ks or any(k < 1 for k in ks):
+        raise argparse.ArgumentTypeError(f"every speed-up must be at least 1, got {text!r}")
+    return ks
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sequences", nargs="+")
-    ap.add_argument("--every", default="2,3", help="comma-separated speed-ups (keep every k-th frame)")
+    ap.add_argument("--every", type=speedups, default=[2, 3], help="comma-separated speed-ups (keep every k-th frame)")
     ap.add_argument("--out", default=os.path.join(DATA_ROOT, "speed"))
     a = ap.parse_args()
     for seq in a.sequences:
-        for k in (int(v) for v in a.every.split(",")):
-            if k < 1:
-                raise SystemExit(f"--every: {k} is not a positive integer")
+        for k in a.every:
             dst = os.path.join(a.out, f"{os.path.basename(os.path.normpath(seq))}_x{k}")
             subsample(seq, k, dst)
             print(dst)

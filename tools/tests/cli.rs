@@ -772,6 +772,60 @@ fn sweep_skips_a_sequence_without_ground_truth_among_several() {
     );
 }
 
+/// `python -m training.speedup` (the faster-motion check of the model card): every k-th frame of
+/// a sequence, still judged by the teacher; its lists point at the original images. Needs only
+/// the standard library, so Debian's python3 runs it.
+#[test]
+fn a_sequence_sped_up_by_training_speedup_is_judged() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 21, "pan", 31);
+    let out_dir = dir.path().join("speed");
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let run = |every: &str| {
+        Command::new("python3")
+            .current_dir(&repo)
+            .args(["-m", "training.speedup", "--every", every, "--out"])
+            .arg(&out_dir)
+            .arg(&seq)
+            .output()
+            .unwrap()
+    };
+    let out = run("2,3");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rows = |p: &Path| -> Vec<String> {
+        std::fs::read_to_string(p)
+            .unwrap()
+            .lines()
+            .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+            .map(str::to_string)
+            .collect()
+    };
+    let all = rows(&seq.join("groundtruth.txt"));
+    for (k, name) in [(2, "seq_x2"), (3, "seq_x3")] {
+        let fast = out_dir.join(name);
+        let gt = rows(&fast.join("groundtruth.txt"));
+        let want: Vec<String> = all.iter().step_by(k).cloned().collect();
+        assert_eq!(gt, want, "every {k}th pose");
+        assert_eq!(rows(&fast.join("rgb.txt")).len(), want.len());
+        let v = eval_json(&fast, &[]);
+        assert_eq!(v["frames"].as_u64(), Some(want.len() as u64), "{v}");
+        assert!(v["policies"]["oracle"]["kept"].as_u64().unwrap() >= 1);
+    }
+    // A bad speed-up is an argparse error, not a traceback.
+    let out = run("0");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("--every") && !err.contains("Traceback"),
+        "{err}"
+    );
+}
+
 #[test]
 fn plot_errors_name_the_path() {
     let dir = tempfile::tempdir().unwrap();
