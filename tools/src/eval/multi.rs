@@ -107,8 +107,8 @@ pub fn sum_policies(reports: &[EvalReport]) -> Vec<PolicySum> {
 }
 
 /// The sweeps of several sequences summed at each (threshold, policy): kept, late keeps and
-/// breaks added, min pair S the smallest of those that have one; the median is not summable and left out. Points present
-/// in only some sequences are dropped.
+/// breaks added, min pair S the smallest of those that have one; the median is not summable and
+/// left out. Points present in only some sequences are dropped.
 pub fn sum_sweeps(sweeps: &[Vec<SweepPoint>]) -> Vec<SweepPoint> {
     let Some(first) = sweeps.first() else {
         return Vec::new();
