@@ -20,7 +20,7 @@ from PIL import Image
 from .calibrate import encode, score_pairs, sessions
 from .compare import pair_set
 from .config import DATA_ROOT
-from .tum import _rows
+from .seqio import rows as _rows
 
 
 def quat_to_rot(q):

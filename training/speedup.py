@@ -11,35 +11,18 @@ import argparse
 import os
 
 from .config import DATA_ROOT
-
-LISTS = ("rgb.txt", "depth.txt", "groundtruth.txt")
+from .seqio import LISTS, rows, write_subset
 
 
 def subsample(src, k, dst):
     """Write every `k`-th row of `src`'s lists (and its intrinsics) into `dst`. The rows of
     rgb.txt, depth.txt and groundtruth.txt must be associated one to one, as in ../shared/data."""
     src = os.path.abspath(src)
-    rows = {}
-    for name in LISTS:
-        path = os.path.join(src, name)
-        if not os.path.exists(path):
-            raise SystemExit(f"{path} is missing: a sequence with depth and poses is needed")
-        lines = open(path).read().splitlines()
-        rows[name] = ([l for l in lines if l.startswith("#")],
-                      [l for l in lines if l.strip() and not l.startswith("#")])
-    counts = {len(r) for _, r in rows.values()}
-    if len(counts) != 1:
+    counts = {len(rows(os.path.join(src, n))[1]) for n in LISTS if os.path.exists(os.path.join(src, n))}
+    if len(counts) > 1:
         raise SystemExit(f"{src}: rgb.txt, depth.txt and groundtruth.txt have {sorted(counts)} rows; "
                          "they must be associated one row per frame")
-    os.makedirs(dst, exist_ok=True)
-    for name, (head, body) in rows.items():
-        body = body[::k]
-        if name != "groundtruth.txt":
-            body = [f"{r.split()[0]} {os.path.join(src, r.split()[1])}" for r in body]
-        with open(os.path.join(dst, name), "w") as f:
-            f.write("\n".join(head + [f"# every frame k = 0, {k}, {2 * k}, ... of {src}"] + body) + "\n")
-    with open(os.path.join(src, "intrinsics.txt")) as f, open(os.path.join(dst, "intrinsics.txt"), "w") as g:
-        g.write(f.read())
+    write_subset(src, dst, lambda body, _: body[::k], f"every frame k = 0, {k}, {2 * k}, ... of {src}")
 
 
 def speedups(text):

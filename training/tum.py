@@ -20,16 +20,7 @@ import numpy as np
 
 from .config import LEANGATE, REAL_SPLITS, SHARED, TUM_SEQ, TUM_SPLIT
 from .preprocess import load_resized, read_list
-
-
-def _rows(path):
-    head, rows = [], []
-    for line in open(path):
-        s = line.strip()
-        if not s:
-            continue
-        (head if s.startswith("#") else rows).append(s)
-    return head, rows
+from .seqio import write_subset
 
 
 def make_part(root, part, src=None, seq=TUM_SEQ):
@@ -39,18 +30,13 @@ def make_part(root, part, src=None, seq=TUM_SEQ):
     src = src or os.path.join(SHARED, seq)
     a, b = REAL_SPLITS[seq][part]
     out = os.path.join(root, "tum" if seq == TUM_SEQ else seq, part)
-    os.makedirs(out, exist_ok=True)
-    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
-        head, rows = _rows(os.path.join(src, name))
+
+    def pick(rows, name):
         if len(rows) <= b:
             raise SystemExit(f"{src}/{name}: {len(rows)} rows, the split needs {b + 1}")
-        sel = rows[a:b + 1]
-        if name != "groundtruth.txt":
-            sel = [f"{r.split()[0]} {os.path.join(os.path.abspath(src), r.split()[1])}" for r in sel]
-        with open(os.path.join(out, name), "w") as f:
-            f.write("\n".join(head + [f"# {seq} frames {a}-{b} ({part} part of the LeanGate split)"] + sel) + "\n")
-    with open(os.path.join(src, "intrinsics.txt")) as f, open(os.path.join(out, "intrinsics.txt"), "w") as g:
-        g.write(f.read())
+        return rows[a:b + 1]
+
+    write_subset(src, out, pick, f"{seq} frames {a}-{b} ({part} part of the LeanGate split)")
     return out
 
 
