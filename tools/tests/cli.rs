@@ -350,6 +350,16 @@ fn synth_replays_a_real_trajectory_with_sensor_realism() {
     assert!(err.contains("/no/such/trajectory.txt"), "{err}");
 }
 
+/// The point of sequence report `seq`'s sweep at `like`'s policy and threshold.
+fn sweep_point<'a>(seq: &'a serde_json::Value, like: &serde_json::Value) -> &'a serde_json::Value {
+    seq["sweep"]
+        .as_array()
+        .expect("a sweep in the report")
+        .iter()
+        .find(|q| q["policy"] == like["policy"] && q["threshold"] == like["threshold"])
+        .expect("the same point in the sequence's sweep")
+}
+
 /// `leangate eval --sequence A --sequence B`: one report per sequence, and the sums per policy
 /// (kept, kept / oracle, late keeps, breaks, min pair S) equal to what the per-sequence reports
 /// add up to; `--sweep` sums every policy point by point; plots come one per sequence.
@@ -432,16 +442,7 @@ fn eval_over_several_sequences_reports_each_and_the_sums() {
         );
         let kept: u64 = seqs
             .iter()
-            .map(|s| {
-                s["sweep"]
-                    .as_array()
-                    .unwrap()
-                    .iter()
-                    .find(|q| q["policy"] == policy && q["threshold"].as_f64() == Some(t))
-                    .unwrap()["kept"]
-                    .as_u64()
-                    .unwrap()
-            })
+            .map(|s| sweep_point(s, p)["kept"].as_u64().unwrap())
             .sum();
         assert_eq!(p["kept"].as_u64().unwrap(), kept, "{policy} at {t}");
     }
@@ -742,14 +743,10 @@ fn sweep_skips_a_sequence_without_ground_truth_among_several() {
     );
     assert_eq!(model["late_keeps"], own["late_keeps"]);
     assert_eq!(model["oracle_kept"], seqs[0]["policies"]["oracle"]["kept"]);
-    let own = seqs[0]["sweep"].as_array().unwrap();
     let sums = v["sweep_sums"].as_array().unwrap();
-    assert_eq!(sums.len(), own.len());
+    assert_eq!(sums.len(), seqs[0]["sweep"].as_array().unwrap().len());
     for p in sums {
-        let q = own
-            .iter()
-            .find(|q| q["policy"] == p["policy"] && q["threshold"] == p["threshold"])
-            .unwrap();
+        let q = sweep_point(&seqs[0], p);
         assert_eq!(p["kept"], q["kept"]);
         assert_eq!(p["late_keeps"], q["late_keeps"]);
     }
