@@ -503,7 +503,7 @@ fn eval_cmd(
     let sweepable: Vec<bool> = match &sweep {
         None => vec![false; sequences.len()],
         Some(_) => {
-            let checks: Vec<_> = sequences.iter().map(|s| eval::sweep_sequence(s)).collect();
+            let checks: Vec<_> = sequences.iter().map(|s| eval::check_sweep(s)).collect();
             if let (false, Some(Err(e))) = (several, checks.first()) {
                 return Err(e.to_string().into());
             }

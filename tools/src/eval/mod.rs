@@ -299,10 +299,14 @@ pub fn evaluate(
     ))
 }
 
-/// The sequence at `path` if the teacher can judge a sweep there (depth, poses and intrinsics);
-/// otherwise an error that says what it lacks. Cheap: it reads the lists, not the images.
-pub fn sweep_sequence(path: &Path) -> Result<Sequence, EvalError> {
-    match Source::open(path)? {
+/// Whether the teacher can judge a sweep on the sequence at `path` (depth, poses and
+/// intrinsics); the error says what it lacks. Cheap: it reads the lists, not the images.
+pub fn check_sweep(path: &Path) -> Result<(), EvalError> {
+    sweepable(&Source::open(path)?, path).map(|_| ())
+}
+
+fn sweepable<'a>(source: &'a Source, path: &Path) -> Result<&'a Sequence, EvalError> {
+    match source {
         Source::Video(_) => Err(EvalError(format!(
             "--sweep needs a sequence with depth and poses; `{}` is a video",
             path.display()
@@ -340,10 +344,8 @@ pub fn sweep(
     teacher_cfg: &crate::teacher::TeacherConfig,
     mut progress: impl FnMut(&str, usize, usize),
 ) -> Result<Vec<SweepPoint>, EvalError> {
-    let source = Source::Sequence(sweep_sequence(path)?);
-    let Source::Sequence(seq) = &source else {
-        return Err(EvalError(format!("`{}`: not a sequence", path.display())));
-    };
+    let source = Source::open(path)?;
+    let seq = sweepable(&source, path)?;
     let teacher = Teacher::from_sequence(seq, teacher_cfg).map_err(|e| EvalError(e.to_string()))?;
     let mut cache = TeacherCache::new(&teacher);
     let n = seq.len();
