@@ -77,10 +77,8 @@ pub fn sum_policies(reports: &[EvalReport]) -> Vec<PolicySum> {
         .iter()
         .filter(|p| reports.iter().any(|r| r.policies.contains_key(**p)))
         .map(|&policy| {
-            let kept_in = |rs: &mut dyn Iterator<Item = &EvalReport>| -> usize {
-                rs.filter_map(|r| field_u(r, policy, "kept")).sum()
-            };
-            let judged_kept = kept_in(&mut judged.iter().copied());
+            let kept = |r: &EvalReport| field_u(r, policy, "kept");
+            let judged_kept: usize = judged.iter().filter_map(|r| kept(r)).sum();
             // A sequence with fewer than two keeps has no pair, so no min pair S: the others
             // decide it.
             let min_pair_s = judged
@@ -91,7 +89,7 @@ pub fn sum_policies(reports: &[EvalReport]) -> Vec<PolicySum> {
                 policy: policy.to_string(),
                 sequences: reports.len(),
                 frames: reports.iter().map(|r| r.frames).sum(),
-                kept: kept_in(&mut reports.iter()),
+                kept: reports.iter().filter_map(kept).sum(),
                 judged_sequences: judged.len(),
                 judged_kept,
                 oracle_kept,
