@@ -253,12 +253,18 @@ mod tests {
         st.members.insert(member, true);
     }
 
-    #[test]
-    fn waits_for_every_streaming_member_up_to_the_batch_size() {
+    /// A batcher's state with members 0..n, all streaming.
+    fn streaming(n: u64) -> BatchState {
         let mut st = BatchState::default();
-        for m in 0..4 {
+        for m in 0..n {
             st.members.insert(m, true);
         }
+        st
+    }
+
+    #[test]
+    fn waits_for_every_streaming_member_up_to_the_batch_size() {
+        let mut st = streaming(4);
         queued(&mut st, 0);
         assert!(!st.ready(4));
         queued(&mut st, 1);
@@ -281,10 +287,7 @@ mod tests {
 
     #[test]
     fn a_timeout_drops_the_members_that_sent_nothing_until_their_next_frame() {
-        let mut st = BatchState::default();
-        for m in 0..3 {
-            st.members.insert(m, true);
-        }
+        let mut st = streaming(3);
         queued(&mut st, 0);
         queued(&mut st, 1);
         assert!(!st.ready(4));
@@ -303,10 +306,7 @@ mod tests {
 
     #[test]
     fn a_frame_of_a_member_that_went_idle_runs_at_once() {
-        let mut st = BatchState::default();
-        for m in 0..3 {
-            st.members.insert(m, true);
-        }
+        let mut st = streaming(3);
         queued(&mut st, 0);
         assert!(!st.ready(4));
         st.members.insert(0, false);
