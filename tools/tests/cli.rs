@@ -852,3 +852,116 @@ fn plot_errors_name_the_path() {
         assert!(!err.contains("IOError") && !err.contains("Os {"), "{err}");
     }
 }
+
+/// `python -m training.import_7scenes` (how `7scenes_redkitchen_long` is made): a synthetic
+/// sequence written in 7-Scenes' own layout (4x4 camera-to-world pose files, millimetre depth,
+/// `camera-intrinsics.txt`) comes back with the same poses, intrinsics and oracle; bad input is
+/// a message naming the file, not a traceback, and writes nothing.
+#[test]
+fn a_7scenes_clip_imported_by_training_import_7scenes_is_judged_like_the_original() {
+    use leangate_tools::dataset::{read_depth_png, write_depth_png, Sequence};
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let out = leangate()
+        .args(["synth", "--out"])
+        .arg(&seq)
+        .args([
+            "--seed", "7", "--frames", "40", "--motion", "mixed", "--jpeg",
+        ])
+        .args(["--width", "160", "--height", "120"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let orig = Sequence::open(&seq).unwrap();
+    let k = orig.intrinsics.clone().unwrap();
+    let raw = dir.path().join("7scenes");
+    std::fs::create_dir_all(&raw).unwrap();
+    std::fs::write(
+        raw.join("camera-intrinsics.txt"),
+        format!("{} 0 {}\n0 {} {}\n0 0 1\n", k.fx, k.cx, k.fy, k.cy),
+    )
+    .unwrap();
+    for (i, f) in orig.frames.iter().enumerate() {
+        let base = raw.join(format!("frame-{i:06}"));
+        std::fs::copy(&f.rgb, base.with_extension("color.jpg")).unwrap();
+        let depth = read_depth_png(f.depth.as_ref().unwrap(), k.depth_scale).unwrap();
+        write_depth_png(&base.with_extension("depth.png"), &depth, 1000.0).unwrap();
+        let m = f.pose.unwrap().to_homogeneous();
+        let rows: Vec<String> = (0..4)
+            .map(|r| {
+                (0..4)
+                    .map(|c| format!("{:.12e}", m[(r, c)]))
+                    .collect::<Vec<_>>()
+                    .join(" ")
+            })
+            .collect();
+        std::fs::write(base.with_extension("pose.txt"), rows.join("\n") + "\n").unwrap();
+    }
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let import = |src: &Path, dst: &Path, last: &str| {
+        Command::new("python3")
+            .current_dir(&repo)
+            .args(["-m", "training.import_7scenes"])
+            .arg(src)
+            .arg(dst)
+            .args(["--last", last])
+            .output()
+            .unwrap()
+    };
+    let imported = dir.path().join("imported");
+    let out = import(&raw, &imported, "39");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let back = Sequence::open(&imported).unwrap();
+    assert_eq!(back.frames.len(), 40);
+    let kb = back.intrinsics.unwrap();
+    assert_eq!(
+        (kb.fx, kb.fy, kb.cx, kb.cy, kb.depth_scale),
+        (k.fx, k.fy, k.cx, k.cy, 1000.0)
+    );
+    for (a, b) in orig.frames.iter().zip(&back.frames) {
+        let (pa, pb) = (a.pose.unwrap(), b.pose.unwrap());
+        assert!((pa.translation.vector - pb.translation.vector).norm() < 1e-6);
+        assert!(pa.rotation.angle_to(&pb.rotation) < 1e-6);
+    }
+    let (va, vb) = (eval_json(&seq, &[]), eval_json(&imported, &[]));
+    let oracle = |v: &serde_json::Value| v["policies"]["oracle"]["kept"].as_u64().unwrap();
+    assert!(oracle(&va) >= 2, "{va}");
+    assert_eq!(oracle(&va), oracle(&vb));
+    // The teacher's labels agree up to the millimetre depth: the model's error against them.
+    let rmse = |v: &serde_json::Value| v["policies"]["model"]["utility_rmse"].as_f64().unwrap();
+    assert!((rmse(&va) - rmse(&vb)).abs() < 0.01, "{va}\n{vb}");
+
+    // A frame's pose file missing: the file is named, nothing is written.
+    std::fs::remove_file(raw.join("frame-000007.pose.txt")).unwrap();
+    let nothing = dir.path().join("nothing");
+    let out = import(&raw, &nothing, "39");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("frame-000007.pose.txt") && !err.contains("Traceback"),
+        "{err}"
+    );
+    assert!(!nothing.exists());
+    // A pose that is not a number: the file is named, no traceback.
+    std::fs::write(
+        raw.join("frame-000007.pose.txt"),
+        "1 0 0 0\n0 1 0 x\n0 0 1 0\n0 0 0 1\n",
+    )
+    .unwrap();
+    let out = import(&raw, &nothing, "39");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("frame-000007.pose.txt") && !err.contains("Traceback"),
+        "{err}"
+    );
+    assert!(!nothing.exists());
+}
