@@ -530,10 +530,11 @@ fn section_scoring(reps: usize) {
     let info = scorer.info().clone();
     let pre =
         Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT709, info.spec.clone()).unwrap();
-    let mut run = |geometry: bool| -> (f64, f64) {
+    let threshold = info.threshold.unwrap_or(0.5);
+    let mut run = |geometry: bool, screen: bool| -> (f64, f64) {
         let mut utility = Utility::new(info.geometry);
         let mut gate = Gate::new(GateConfig {
-            threshold: info.threshold.unwrap_or(0.5),
+            threshold,
             ..Default::default()
         });
         let (mut reference, mut current) =
@@ -544,14 +545,21 @@ fn section_scoring(reps: usize) {
                 .unwrap();
             let has_reference = gate.has_reference();
             utility.observe(Some((&current[..], &info.spec)), has_reference, geometry);
-            let score = if has_reference {
-                let s = scorer.score(&reference, &current).unwrap() as f64;
-                Score::Utility(utility.compose(s, geometry).0)
+            let screened = if has_reference && screen {
+                utility.screen(threshold, geometry)
             } else {
-                Score::NoReference
+                None
+            };
+            let score = match screened {
+                _ if !has_reference => Score::NoReference,
+                Some(bound) => Score::Utility(bound),
+                None => {
+                    let s = scorer.score(&reference, &current).unwrap() as f64;
+                    Score::Utility(utility.compose(s, geometry).0)
+                }
             };
             if gate.decide(score).keep {
-                scorer.on_keep(has_reference);
+                scorer.on_keep(has_reference && screened.is_none());
                 std::mem::swap(&mut reference, &mut current);
                 utility.on_keep();
             }
@@ -559,15 +567,16 @@ fn section_scoring(reps: usize) {
         let n = frames.len() as f64;
         (n / t0.elapsed().as_secs_f64(), n / (thread_cpu_s() - c0))
     };
-    let (mut alone, mut fused) = (Vec::new(), Vec::new());
+    let (mut alone, mut fused, mut screened) = (Vec::new(), Vec::new(), Vec::new());
     for _ in 0..reps {
-        alone.push(run(false));
-        fused.push(run(true));
+        alone.push(run(false, false));
+        fused.push(run(true, false));
+        screened.push(run(true, true));
     }
     let wall = |v: &[(f64, f64)]| median(&v.iter().map(|x| x.0).collect::<Vec<_>>());
     let cpu = |v: &[(f64, f64)]| median(&v.iter().map(|x| x.1).collect::<Vec<_>>());
-    let (a, b) = (wall(&alone), wall(&fused));
-    let (ac, bc) = (cpu(&alone), cpu(&fused));
+    let (a, b, c) = (wall(&alone), wall(&fused), wall(&screened));
+    let (ac, bc, cc) = (cpu(&alone), cpu(&fused), cpu(&screened));
     println!(
         "model {} ({}), {} frames {w}x{h}, fusion: {}",
         info.name,
@@ -583,8 +592,12 @@ fn section_scoring(reps: usize) {
         1e3 / a
     );
     println!(
-        "| model + geometric prior (the default) | {b:.0} | {:.2} | {bc:.0} |",
+        "| model + geometric prior (`screen=false`) | {b:.0} | {:.2} | {bc:.0} |",
         1e3 / b
+    );
+    println!(
+        "| model + prior, the prior screening (the default) | {c:.0} | {:.2} | {cc:.0} |",
+        1e3 / c
     );
 }
 

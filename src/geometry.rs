@@ -748,15 +748,24 @@ impl Fusion {
         })
     }
 
-    /// The fused utility; `s` itself when `geo` is None or `s` is not finite.
+    /// The fused utility; `s` itself when `geo` is None or `s` is not finite. `s` is a utility,
+    /// so it is taken within [0, 1] (the embedded students' calibration already clips it).
     pub fn fuse(&self, s: f64, geo: Option<f64>) -> f64 {
         match geo {
             Some(g) if s.is_finite() && g.is_finite() => {
                 let w = &self.w;
-                (w[0] + w[1] * g + w[2] * g * g + w[3] * s).clamp(0.0, 1.0)
+                (w[0] + w[1] * g + w[2] * g * g + w[3] * s.clamp(0.0, 1.0)).clamp(0.0, 1.0)
             }
             _ => s,
         }
+    }
+
+    /// The largest fused utility any finite model score can give with this `tau_geo`: when it is
+    /// below the threshold, the prior alone decides that the frame is dropped (see
+    /// [`crate::Utility::screen`]).
+    pub fn upper(&self, g: f64) -> f64 {
+        let w = &self.w;
+        (w[0] + w[1] * g + w[2] * g * g + w[3].max(0.0)).clamp(0.0, 1.0)
     }
 
     pub fn to_metadata(&self) -> String {
@@ -1010,5 +1019,29 @@ mod tests {
         ] {
             assert!(Fusion::parse(bad).is_err(), "{bad}");
         }
+    }
+
+    #[test]
+    fn the_upper_bound_holds_for_every_score() {
+        for f in [
+            Fusion::parse("raster-homography-v1: 0.121524, 0.698698, 0, 0.25").unwrap(),
+            Fusion::parse("raster-homography-v1: 0.1, 0.5, 0.25, -0.3").unwrap(),
+        ] {
+            for g in [0.0, 0.1, 0.18, 0.3, 0.6, 1.0] {
+                let up = f.upper(g);
+                let mut max = f64::MIN;
+                for s in [-5.0, -1e-9, 0.0, 0.2, 0.5, 0.99, 1.0, 1.5, 1e9] {
+                    let u = f.fuse(s, Some(g));
+                    assert!(u <= up + 1e-15, "{f:?} g {g} s {s}: {u} > {up}");
+                    max = max.max(u);
+                }
+                // Tight: some score in [0, 1] reaches it.
+                assert!((max - up).abs() < 1e-12, "{f:?} g {g}: {max} vs {up}");
+            }
+        }
+        // Scores outside [0, 1] count as its ends.
+        let f = Fusion::parse("raster-homography-v1: 0.1, 0.5, 0, 0.25").unwrap();
+        assert_eq!(f.fuse(1.7, Some(0.2)), f.fuse(1.0, Some(0.2)));
+        assert_eq!(f.fuse(-0.4, Some(0.2)), f.fuse(0.0, Some(0.2)));
     }
 }

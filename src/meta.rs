@@ -4,13 +4,14 @@
 //! Fields of the structure:
 //! | field | type | meaning |
 //! |---|---|---|
-//! | `utility` | double | predicted tau (NaN for a frame with no reference, or when inference failed) |
+//! | `utility` | double | predicted tau (NaN for a frame with no reference, or when inference failed; for a `screened` frame the largest utility the model could have given, below the threshold) |
 //! | `keep` | boolean | the gate's decision |
 //! | `reason` | string | `first`, `warmup`, `score`, `max-gap`, `forced`, `error` |
 //! | `keyframe-index` | guint64 | frames kept so far, this one included |
 //! | `reference-pts` | guint64 | PTS (ns) of the reference the frame was scored against (its own PTS for `first`; `GST_CLOCK_TIME_NONE` when unknown) |
 //! | `frames-since-keyframe` | guint | frames since that reference (0 for a kept frame) |
 //! | `inference-us` | guint64 | time spent preprocessing and scoring this frame, microseconds |
+//! | `screened` | boolean | the geometric prior alone dropped the frame and the model did not run (the `screen` property) |
 
 use crate::policy::Reason;
 
@@ -27,6 +28,8 @@ pub struct GateMeta {
     pub reference_pts: Option<gst::ClockTime>,
     pub frames_since_keyframe: u32,
     pub inference_us: u64,
+    /// The prior alone decided (the model did not run); `utility` is then its bound.
+    pub screened: bool,
 }
 
 /// Register the custom meta (idempotent). Called from `plugin_init`.
@@ -49,6 +52,7 @@ impl GateMeta {
         );
         s.set("frames-since-keyframe", self.frames_since_keyframe);
         s.set("inference-us", self.inference_us);
+        s.set("screened", self.screened);
     }
 
     /// Attach (or overwrite) the meta on a buffer.
@@ -79,6 +83,7 @@ impl GateMeta {
             },
             frames_since_keyframe: s.get("frames-since-keyframe").ok()?,
             inference_us: s.get("inference-us").ok()?,
+            screened: s.get("screened").unwrap_or(false),
         })
     }
 }
@@ -100,6 +105,7 @@ mod tests {
             reference_pts: Some(gst::ClockTime::from_mseconds(40)),
             frames_since_keyframe: 2,
             inference_us: 1234,
+            screened: true,
         };
         m.attach(buf.get_mut().unwrap()).unwrap();
         assert_eq!(GateMeta::read(&buf), Some(m.clone()));
@@ -108,6 +114,7 @@ mod tests {
             keep: true,
             reason: Reason::First,
             reference_pts: None,
+            screened: false,
             ..m
         };
         m2.attach(buf.get_mut().unwrap()).unwrap();
@@ -115,6 +122,7 @@ mod tests {
         assert!(back.utility.is_nan());
         assert_eq!(back.reason, Reason::First);
         assert_eq!(back.reference_pts, None);
+        assert!(!back.screened);
         let n = buf.iter_meta::<gst::Meta>().count();
         assert_eq!(n, 1, "overwriting must not stack a second meta");
     }

@@ -11,6 +11,8 @@ pub struct StatsMessage {
     pub frames_in: u64,
     /// Frames kept since start.
     pub frames_kept: u64,
+    /// Frames the geometric prior alone dropped without running the model (`screen`).
+    pub frames_screened: u64,
     /// `frames_kept / frames_in` (0 before the first frame).
     pub keep_ratio: f64,
     /// Mean preprocessing + inference time per scored frame, microseconds.
@@ -68,6 +70,7 @@ impl StatsMessage {
         gst::Structure::builder(STATS_MESSAGE)
             .field("frames-in", self.frames_in)
             .field("frames-kept", self.frames_kept)
+            .field("frames-screened", self.frames_screened)
             .field("keep-ratio", self.keep_ratio)
             .field("inference-mean-us", self.inference_mean_us)
             .field("inference-p50-us", self.inference_p50_us)
@@ -119,6 +122,7 @@ impl StatsMessage {
         Ok(StatsMessage {
             frames_in: get(s, "frames-in")?,
             frames_kept: get(s, "frames-kept")?,
+            frames_screened: get(s, "frames-screened")?,
             keep_ratio: get(s, "keep-ratio")?,
             inference_mean_us: get(s, "inference-mean-us")?,
             inference_p50_us: get(s, "inference-p50-us")?,
@@ -375,6 +379,7 @@ mod tests {
         let m = StatsMessage {
             frames_in: 10,
             frames_kept: 3,
+            frames_screened: 5,
             keep_ratio: 0.3,
             inference_mean_us: 812.5,
             inference_p50_us: 800,
@@ -393,6 +398,7 @@ mod tests {
         let s = m.to_structure();
         assert_eq!(s.name(), STATS_MESSAGE);
         assert_eq!(s.get::<u64>("frames-kept").unwrap(), 3);
+        assert_eq!(s.get::<u64>("frames-screened").unwrap(), 5);
         assert_eq!(StatsMessage::from_structure(&s).unwrap(), m);
         let mut broken = s.clone();
         broken.remove_field("threshold");

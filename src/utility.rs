@@ -12,6 +12,8 @@ use crate::preprocess::TensorSpec;
 pub struct Utility {
     fusion: Option<Fusion>,
     tracker: Tracker,
+    /// The tracker's `tau_geo` of the last observed frame, once asked for.
+    tau: Option<Option<f64>>,
 }
 
 impl Utility {
@@ -20,6 +22,7 @@ impl Utility {
         Utility {
             fusion,
             tracker: Tracker::new(),
+            tau: None,
         }
     }
 
@@ -41,6 +44,7 @@ impl Utility {
         has_reference: bool,
         enabled: bool,
     ) {
+        self.tau = None;
         match frame {
             Some((tensor, spec)) if self.uses_geometry(enabled) => {
                 if !has_reference {
@@ -60,21 +64,40 @@ impl Utility {
     pub fn compose(&mut self, s: f64, enabled: bool) -> (f64, Option<f64>) {
         match self.fusion.filter(|_| enabled) {
             Some(f) => {
-                let g = self.tracker.tau();
+                let g = self.tau_geo();
                 (f.fuse(s, g), g.filter(|_| s.is_finite()))
             }
             None => (s, None),
         }
     }
 
+    /// Whether the prior alone decides that the last observed frame is dropped: the fusion is in
+    /// use, the chain holds, and no model score could lift the fused utility to `threshold`
+    /// ([`Fusion::upper`] is below it). Then that bound stands for the frame's utility and the
+    /// model need not run: the gate keeps a frame on its score only when the utility reaches the
+    /// threshold, so the decision is the one any score would have given. (A model that would
+    /// have failed on the frame, which keeps it, is not asked.)
+    pub fn screen(&mut self, threshold: f64, enabled: bool) -> Option<f64> {
+        let f = self.fusion.filter(|_| enabled)?;
+        let up = f.upper(self.tau_geo()?);
+        (up < threshold).then_some(up)
+    }
+
+    /// The tracker's `tau_geo` of the last observed frame (computed once per frame).
+    fn tau_geo(&mut self) -> Option<f64> {
+        *self.tau.get_or_insert_with(|| self.tracker.tau())
+    }
+
     /// The last observed frame was kept and is the new reference.
     pub fn on_keep(&mut self) {
         self.tracker.set_reference();
+        self.tau = None;
     }
 
     /// Forget the stream (start, flush, caps change).
     pub fn clear(&mut self) {
         self.tracker.clear();
+        self.tau = None;
     }
 }
 
@@ -175,5 +198,49 @@ mod tests {
         u.on_keep();
         u.observe(Some((&frame(2.0), &sp)), true, true);
         assert!(u.compose(f64::NAN, true).0.is_nan());
+    }
+
+    #[test]
+    fn screens_exactly_the_frames_no_score_could_keep() {
+        let f = Fusion::parse("raster-homography-v1: 0.121524, 0.698698, 0, 0.25").unwrap();
+        let mut u = Utility::new(Some(f));
+        let sp = spec();
+        u.observe(Some((&frame(0.0), &sp)), false, true);
+        // No reference yet: nothing to screen.
+        assert_eq!(u.screen(0.5, true), None);
+        u.on_keep();
+        let (mut screened, mut scored) = (0, 0);
+        for k in 1..=30 {
+            u.observe(Some((&frame(2.0 * k as f32), &sp)), true, true);
+            let bound = u.screen(0.5, true);
+            // Whatever the model said, the gate's verdict is the bound's.
+            let best = [0.0, 0.3, 0.7, 1.0, 4.0]
+                .iter()
+                .map(|&s| u.compose(s, true).0)
+                .fold(f64::MIN, f64::max);
+            match bound {
+                Some(b) => {
+                    screened += 1;
+                    assert!(
+                        b < 0.5 && best <= b + 1e-12,
+                        "step {k}: {best} vs bound {b}"
+                    );
+                }
+                None => {
+                    scored += 1;
+                    assert!(best >= 0.5, "step {k}: not screened, yet {best} < 0.5");
+                }
+            }
+            // Asking again gives the same (tau_geo is computed once per frame).
+            assert_eq!(u.screen(0.5, true), bound);
+        }
+        // Small pans are screened; past about a fifth of the view the model decides.
+        assert!(
+            screened >= 8 && scored >= 8,
+            "{screened} screened, {scored} scored"
+        );
+        // The prior off, or a lower threshold that a score could reach: the model runs.
+        assert_eq!(u.screen(0.5, false), None);
+        assert_eq!(u.screen(0.0, true), None);
     }
 }

@@ -835,7 +835,7 @@ fn the_default_element_fuses_the_embedded_student_with_the_prior() {
     let (w, h) = (160, 120);
     let run = |props: &str| -> Vec<gstleangate::GateMeta> {
         let mut hs = harness(
-            &format!("mode=annotate threshold=0.99 {props}"),
+            &format!("mode=annotate threshold=0.99 screen=false {props}"),
             &rgb_caps(w, h),
         );
         for k in 0..20u64 {
@@ -860,6 +860,56 @@ fn the_default_element_fuses_the_embedded_student_with_the_prior() {
         (1..20).any(|k| (on[k].utility - off[k].utility).abs() > 0.05),
         "the prior changes the default's utility"
     );
+}
+
+#[test]
+fn screening_by_the_prior_skips_the_model_and_keeps_every_decision() {
+    // The embedded default on a pan that speeds up: frames whose motion since the reference is
+    // too small for any score to reach the threshold are decided by the prior alone (screened),
+    // and every frame's decision, reason and reference are those of the model scoring every frame.
+    let (w, h) = (160, 120);
+    let run = |props: &str| -> (Vec<gstleangate::GateMeta>, u64) {
+        let mut hs = harness(&format!("mode=annotate {props}"), &rgb_caps(w, h));
+        let mut x = 0.0f32;
+        for k in 0..60u64 {
+            x += 0.5 + 0.15 * k as f32;
+            hs.push(buffer(panned(w, h, x), k * 33)).unwrap();
+        }
+        let m = drain(&mut hs).iter().map(meta).collect();
+        (m, hs.element().unwrap().property::<u64>("frames-screened"))
+    };
+    let ((on, n_on), (off, n_off)) = (run(""), run("screen=false"));
+    assert_eq!((on.len(), off.len()), (60, 60));
+    assert_eq!(n_off, 0);
+    let screened: Vec<usize> = (0..60).filter(|&k| on[k].screened).collect();
+    assert_eq!(n_on, screened.len() as u64);
+    assert!(screened.len() >= 10, "{screened:?}");
+    assert!(
+        off.iter().filter(|m| m.keep).count() >= 4,
+        "the pan makes keyframes"
+    );
+    for k in 0..60 {
+        let (a, b) = (&on[k], &off[k]);
+        assert_eq!(
+            (a.keep, a.reason, a.keyframe_index, a.reference_pts),
+            (b.keep, b.reason, b.keyframe_index, b.reference_pts),
+            "frame {k}"
+        );
+        if a.screened {
+            // The bound: at least the model's utility, and below the threshold.
+            assert!(
+                !a.keep && a.utility < 0.5 && a.utility >= b.utility - 1e-9,
+                "frame {k}: {a:?} vs {b:?}"
+            );
+        } else {
+            assert!(
+                (a.utility - b.utility).abs() < 1e-9 || a.utility.is_nan() && b.utility.is_nan(),
+                "frame {k}"
+            );
+        }
+    }
+    let e = element("");
+    assert!(e.property::<bool>("screen"), "on by default");
 }
 
 #[test]

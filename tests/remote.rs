@@ -168,12 +168,16 @@ fn split_model_remote_matches_local_with_one_encoder_request_per_frame(server: &
     let frames = clip(80);
     // The server runs the FP32 encoder, so the element runs the FP32 head here (precision auto
     // with a server): the local reference is the FP32 build.
-    let (local, _) = gate("precision=fp32", &frames);
+    // The model scores every frame (`screen=false`): one encoder request per scored frame.
+    let (local, _) = gate("precision=fp32 screen=false", &frames);
     let before = server.count("leangate-s-encoder");
     let head_before = server.count("leangate-s-head");
     init();
     let bus = gst::Bus::new();
-    let e = element(&format!("mode=annotate server={}", server.url()));
+    let e = element(&format!(
+        "mode=annotate screen=false server={}",
+        server.url()
+    ));
     e.set_bus(Some(&bus));
     let mut h = gst_check::Harness::with_element(&e, Some("sink"), Some("src"));
     h.set_src_caps_str(&rgb_caps(W, H));
@@ -211,15 +215,33 @@ fn split_model_remote_matches_local_with_one_encoder_request_per_frame(server: &
         "server latency p50 {} us, p99 {} us",
         srv.latency_p50_us, srv.latency_p99_us
     );
+    // Screening on (the default): the frames the prior alone drops never reach the server, and
+    // every decision is the same.
+    let before = server.count("leangate-s-encoder");
+    let (screened, e) = gate(&format!("server={}", server.url()), &frames);
+    let n = e.property::<u64>("frames-screened");
+    assert!(n > 0, "the clip has frames the prior drops alone");
+    assert_eq!(
+        server.count("leangate-s-encoder") - before,
+        2 + frames.len() as u64 - n,
+        "no request for a screened frame"
+    );
+    for (k, (a, b)) in screened.iter().zip(&local).enumerate() {
+        assert_eq!((a.keep, a.reason), (b.keep, b.reason), "frame {k}");
+    }
 }
 
 fn pair_model_remote_matches_local(server: &V2Server) {
     let model = v2server::repo_root().join("models/leangate-s.onnx");
     let frames = clip(60);
-    let (local, _) = gate(&format!("model={}", model.display()), &frames);
+    let (local, _) = gate(&format!("model={} screen=false", model.display()), &frames);
     let before = server.count("leangate-s");
     let (remote, e) = gate(
-        &format!("model={} server={}", model.display(), server.url()),
+        &format!(
+            "model={} screen=false server={}",
+            model.display(),
+            server.url()
+        ),
         &frames,
     );
     compare(&local, &remote);
@@ -288,8 +310,8 @@ fn a_hung_request_is_interrupted_by_stopping(server: &V2Server) {
     let frames = clip(6);
     init();
     let desc = format!(
-        "appsrc name=src format=time caps={} ! leangate name=gate mode=annotate server={} \
-         server-timeout=60000 ! appsink name=out sync=false",
+        "appsrc name=src format=time caps={} ! leangate name=gate mode=annotate screen=false \
+         server={} server-timeout=60000 ! appsink name=out sync=false",
         rgb_caps(W, H),
         hole.url()
     );
@@ -447,7 +469,7 @@ fn server_killed_mid_stream_fails_open_and_scoring_resumes() {
     init();
     let bus = gst::Bus::new();
     let e = element(&format!(
-        "mode=annotate server={} server-timeout=500",
+        "mode=annotate screen=false server={} server-timeout=500",
         server.url()
     ));
     e.set_bus(Some(&bus));

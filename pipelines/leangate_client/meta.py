@@ -24,6 +24,7 @@ META_KEYS = (
     "reference_pts",
     "frames_since_keyframe",
     "inference_us",
+    "screened",
 )
 
 
@@ -38,6 +39,8 @@ def meta_from_structure(s) -> Dict[str, Any]:
         "reference_pts": None if ref is None or ref == U64_MAX else int(ref),
         "frames_since_keyframe": int(s.get_value("frames-since-keyframe")),
         "inference_us": int(s.get_value("inference-us")),
+        # the prior alone dropped the frame (the element's `screen`); utility is then its bound
+        "screened": bool(s.get_value("screened")) if s.has_field("screened") else False,
     }
 
 

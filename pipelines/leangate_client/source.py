@@ -181,7 +181,7 @@ class LeanGateSource:
     Each ``meta`` is a dict: ``frame`` (index of the frame in the input stream, counted at
     leangate's sink pad; None when the buffer has no PTS), ``pts`` (ns or None), ``utility``
     (float, NaN for a `first` frame), ``keep``, ``reason``, ``keyframe_index``,
-    ``reference_pts`` (ns or None), ``frames_since_keyframe``, ``inference_us``.
+    ``reference_pts`` (ns or None), ``frames_since_keyframe``, ``inference_us``, ``screened``.
 
     After iteration: ``stats`` (the last `leangate-stats` message, a ``LeanGateStats``, or
     None), ``frames_in`` (frames that entered the gate), ``received`` (frames handed out),

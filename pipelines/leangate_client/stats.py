@@ -12,6 +12,7 @@ from .meta import STATS_MESSAGE
 _FIELDS = {
     "frames-in": ("frames_in", int, "guint64"),
     "frames-kept": ("frames_kept", int, "guint64"),
+    "frames-screened": ("frames_screened", int, "guint64"),
     "keep-ratio": ("keep_ratio", float, "gdouble"),
     "inference-mean-us": ("inference_mean_us", float, "gdouble"),
     "inference-p50-us": ("inference_p50_us", int, "guint64"),
@@ -48,6 +49,8 @@ class LeanGateStats(Mapping):
 
     frames_in: Optional[int] = None
     frames_kept: Optional[int] = None
+    #: frames the geometric prior alone dropped without running the model (``screen``)
+    frames_screened: Optional[int] = None
     keep_ratio: Optional[float] = None
     inference_mean_us: Optional[float] = None
     inference_p50_us: Optional[int] = None

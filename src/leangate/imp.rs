@@ -48,6 +48,7 @@ const DEFAULT_BATCH_TIMEOUT_US: u64 = 2000;
 const DEFAULT_MAX_SESSIONS: u32 = 0;
 const DEFAULT_STATS_INTERVAL: u64 = 0;
 const DEFAULT_GEOMETRY: bool = true;
+const DEFAULT_SCREEN: bool = true;
 const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
 const DEFAULT_SERVER_MAX_IN_FLIGHT: u32 = 16;
 
@@ -74,6 +75,7 @@ struct Settings {
     max_sessions: u32,
     stats_interval: u64,
     geometry: bool,
+    screen: bool,
     /// Remote scoring (crate::remote): the V2 server's URL; None = local ONNX Runtime.
     server: Option<String>,
     server_model: Option<String>,
@@ -103,6 +105,7 @@ impl Default for Settings {
             max_sessions: DEFAULT_MAX_SESSIONS,
             stats_interval: DEFAULT_STATS_INTERVAL,
             geometry: DEFAULT_GEOMETRY,
+            screen: DEFAULT_SCREEN,
             server: None,
             server_model: None,
             server_timeout_ms: DEFAULT_SERVER_TIMEOUT_MS,
@@ -121,6 +124,7 @@ struct FrameSettings {
     mode: GateMode,
     stats_interval: u64,
     geometry: bool,
+    screen: bool,
 }
 
 impl From<&Settings> for FrameSettings {
@@ -132,6 +136,7 @@ impl From<&Settings> for FrameSettings {
             mode: s.mode,
             stats_interval: s.stats_interval,
             geometry: s.geometry,
+            screen: s.screen,
         }
     }
 }
@@ -175,6 +180,7 @@ pub struct LeanGate {
     interrupt: Mutex<Option<Interrupt>>,
     frames_in: AtomicU64,
     frames_kept: AtomicU64,
+    frames_screened: AtomicU64,
     force_pending: AtomicBool,
     reset_pending: AtomicBool,
 }
@@ -259,6 +265,7 @@ impl LeanGate {
         let s = StatsMessage {
             frames_in,
             frames_kept,
+            frames_screened: self.frames_screened.load(Ordering::Relaxed),
             keep_ratio: if frames_in > 0 {
                 frames_kept as f64 / frames_in as f64
             } else {
@@ -354,13 +361,27 @@ impl LeanGate {
         let spec = &state.scorer.info().spec;
         let frame = frame_readable.then_some((&state.current[..], spec));
         state.utility.observe(frame, has_reference, fs.geometry);
-        let (score, utility) = match pre {
-            Err(e) => {
+        // The prior alone drops the frame when no score of the model could keep it.
+        let threshold = state.gate.config().threshold;
+        let screened = match pre {
+            Ok(()) if has_reference && fs.screen => state.utility.screen(threshold, fs.geometry),
+            _ => None,
+        };
+        let (score, utility) = match (pre, screened) {
+            (Err(e), _) => {
                 self.warn_rate_limited(state, out, &format!("cannot read frame: {e}"));
                 (Score::Failed, f64::NAN)
             }
-            Ok(()) if !has_reference => (Score::NoReference, f64::NAN),
-            Ok(()) => match state.scorer.score(&state.reference, &state.current) {
+            (Ok(()), _) if !has_reference => (Score::NoReference, f64::NAN),
+            (Ok(()), Some(bound)) => {
+                gst::trace!(
+                    CAT,
+                    imp = self,
+                    "screened by the prior: utility <= {bound:.4}"
+                );
+                (Score::Utility(bound), bound)
+            }
+            (Ok(()), None) => match state.scorer.score(&state.reference, &state.current) {
                 Ok(s) => {
                     let (u, g) = state.utility.compose(s as f64, fs.geometry);
                     if let Some(g) = g {
@@ -377,7 +398,9 @@ impl LeanGate {
             },
         };
         let inference_us = t0.elapsed().as_micros().min(u64::MAX as u128) as u64;
-        if matches!(score, Score::Utility(_)) {
+        if screened.is_some() {
+            self.frames_screened.fetch_add(1, Ordering::Relaxed);
+        } else if matches!(score, Score::Utility(_)) {
             state.stats.record(inference_us);
         }
         let pts = buf.pts();
@@ -389,7 +412,9 @@ impl LeanGate {
         };
         if decision.keep {
             // A split model reuses the features it just computed for this frame.
-            state.scorer.on_keep(matches!(score, Score::Utility(_)));
+            state
+                .scorer
+                .on_keep(matches!(score, Score::Utility(_)) && screened.is_none());
             if !frame_readable {
                 // The frame could not be read: it cannot serve as a reference tensor.
                 state.gate.drop_reference();
@@ -435,6 +460,7 @@ impl LeanGate {
                 reference_pts,
                 frames_since_keyframe: decision.frames_since_keyframe.min(u32::MAX as u64) as u32,
                 inference_us,
+                screened: screened.is_some(),
             },
         }))
     }
@@ -605,6 +631,18 @@ impl ObjectImpl for LeanGate {
                     .default_value(DEFAULT_GEOMETRY)
                     .mutable_playing()
                     .build(),
+                glib::ParamSpecBoolean::builder("screen")
+                    .nick("Screen by the prior")
+                    .blurb(
+                        "With the geometric prior in use: skip the model on a frame when no score \
+                         it could give would lift the fused utility to the threshold (a small \
+                         motion since the reference). The decisions are the same; such a frame \
+                         reports that bound as its utility and screened=true in its meta, and is \
+                         counted in frames-screened. Off: the model scores every frame",
+                    )
+                    .default_value(DEFAULT_SCREEN)
+                    .mutable_playing()
+                    .build(),
                 glib::ParamSpecString::builder("server")
                     .nick("Inference server")
                     .blurb(
@@ -657,6 +695,14 @@ impl ObjectImpl for LeanGate {
                 glib::ParamSpecUInt64::builder("frames-kept")
                     .nick("Frames kept")
                     .blurb("Frames kept since start (read-only)")
+                    .read_only()
+                    .build(),
+                glib::ParamSpecUInt64::builder("frames-screened")
+                    .nick("Frames screened")
+                    .blurb(
+                        "Frames the geometric prior alone dropped without running the model \
+                         since start (read-only; see screen)",
+                    )
                     .read_only()
                     .build(),
             ]
@@ -764,6 +810,10 @@ impl ObjectImpl for LeanGate {
                     settings.geometry = value.get().expect("type checked upstream");
                     None
                 }
+                "screen" => {
+                    settings.screen = value.get().expect("type checked upstream");
+                    None
+                }
                 "server" => {
                     settings.server = value.get().expect("type checked upstream");
                     None
@@ -819,12 +869,14 @@ impl LeanGate {
             "max-sessions" => settings.max_sessions.to_value(),
             "stats-interval" => settings.stats_interval.to_value(),
             "geometry" => settings.geometry.to_value(),
+            "screen" => settings.screen.to_value(),
             "server" => settings.server.to_value(),
             "server-model" => settings.server_model.to_value(),
             "server-timeout" => settings.server_timeout_ms.to_value(),
             "server-max-in-flight" => settings.server_max_in_flight.to_value(),
             "frames-in" => self.frames_in.load(Ordering::Relaxed).to_value(),
             "frames-kept" => self.frames_kept.load(Ordering::Relaxed).to_value(),
+            "frames-screened" => self.frames_screened.load(Ordering::Relaxed).to_value(),
             other => unreachable!("unknown property {other}"),
         }
     }
@@ -989,6 +1041,7 @@ impl BaseTransformImpl for LeanGate {
         let cfg = Self::gate_config(&FrameSettings::from(&settings), info.threshold);
         self.frames_in.store(0, Ordering::Relaxed);
         self.frames_kept.store(0, Ordering::Relaxed);
+        self.frames_screened.store(0, Ordering::Relaxed);
         self.force_pending.store(false, Ordering::SeqCst);
         self.reset_pending.store(false, Ordering::SeqCst);
         *lock(&self.state) = Some(State {

@@ -877,7 +877,7 @@ fn a_7scenes_clip_imported_by_training_import_7scenes_is_judged_like_the_origina
         String::from_utf8_lossy(&out.stderr)
     );
     let orig = Sequence::open(&seq).unwrap();
-    let k = orig.intrinsics.clone().unwrap();
+    let k = orig.intrinsics.unwrap();
     let raw = dir.path().join("7scenes");
     std::fs::create_dir_all(&raw).unwrap();
     std::fs::write(

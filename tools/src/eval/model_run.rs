@@ -130,6 +130,9 @@ pub fn run_model(
         gate.set_property("precision", p);
     }
     gate.set_property_from_str("mode", "annotate");
+    // The model scores every frame, so that its utility (RMSE, plots) is judged everywhere. The
+    // decisions are those of the default `screen=true` (the element's tests check this).
+    gate.set_property("screen", false);
     if let Some(t) = threshold {
         gate.set_property("threshold", t);
     }
