@@ -965,3 +965,119 @@ fn a_7scenes_clip_imported_by_training_import_7scenes_is_judged_like_the_origina
     );
     assert!(!nothing.exists());
 }
+
+/// `python -m training.import_tum` (how `tum_fr1_xyz` is made from the TUM benchmark's own
+/// lists): each colour frame takes the nearest depth frame and pose, over the longest run that has
+/// both; the result is judged like the original; a missing image is named and nothing is written.
+#[test]
+fn a_tum_sequence_imported_by_training_import_tum_is_judged_like_the_original() {
+    use leangate_tools::dataset::Sequence;
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 40, "mixed", 7);
+    // The benchmark's layout: depth stamped 5 ms after colour, poses at 100 Hz (the frame's own
+    // pose 3 ms before it, and none for frames 0-2, so the longest run is frames 3-39).
+    let raw = dir.path().join("raw");
+    std::fs::create_dir_all(&raw).unwrap();
+    for sub in ["rgb", "depth"] {
+        let _ = std::fs::create_dir_all(raw.join(sub));
+    }
+    let orig = Sequence::open(&seq).unwrap();
+    let (mut rgb, mut depth, mut gt) = (String::new(), String::new(), String::new());
+    for (i, f) in orig.frames.iter().enumerate() {
+        let t = 100.0 + i as f64 / 30.0;
+        std::fs::copy(&f.rgb, raw.join(format!("rgb/{i}.png"))).unwrap();
+        std::fs::copy(
+            f.depth.as_ref().unwrap(),
+            raw.join(format!("depth/{i}.png")),
+        )
+        .unwrap();
+        rgb.push_str(&format!("{t:.6} rgb/{i}.png\n"));
+        depth.push_str(&format!("{:.6} depth/{i}.png\n", t + 0.005));
+        if i >= 3 {
+            let p = f.pose.unwrap();
+            let (v, q) = (p.translation.vector, p.rotation.coords);
+            gt.push_str(&format!(
+                "{:.4} {} {} {} {} {} {} {}\n",
+                t - 0.003,
+                v.x,
+                v.y,
+                v.z,
+                q.x,
+                q.y,
+                q.z,
+                q.w
+            ));
+        }
+    }
+    std::fs::write(raw.join("rgb.txt"), format!("# color images\n{rgb}")).unwrap();
+    std::fs::write(raw.join("depth.txt"), depth).unwrap();
+    std::fs::write(raw.join("groundtruth.txt"), format!("# ground truth\n{gt}")).unwrap();
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let import = |dst: &Path| {
+        Command::new("python3")
+            .current_dir(&repo)
+            .args(["-m", "training.import_tum"])
+            .arg(&raw)
+            .arg(dst)
+            .arg("--intrinsics")
+            .arg(seq.join("intrinsics.txt"))
+            .output()
+            .unwrap()
+    };
+    let imported = dir.path().join("imported");
+    let out = import(&imported);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("frames 3-39 of 40"));
+    let back = Sequence::open(&imported).unwrap();
+    assert_eq!(back.frames.len(), 37);
+    for (a, b) in orig.frames[3..].iter().zip(&back.frames) {
+        let (pa, pb) = (a.pose.unwrap(), b.pose.unwrap());
+        assert!((pa.translation.vector - pb.translation.vector).norm() < 1e-5);
+        assert!(pa.rotation.angle_to(&pb.rotation) < 1e-5);
+        assert_eq!(
+            std::fs::read(&a.rgb).unwrap(),
+            std::fs::read(&b.rgb).unwrap()
+        );
+    }
+    // The same frames written directly from the original (its own layout) are judged the same.
+    let direct = dir.path().join("direct");
+    std::fs::create_dir_all(&direct).unwrap();
+    for name in ["rgb.txt", "depth.txt", "groundtruth.txt"] {
+        let body: Vec<String> = std::fs::read_to_string(seq.join(name))
+            .unwrap()
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .skip(3)
+            .map(|l| {
+                let (t, rest) = l.split_once(' ').unwrap();
+                match name {
+                    "groundtruth.txt" => l.to_string(),
+                    _ => format!("{t} {}", seq.join(rest).display()),
+                }
+            })
+            .collect();
+        std::fs::write(direct.join(name), body.join("\n") + "\n").unwrap();
+    }
+    std::fs::copy(seq.join("intrinsics.txt"), direct.join("intrinsics.txt")).unwrap();
+    let oracle = |v: &serde_json::Value| v["policies"]["oracle"]["kept"].as_u64().unwrap();
+    let (va, vb) = (eval_json(&direct, &[]), eval_json(&imported, &[]));
+    assert!(oracle(&va) >= 2, "{va}");
+    assert_eq!(oracle(&va), oracle(&vb));
+
+    // A colour image missing: named, nothing written.
+    std::fs::remove_file(raw.join("rgb/17.png")).unwrap();
+    let nothing = dir.path().join("nothing");
+    let out = import(&nothing);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("17.png") && !err.contains("Traceback"),
+        "{err}"
+    );
+    assert!(!nothing.exists());
+}
