@@ -225,8 +225,9 @@ run('videotestsrc num-buffers=300 pattern=ball ! video/x-raw,width=64,height=48 
 
 #[test]
 fn geometry_toggled_from_a_sync_handler_and_a_thread_while_streaming() {
-    // The geometric prior's state lives under the state lock; switching it from a bus handler
-    // (on the streaming thread) and from another thread at once must neither deadlock nor fail.
+    // The geometric prior's state lives under the state lock; switching it (and `screen`, which
+    // uses it) from a bus handler (on the streaming thread) and from another thread at once must
+    // neither deadlock nor fail.
     let body = format!(
         r#"
 stop = threading.Event()
@@ -234,11 +235,15 @@ def setup(p, lg, bus):
     def on(bus, m):
         if m.get_structure() is not None and m.get_structure().get_name() == 'leangate-stats':
             lg.set_property('geometry', not lg.get_property('geometry'))
+            lg.set_property('screen', not lg.get_property('screen'))
+            lg.get_property('frames-screened')
     bus.connect('sync-message::element', on)
     def setter():
         while not stop.is_set():
             lg.set_property('geometry', True)
+            lg.set_property('screen', False)
             lg.set_property('geometry', False)
+            lg.set_property('screen', True)
     t = threading.Thread(target=setter, daemon=True)
     t.start()
     def done():

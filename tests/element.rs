@@ -910,6 +910,17 @@ fn screening_by_the_prior_skips_the_model_and_keeps_every_decision() {
     }
     let e = element("");
     assert!(e.property::<bool>("screen"), "on by default");
+    // Keeps forced on screened frames (max-gap): the kept frame was not encoded, so the next
+    // scored frame encodes the reference first; still every decision and utility agrees.
+    let ((on, n), (off, _)) = (run("max-gap=6"), run("max-gap=6 screen=false"));
+    let forced = (0..60).filter(|&k| on[k].reason == Reason::MaxGap).count();
+    assert!(forced >= 2 && n > 0, "{forced} max-gap keeps, {n} screened");
+    for k in 0..60 {
+        assert_eq!((on[k].keep, on[k].reason), (off[k].keep, off[k].reason), "frame {k}");
+        if !on[k].screened && on[k].utility.is_finite() {
+            assert!((on[k].utility - off[k].utility).abs() < 1e-9, "frame {k}");
+        }
+    }
 }
 
 #[test]
