@@ -916,7 +916,11 @@ fn screening_by_the_prior_skips_the_model_and_keeps_every_decision() {
     let forced = (0..60).filter(|&k| on[k].reason == Reason::MaxGap).count();
     assert!(forced >= 2 && n > 0, "{forced} max-gap keeps, {n} screened");
     for k in 0..60 {
-        assert_eq!((on[k].keep, on[k].reason), (off[k].keep, off[k].reason), "frame {k}");
+        assert_eq!(
+            (on[k].keep, on[k].reason),
+            (off[k].keep, off[k].reason),
+            "frame {k}"
+        );
         if !on[k].screened && on[k].utility.is_finite() {
             assert!((on[k].utility - off[k].utility).abs() < 1e-9, "frame {k}");
         }
