@@ -3,7 +3,9 @@ millimetres and 65535 = no reading, `.pose.txt` a 4x4 camera-to-world matrix, an
 `camera-intrinsics.txt`) as a TUM-layout sequence that `leangate eval` and `leangate label` read:
 `rgb/`, `depth/` (the files copied unchanged: the tools read 65535 as no reading), `rgb.txt`,
 `depth.txt`, `groundtruth.txt` (`t tx ty tz qx qy qz qw`, camera-to-world; t = frame index / 30 s)
-and `intrinsics.txt` (`fx fy cx cy 1000`). Standard library only.
+and `intrinsics.txt` (`fx fy cx cy 1000`). Every input file is checked (poses rigid, intrinsics
+finite) before anything is written, and the output appears all at once or not at all (a file that
+cannot be copied leaves it untouched). Standard library only.
 
 This is how `../shared/data/7scenes_redkitchen_long` (the held-out sequence from another camera and
 room in the model card) is made; ../shared/data is not in the repository, so a fresh machine rebuilds
@@ -21,6 +23,8 @@ import argparse
 import math
 import os
 import shutil
+
+from .seqio import staged
 
 HEAD = "# 7-Scenes {scene} (Microsoft Research, non-commercial research terms), frames {a}-{b}, nominal 30 Hz"
 
@@ -56,15 +60,19 @@ def quaternion(r):
 
 def pose_line(path):
     """`tx ty tz qx qy qz qw` of a 7-Scenes pose file; an error naming the file if it is not a
-    rigid 4x4 matrix."""
+    rigid 4x4 matrix (a rotation: orthonormal rows, determinant 1; last row 0 0 0 1)."""
     m = read_matrix(path)
     if len(m) != 4 or any(len(r) != 4 for r in m) or not all(math.isfinite(v) for r in m for v in r):
         raise SystemExit(f"{path}: expected a 4x4 camera-to-world matrix")
+    if max(abs(v - e) for v, e in zip(m[3], (0, 0, 0, 1))) > 1e-6:
+        raise SystemExit(f"{path}: the last row is not `0 0 0 1`")
     r = [row[:3] for row in m[:3]]
     det = (r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]))
-    if abs(det - 1) > 1e-3:
-        raise SystemExit(f"{path}: the rotation part is not a rotation (determinant {det:.4f})")
+    off = max(abs(sum(r[i][k] * r[j][k] for k in range(3)) - (i == j)) for i in range(3) for j in range(3))
+    if abs(det - 1) > 1e-3 or off > 1e-3:
+        raise SystemExit(f"{path}: the rotation part is not a rotation (determinant {det:.4f}, "
+                         f"R R^T off the identity by {off:.4f})")
     q = quaternion(r)
     return " ".join(f"{v:.7f}" for v in (m[0][3], m[1][3], m[2][3]) + q)
 
@@ -73,36 +81,39 @@ def import_clip(src, out, first, last, scene):
     """Write frames first..last (inclusive) of the 7-Scenes folder `src` into `out`. Every input
     file is checked before anything is written."""
     intr = read_matrix(os.path.join(src, "camera-intrinsics.txt"))
-    if len(intr) != 3 or any(len(r) != 3 for r in intr):
-        raise SystemExit(f"{src}/camera-intrinsics.txt: missing, or not a 3x3 matrix")
+    if len(intr) != 3 or any(len(r) != 3 for r in intr) or not all(math.isfinite(v) for r in intr for v in r):
+        raise SystemExit(f"{src}/camera-intrinsics.txt: missing, or not a 3x3 matrix of finite numbers")
+    if intr[0][0] <= 0 or intr[1][1] <= 0:
+        raise SystemExit(f"{src}/camera-intrinsics.txt: the focal lengths fx, fy must be positive")
     if not 0 <= first <= last:
         raise SystemExit(f"--first {first} --last {last}: need 0 <= first <= last")
     names = []
     for k in range(first, last + 1):
         base = os.path.join(src, f"frame-{k:06d}")
         for ext in (".color.jpg", ".depth.png", ".pose.txt"):
-            if not os.path.exists(base + ext):
-                raise SystemExit(f"{base + ext} is missing (frames {first}-{last} requested)")
+            if not os.path.isfile(base + ext):
+                raise SystemExit(f"{base + ext} is missing or not a file (frames {first}-{last} requested)")
         names.append((k, base, pose_line(base + ".pose.txt")))
-    for d in ("rgb", "depth"):
-        os.makedirs(os.path.join(out, d), exist_ok=True)
     head = HEAD.format(scene=scene, a=first, b=last)
     rgb = [head, "# timestamp filename"]
     depth = [head, "# timestamp filename (16-bit PNG, millimetres, 0 or 65535 = no reading)"]
     gt = [head, "# timestamp tx ty tz qx qy qz qw (camera-to-world)"]
-    for k, base, pose in names:
-        t = f"{k / 30:.6f}"
-        shutil.copyfile(base + ".color.jpg", os.path.join(out, "rgb", f"{k:06d}.jpg"))
-        shutil.copyfile(base + ".depth.png", os.path.join(out, "depth", f"{k:06d}.png"))
-        rgb.append(f"{t} rgb/{k:06d}.jpg")
-        depth.append(f"{t} depth/{k:06d}.png")
-        gt.append(f"{t} {pose}")
-    for name, lines in (("rgb.txt", rgb), ("depth.txt", depth), ("groundtruth.txt", gt)):
-        with open(os.path.join(out, name), "w") as f:
-            f.write("\n".join(lines) + "\n")
-    with open(os.path.join(out, "intrinsics.txt"), "w") as f:
-        f.write("# fx fy cx cy depth_scale (depth units per metre); intrinsics of the depth camera\n")
-        f.write(f"{intr[0][0]:.3f} {intr[1][1]:.3f} {intr[0][2]:.3f} {intr[1][2]:.3f} 1000\n")
+    with staged(out) as tmp:
+        for d in ("rgb", "depth"):
+            os.makedirs(os.path.join(tmp, d))
+        for k, base, pose in names:
+            t = f"{k / 30:.6f}"
+            shutil.copyfile(base + ".color.jpg", os.path.join(tmp, "rgb", f"{k:06d}.jpg"))
+            shutil.copyfile(base + ".depth.png", os.path.join(tmp, "depth", f"{k:06d}.png"))
+            rgb.append(f"{t} rgb/{k:06d}.jpg")
+            depth.append(f"{t} depth/{k:06d}.png")
+            gt.append(f"{t} {pose}")
+        for name, lines in (("rgb.txt", rgb), ("depth.txt", depth), ("groundtruth.txt", gt)):
+            with open(os.path.join(tmp, name), "w") as f:
+                f.write("\n".join(lines) + "\n")
+        with open(os.path.join(tmp, "intrinsics.txt"), "w") as f:
+            f.write("# fx fy cx cy depth_scale (depth units per metre); intrinsics of the depth camera\n")
+            f.write(f"{intr[0][0]:.3f} {intr[1][1]:.3f} {intr[0][2]:.3f} {intr[1][2]:.3f} 1000\n")
     return len(names)
 
 

@@ -6,7 +6,8 @@ each colour frame with the nearest depth frame (within 20 ms) and the nearest gr
 frames that have both (or --first..--last), plus `intrinsics.txt` (the calibrated colour camera of
 freiburg1, 2 or 3, depth_scale 5000; lens distortion is not removed). Colour frames are copied, or
 re-encoded as JPEG with --jpeg Q (needs Pillow); depth PNGs are copied. Nothing is written unless
-every chosen file exists.
+the lists are well-formed (finite timestamps, no colour timestamp twice, poses of seven numbers with a
+unit quaternion) and every chosen file exists and can be copied: an error names the file.
 
 This is how `../shared/data/tum_fr1_xyz` is made (../shared/data is not in the repository; a fresh
 machine rebuilds it from a public repository whose history holds the whole freiburg1_xyz):
@@ -22,8 +23,11 @@ machine rebuilds it from a public repository whose history holds the whole freib
 """
 import argparse
 import bisect
+import math
 import os
 import shutil
+
+from .seqio import check_intrinsics, staged
 
 # fx fy cx cy of the TUM RGB-D colour cameras (vision.in.tum.de/data/datasets/rgbd-dataset/file_formats)
 CAMERAS = {
@@ -35,9 +39,9 @@ MAX_DEPTH_S = 0.02
 MAX_POSE_S = 0.01
 
 
-def read_list(path):
+def read_list(path, unique=False):
     """[(timestamp, rest of the line)] of a TUM list, in timestamp order; an error naming the file
-    and line otherwise."""
+    and line otherwise (a timestamp that is not a finite number; with `unique`, one given twice)."""
     rows = []
     try:
         with open(path) as f:
@@ -47,13 +51,32 @@ def read_list(path):
                     continue
                 t, _, rest = s.partition(" ")
                 try:
-                    rows.append((float(t), rest.strip()))
+                    v = float(t)
                 except ValueError:
+                    v = math.nan
+                if not math.isfinite(v):
                     raise SystemExit(f"{path}:{n}: `{t}` is not a timestamp")
-    except OSError as e:
-        raise SystemExit(f"{path}: {e}")
+                rows.append((v, rest.strip(), n))
+    except (OSError, UnicodeDecodeError) as e:
+        raise SystemExit(f"{path}: cannot read it: {getattr(e, 'strerror', None) or e}")
     rows.sort()
-    return rows
+    if unique:
+        for (t, _, n0), (t1, _, n1) in zip(rows, rows[1:]):
+            if t == t1:
+                raise SystemExit(f"{path}:{n1}: timestamp {t:.6f} already on line {n0}")
+    return [(t, rest) for t, rest, _ in rows]
+
+
+def check_pose(path, t, rest):
+    """An error naming `path` unless `rest` is `tx ty tz qx qy qz qw`: finite, a unit quaternion."""
+    try:
+        v = [float(x) for x in rest.split()]
+    except ValueError:
+        v = []
+    if len(v) != 7 or not all(map(math.isfinite, v)):
+        raise SystemExit(f"{path}: `{t} {rest}` is not `t tx ty tz qx qy qz qw`")
+    if abs(math.sqrt(sum(x * x for x in v[3:])) - 1) > 1e-2:
+        raise SystemExit(f"{path}: `{t} {rest}`: the quaternion qx qy qz qw is not of unit length")
 
 
 def nearest(times, t, max_diff):
@@ -65,15 +88,20 @@ def nearest(times, t, max_diff):
 
 def associate(src):
     """[(rgb row, depth row or None, pose row or None)] per colour frame."""
-    rgb = read_list(os.path.join(src, "rgb.txt"))
+    if not os.path.isdir(src):
+        raise SystemExit(f"{src}: no such folder")
+    rgb = read_list(os.path.join(src, "rgb.txt"), unique=True)
     depth = read_list(os.path.join(src, "depth.txt"))
     gt = read_list(os.path.join(src, "groundtruth.txt"))
     for name, rows in (("rgb.txt", rgb), ("depth.txt", depth), ("groundtruth.txt", gt)):
         if not rows:
             raise SystemExit(f"{os.path.join(src, name)} has no rows")
+    for name, rows in (("rgb.txt", rgb), ("depth.txt", depth)):
+        for t, rest in rows:
+            if not rest:
+                raise SystemExit(f"{os.path.join(src, name)}: `{t}` names no file")
     for t, rest in gt:
-        if len(rest.split()) != 7:
-            raise SystemExit(f"{os.path.join(src, 'groundtruth.txt')}: `{t} {rest}` is not `t tx ty tz qx qy qz qw`")
+        check_pose(os.path.join(src, "groundtruth.txt"), t, rest)
     dt, gtt = [t for t, _ in depth], [t for t, _ in gt]
     out = []
     for r in rgb:
@@ -101,8 +129,10 @@ def longest_run(frames):
 def import_sequence(src, out, camera, first=None, last=None, jpeg=None, name=None, intrinsics=None):
     """Write frames first..last (default: the longest run with depth and poses) of `src` into
     `out`; `intrinsics`: an `intrinsics.txt` to copy instead of the `camera`'s."""
-    if intrinsics is not None and not os.path.isfile(intrinsics):
-        raise SystemExit(f"{intrinsics}: no such intrinsics file")
+    if intrinsics is not None:
+        if not os.path.isfile(intrinsics):
+            raise SystemExit(f"{intrinsics}: no such intrinsics file")
+        check_intrinsics(intrinsics)
     frames = associate(src)
     a, b = longest_run(frames) if first is None and last is None else (
         first if first is not None else 0, last if last is not None else len(frames) - 1)
@@ -113,43 +143,57 @@ def import_sequence(src, out, camera, first=None, last=None, jpeg=None, name=Non
         if d is None or p is None:
             raise SystemExit(f"colour frame {i} ({r[1]}) has no {'depth frame' if d is None else 'pose'} near it")
         for rel in (r[1], d[1]):
-            if not os.path.exists(os.path.join(src, rel)):
-                raise SystemExit(f"{os.path.join(src, rel)} is missing")
+            if not os.path.isfile(os.path.join(src, rel)):
+                raise SystemExit(f"{os.path.join(src, rel)} is missing (or not a file)")
     if jpeg is not None:
         try:
             from PIL import Image
         except ImportError:
             raise SystemExit("--jpeg needs Pillow (run with .venv/bin/python, which has it)")
-    for sub in ("rgb", "depth"):
-        os.makedirs(os.path.join(out, sub), exist_ok=True)
     name = name or os.path.basename(os.path.normpath(src))
     head = (f"# {name} (TUM RGB-D, CC BY 4.0, Sturm et al. IROS 2012), frames {a}-{b} of {len(frames)}, one row "
             f"per frame (rgb, depth within {MAX_DEPTH_S * 1000:.0f} ms, ground truth within {MAX_POSE_S * 1000:.0f} ms)")
     rgb_rows, depth_rows, gt_rows = [head], [head], [head, "# timestamp tx ty tz qx qy qz qw (camera-to-world)"]
-    for r, d, p in chosen:
-        stem = os.path.splitext(os.path.basename(r[1]))[0]
-        if jpeg is not None:
-            dst = f"rgb/{stem}.jpg"
-            Image.open(os.path.join(src, r[1])).convert("RGB").save(os.path.join(out, dst), quality=jpeg)
+    with staged(out) as tmp:
+        for sub in ("rgb", "depth"):
+            os.makedirs(os.path.join(tmp, sub))
+        for r, d, p in chosen:
+            stem = os.path.splitext(os.path.basename(r[1]))[0]
+            dst = f"rgb/{stem}.jpg" if jpeg is not None else f"rgb/{os.path.basename(r[1])}"
+            ddst = f"depth/{os.path.basename(d[1])}"
+            for written in (dst, ddst):
+                if os.path.exists(os.path.join(tmp, written)):
+                    raise SystemExit(f"{out}: two chosen frames would both be written as {written}")
+            if jpeg is not None:
+                Image.open(os.path.join(src, r[1])).convert("RGB").save(os.path.join(tmp, dst), quality=jpeg)
+            else:
+                shutil.copyfile(os.path.join(src, r[1]), os.path.join(tmp, dst))
+            shutil.copyfile(os.path.join(src, d[1]), os.path.join(tmp, ddst))
+            rgb_rows.append(f"{r[0]:.6f} {dst}")
+            depth_rows.append(f"{d[0]:.6f} {ddst}")
+            gt_rows.append(f"{r[0]:.6f} {p[1]}")
+        for fname, rows in (("rgb.txt", rgb_rows), ("depth.txt", depth_rows), ("groundtruth.txt", gt_rows)):
+            with open(os.path.join(tmp, fname), "w") as f:
+                f.write("\n".join(rows) + "\n")
+        if intrinsics is not None:
+            shutil.copyfile(intrinsics, os.path.join(tmp, "intrinsics.txt"))
         else:
-            dst = f"rgb/{os.path.basename(r[1])}"
-            shutil.copyfile(os.path.join(src, r[1]), os.path.join(out, dst))
-        ddst = f"depth/{os.path.basename(d[1])}"
-        shutil.copyfile(os.path.join(src, d[1]), os.path.join(out, ddst))
-        rgb_rows.append(f"{r[0]:.6f} {dst}")
-        depth_rows.append(f"{d[0]:.6f} {ddst}")
-        gt_rows.append(f"{r[0]:.6f} {p[1]}")
-    for fname, rows in (("rgb.txt", rgb_rows), ("depth.txt", depth_rows), ("groundtruth.txt", gt_rows)):
-        with open(os.path.join(out, fname), "w") as f:
-            f.write("\n".join(rows) + "\n")
-    if intrinsics is not None:
-        shutil.copyfile(intrinsics, os.path.join(out, "intrinsics.txt"))
-    else:
-        fx, fy, cx, cy = CAMERAS[camera]
-        with open(os.path.join(out, "intrinsics.txt"), "w") as f:
-            f.write(f"# fx fy cx cy depth_scale (depth units per metre); TUM {camera} colour camera\n")
-            f.write(f"{fx} {fy} {cx} {cy} 5000\n")
+            fx, fy, cx, cy = CAMERAS[camera]
+            with open(os.path.join(tmp, "intrinsics.txt"), "w") as f:
+                f.write(f"# fx fy cx cy depth_scale (depth units per metre); TUM {camera} colour camera\n")
+                f.write(f"{fx} {fy} {cx} {cy} 5000\n")
     return a, b, len(frames)
+
+
+def quality(v):
+    """A JPEG quality 1-100 (argparse names --jpeg and the value otherwise)."""
+    try:
+        q = int(v)
+    except ValueError:
+        q = 0
+    if not 1 <= q <= 100:
+        raise argparse.ArgumentTypeError(f"`{v}` is not a quality 1-100")
+    return q
 
 
 def main():
@@ -161,7 +205,7 @@ def main():
     cam.add_argument("--intrinsics", help="an intrinsics.txt (`fx fy cx cy depth_scale`) to use instead")
     ap.add_argument("--first", type=int, help="first colour frame (default: the longest run with depth and poses)")
     ap.add_argument("--last", type=int, help="last colour frame")
-    ap.add_argument("--jpeg", type=int, choices=range(1, 101), metavar="Q", help="re-encode colour as JPEG quality Q")
+    ap.add_argument("--jpeg", type=quality, metavar="Q", help="re-encode colour as JPEG quality Q (1-100)")
     a = ap.parse_args()
     first, last, n = import_sequence(a.src, a.out, a.camera, a.first, a.last, a.jpeg, intrinsics=a.intrinsics)
     print(f"{a.out}: frames {first}-{last} of {n} ({last - first + 1})")

@@ -1081,3 +1081,164 @@ fn a_tum_sequence_imported_by_training_import_tum_is_judged_like_the_original() 
     );
     assert!(!nothing.exists());
 }
+
+/// `python -m <module> <args>` from the repository root with the Debian python (as a user runs
+/// it); asserts a clean refusal: a non-zero exit, no traceback, the last stderr line naming
+/// `needle` (the file or argument at fault), and that `out` was not written (absent, or a file
+/// left as it was).
+fn refuse_import(module: &str, args: &[&Path], extra: &[&str], out: &Path, needle: &str) {
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let before = std::fs::read(out).ok();
+    let res = Command::new("python3")
+        .current_dir(&repo)
+        .args(["-m", module])
+        .args(args)
+        .args(extra)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&res.stderr);
+    let last = err.lines().last().unwrap_or("");
+    assert!(!res.status.success(), "{module} {extra:?}: accepted\n{err}");
+    assert!(!err.contains("Traceback"), "{module} {extra:?}: {err}");
+    assert!(last.contains(needle), "{module} {extra:?}: `{needle}` not named: {err}");
+    assert!(!last.contains("choose from"), "one short line: {last}");
+    match before {
+        Some(b) => assert_eq!(std::fs::read(out).ok(), Some(b), "{} changed", out.display()),
+        None => assert!(!out.exists(), "{module} {extra:?}: {} written", out.display()),
+    }
+    // No staging folder is left beside it.
+    let parent = out.parent().unwrap();
+    for e in std::fs::read_dir(parent).unwrap() {
+        let name = e.unwrap().file_name();
+        assert!(!name.to_string_lossy().contains(".partial-"), "{name:?} left behind");
+    }
+}
+
+/// Hostile input to the importers (`training.import_tum`, `training.import_7scenes`): malformed
+/// lists, duplicate or non-finite timestamps, rows naming no file or a folder, poses that are not
+/// rigid, malformed intrinsics, an output path that is a file, two frames written to one name:
+/// each is one line naming the file or argument, and nothing is written.
+#[test]
+fn the_importers_refuse_hostile_input_with_one_line_and_write_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let out = d.join("out");
+    let a_file = d.join("a_file");
+    std::fs::write(&a_file, "keep me").unwrap();
+
+    // TUM layout: two frames, each with depth and a pose.
+    let tum = d.join("tum");
+    let write = |p: &Path, s: &str| {
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::write(p, s).unwrap();
+    };
+    let reset_tum = || {
+        let _ = std::fs::remove_dir_all(&tum);
+        for f in ["rgb/a.png", "rgb/b.png", "depth/a.png", "depth/b.png", "x/a.png"] {
+            write(&tum.join(f), "png");
+        }
+        write(&tum.join("rgb.txt"), "1.0 rgb/a.png\n1.1 rgb/b.png\n");
+        write(&tum.join("depth.txt"), "1.0 depth/a.png\n1.1 depth/b.png\n");
+        write(
+            &tum.join("groundtruth.txt"),
+            "1.0 0 0 0 0 0 0 1\n1.1 0 0 0 0 0 0 1\n",
+        );
+    };
+    let tum_case = |file: &str, body: &str, needle: &str| {
+        reset_tum();
+        write(&tum.join(file), body);
+        refuse_import("training.import_tum", &[&tum, &out], &["--camera", "fr1"], &out, needle);
+    };
+    reset_tum();
+    refuse_import(
+        "training.import_tum",
+        &[&tum, &a_file],
+        &["--camera", "fr1"],
+        &a_file,
+        "a_file: exists and is not a folder",
+    );
+    tum_case("rgb.txt", "nan rgb/a.png\n1.1 rgb/b.png\n", "rgb.txt:1: `nan`");
+    tum_case("rgb.txt", "1.1 rgb/a.png\n1.1 rgb/b.png\n", "rgb.txt:2: timestamp 1.100000 already");
+    tum_case("rgb.txt", "1.0\n1.1 rgb/b.png\n", "rgb.txt: `1.0` names no file");
+    tum_case("rgb.txt", "1.0 rgb\n1.1 rgb/b.png\n", "rgb is missing (or not a file)");
+    tum_case("groundtruth.txt", "1.0 a b c d e f g\n1.1 0 0 0 0 0 0 1\n", "groundtruth.txt");
+    tum_case(
+        "groundtruth.txt",
+        "1.0 0 0 0 0 0 0 0\n1.1 0 0 0 0 0 0 1\n",
+        "not of unit length",
+    );
+    // Two frames that would both be written as rgb/a.png: found after the first was copied.
+    tum_case("rgb.txt", "1.0 rgb/a.png\n1.1 x/a.png\n", "both be written as rgb/a.png");
+    reset_tum();
+    let bad_k = d.join("bad_intrinsics.txt");
+    std::fs::write(&bad_k, "# fx fy cx cy depth_scale\n500 500 320 240\n").unwrap();
+    let k_arg = bad_k.to_str().unwrap();
+    refuse_import(
+        "training.import_tum",
+        &[&tum, &out],
+        &["--intrinsics", k_arg],
+        &out,
+        "bad_intrinsics.txt:2",
+    );
+    refuse_import(
+        "training.import_tum",
+        &[&tum, &out],
+        &["--camera", "fr1", "--jpeg", "0"],
+        &out,
+        "--jpeg",
+    );
+
+    // 7-Scenes layout: two frames.
+    let sc = d.join("7scenes");
+    let rot = "1 0 0 0.5\n0 1 0 0\n0 0 1 0\n0 0 0 1\n";
+    let reset_sc = || {
+        let _ = std::fs::remove_dir_all(&sc);
+        write(&sc.join("camera-intrinsics.txt"), "585 0 320\n0 585 240\n0 0 1\n");
+        for k in 0..2 {
+            let base = sc.join(format!("frame-{k:06}"));
+            write(&base.with_extension("color.jpg"), "jpg");
+            write(&base.with_extension("depth.png"), "png");
+            write(&base.with_extension("pose.txt"), rot);
+        }
+    };
+    let sc_case = |file: &str, body: Option<&str>, needle: &str| {
+        reset_sc();
+        if let Some(body) = body {
+            write(&sc.join(file), body);
+        } else {
+            std::fs::remove_file(sc.join(file)).unwrap();
+            std::fs::create_dir_all(sc.join(file)).unwrap();
+        }
+        refuse_import("training.import_7scenes", &[&sc, &out], &["--last", "1"], &out, needle);
+    };
+    // A shear of determinant 1 is not a rotation.
+    sc_case(
+        "frame-000001.pose.txt",
+        Some("1 1 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"),
+        "frame-000001.pose.txt: the rotation part is not a rotation",
+    );
+    sc_case(
+        "frame-000001.pose.txt",
+        Some("1 0 0 0\n0 1 0 0\n0 0 1 0\n1 0 0 1\n"),
+        "frame-000001.pose.txt: the last row",
+    );
+    sc_case(
+        "camera-intrinsics.txt",
+        Some("nan 0 320\n0 585 240\n0 0 1\n"),
+        "camera-intrinsics.txt",
+    );
+    sc_case(
+        "camera-intrinsics.txt",
+        Some("0 0 320\n0 585 240\n0 0 1\n"),
+        "camera-intrinsics.txt: the focal lengths",
+    );
+    sc_case("frame-000001.color.jpg", None, "frame-000001.color.jpg is missing or not a file");
+    reset_sc();
+    refuse_import(
+        "training.import_7scenes",
+        &[&sc, &a_file],
+        &["--last", "1"],
+        &a_file,
+        "a_file: exists and is not a folder",
+    );
+}
