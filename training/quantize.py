@@ -17,7 +17,9 @@ the QuantizeLinear/DequantizeLinear pair between each Conv and its ReLU where th
 has zero point 0, so that ONNX Runtime runs Conv + ReLU as one QLinearConv writing the ReLU's
 quantization (instead of QLinearConv, DequantizeLinear, QuantizeLinear: a double rounding). 8 pairs
 in the shipped student; about 14 % off the encoder's and 27 % off the head's CPU time, but its keep
-decisions move like any other small change of the student (`RESULTS.md`), so it is not the default.
+decisions move like any other small change of the student (`RESULTS.md`), so it is not the default. Idempotent
+(a fused build stays byte for byte); both models are read and fused before either is rewritten, and
+a missing or non-ONNX one is an error naming it. Needs onnx alone (`.venv/bin/python` runs it).
 
 Writes <out-dir>/leangate-s-int8-encoder.onnx and leangate-s-int8-head.onnx with the float model's
 leangate.* metadata, leangate.head pointing at the int8 head and leangate.precision = int8, then
@@ -51,13 +53,13 @@ def set_metadata(path, meta):
     onnx.save(m, path)
 
 
-def fuse_relu(path):
+def fuse_relu(m):
     """Drop the QuantizeLinear -> DequantizeLinear pair between a Conv and the ReLU after it when
     the ReLU's output quantizer has zero point 0 (it clamps at 0 itself), so that ONNX Runtime
-    fuses DQ -> Conv -> ReLU -> Q into one QLinearConv. Rewrites `path`; returns the pairs dropped."""
+    fuses DQ -> Conv -> ReLU -> Q into one QLinearConv. Changes the ModelProto `m` in place (a
+    fused graph is left as it is); returns the pairs dropped."""
     from onnx import numpy_helper
 
-    m = onnx.load(path)
     g = m.graph
     init = {i.name: i for i in g.initializer}
     prod = {o: n for n in g.node for o in n.output}
@@ -76,7 +78,10 @@ def fuse_relu(path):
         if any(len(users.get(t, [])) != 1 for t in (q.input[0], q.output[0], dq.output[0])):
             continue
         zp = after[0].input[2] if len(after[0].input) > 2 else None
-        if zp is None or zp not in init or int(numpy_helper.to_array(init[zp])) != 0:
+        if zp is None or zp not in init:
+            continue
+        zp = numpy_helper.to_array(init[zp])
+        if zp.size != 1 or int(zp.reshape(-1)[0]) != 0:
             continue
         relu.input[0] = q.input[0]
         drop += [q, dq]
@@ -87,8 +92,45 @@ def fuse_relu(path):
     del g.initializer[:]
     g.initializer.extend(keep)
     onnx.checker.check_model(m)
-    onnx.save(m, path)
     return len(drop) // 2
+
+
+FUSED_NOTE = "; Conv+ReLU fused (the Conv output's Q/DQ pair dropped)"
+
+
+def fuse_relu_build(d):
+    """`--fuse-relu-only DIR`: fuse both models of the INT8 build in `d` (idempotent: a fused build
+    stays as it is). Both are read, checked and fused before either is rewritten; a missing or
+    unreadable model is an error naming it. Returns [(path, pairs dropped)]."""
+    models = []
+    for kind in ("encoder", "head"):
+        p = os.path.join(d, f"{NAME}-int8-{kind}.onnx")
+        if not os.path.isfile(p):
+            raise SystemExit(f"{p} is missing: quantize first")
+        try:
+            m = onnx.load(p)
+            onnx.checker.check_model(m)
+        except Exception as e:  # noqa: BLE001 - DecodeError, ValidationError, OSError: not a usable ONNX file
+            raise SystemExit(f"{p}: not a readable ONNX model: {str(e).splitlines()[0] if str(e) else type(e).__name__}")
+        try:
+            n = fuse_relu(m)
+        except Exception as e:  # noqa: BLE001 - the rewritten graph failed the checker
+            raise SystemExit(f"{p}: cannot fuse: {str(e).splitlines()[0] if str(e) else type(e).__name__}")
+        meta = {q.key: q.value for q in m.metadata_props}
+        if n and FUSED_NOTE not in meta.get("leangate.quantization", ""):
+            meta["leangate.quantization"] = meta.get("leangate.quantization", "") + FUSED_NOTE
+        del m.metadata_props[:]
+        for k, v in meta.items():
+            m.metadata_props.add(key=k, value=v)
+        models.append((p, m, n))
+    for p, m, _ in models:
+        tmp = p + ".partial"
+        try:
+            onnx.save(m, tmp)
+            os.replace(tmp, p)
+        except OSError as e:
+            raise SystemExit(f"{p}: cannot write it: {e.strerror or e}")
+    return [(p, n) for p, _, n in models]
 
 
 def quantize(src, dst, batches, ops):
@@ -109,9 +151,6 @@ def quantize(src, dst, batches, ops):
                         weight_type=QuantType.QInt8, per_channel=True, reduce_range=True, op_types_to_quantize=ops)
 
 
-FUSED_NOTE = "; Conv+ReLU fused (the Conv output's Q/DQ pair dropped)"
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", default=MODELS_DIR, help="directory of the calibrated float leangate-s-*.onnx")
@@ -125,20 +164,11 @@ def main():
                     help="only apply the Conv+ReLU fusion to the INT8 build in DIR, in place "
                          "(give a copy's directory: the shipped build is not fused)")
     a = ap.parse_args()
-    import onnxruntime as ort
-
-    if a.fuse_relu_only:
-        for kind in ("encoder", "head"):
-            p = os.path.join(a.fuse_relu_only, f"{NAME}-int8-{kind}.onnx")
-            if not os.path.exists(p):
-                raise SystemExit(f"{p} is missing: quantize first")
-            meta = metadata(p)
-            n = fuse_relu(p)
-            if n and FUSED_NOTE not in meta.get("leangate.quantization", ""):
-                meta["leangate.quantization"] = meta.get("leangate.quantization", "") + FUSED_NOTE
-            set_metadata(p, meta)
+    if a.fuse_relu_only:  # onnx alone: .venv's python runs it
+        for p, n in fuse_relu_build(a.fuse_relu_only):
             print(f"{p}: {n} Q/DQ pairs dropped")
         return
+    import onnxruntime as ort
 
     rng = np.random.default_rng(a.seed)
     ops = a.ops.split(",")

@@ -1,0 +1,96 @@
+//! `python -m training.quantize --fuse-relu-only DIR` (the Conv+ReLU Q/DQ fusion of an INT8 build,
+//! in place) on the shipped INT8 build copied aside: idempotent, and hostile input (a missing
+//! model, a file that is not ONNX) is one line naming the file, with neither model rewritten.
+//! Runs `.venv/bin/python` (the fusion needs onnx alone); skips with a message when that venv is
+//! absent.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+const BUILD: [&str; 2] = ["leangate-s-int8-encoder.onnx", "leangate-s-int8-head.onnx"];
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn fuse(python: &Path, dir: &Path) -> Output {
+    Command::new(python)
+        .current_dir(repo())
+        .args(["-m", "training.quantize", "--fuse-relu-only"])
+        .arg(dir)
+        .output()
+        .unwrap()
+}
+
+fn files(dir: &Path) -> Vec<Option<Vec<u8>>> {
+    BUILD.iter().map(|f| std::fs::read(dir.join(f)).ok()).collect()
+}
+
+/// A refusal: non-zero, no traceback, the last line naming `needle`, and the folder as it was.
+fn refused(python: &Path, dir: &Path, needle: &str) {
+    let before = files(dir);
+    let out = fuse(python, dir);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "accepted: {err}");
+    assert!(!err.contains("Traceback"), "{err}");
+    let last = err.lines().last().unwrap_or("");
+    assert!(last.contains(needle), "`{needle}` not named: {err}");
+    assert!(files(dir) == before, "{} rewritten: {err}", dir.display());
+    let left: Vec<_> = std::fs::read_dir(dir)
+        .map(|d| d.map(|e| e.unwrap().file_name()).collect())
+        .unwrap_or_default();
+    assert!(
+        left.iter().all(|n| !n.to_string_lossy().ends_with(".partial")),
+        "{left:?}"
+    );
+}
+
+#[test]
+fn fuse_relu_only_is_idempotent_and_refuses_bad_builds_without_rewriting_either_model() {
+    let python = repo().join(".venv/bin/python");
+    if !python.exists() {
+        eprintln!("SKIPPED: {} missing (run `make setup`)", python.display());
+        return;
+    }
+    let models = repo().join("models");
+    let tmp = tempfile::tempdir().unwrap();
+    let copy = |name: &str| {
+        let d = tmp.path().join(name);
+        std::fs::create_dir_all(&d).unwrap();
+        for f in BUILD {
+            std::fs::copy(models.join(f), d.join(f)).unwrap();
+        }
+        d
+    };
+
+    // Fused once (pairs dropped), then again: nothing more to drop, the same bytes.
+    let ok = copy("ok");
+    let out = fuse(&python, &ok);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(!said.contains(": 0 Q/DQ pairs dropped"), "{said}");
+    let fused = files(&ok);
+    assert!(fused != files(&models), "nothing fused: {said}");
+    let out = fuse(&python, &ok);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success());
+    assert_eq!(said.matches(": 0 Q/DQ pairs dropped").count(), 2, "{said}");
+    assert!(files(&ok) == fused, "a second fusion changed the build");
+
+    // The head missing: the encoder is not rewritten before that is found.
+    let half = copy("half");
+    std::fs::remove_file(half.join(BUILD[1])).unwrap();
+    refused(&python, &half, "leangate-s-int8-head.onnx is missing");
+    // Not ONNX (either one): named, the other model untouched.
+    for junk in BUILD {
+        let d = copy(&format!("junk-{junk}"));
+        std::fs::write(d.join(junk), "not a model").unwrap();
+        refused(&python, &d, &format!("{junk}: not a readable ONNX model"));
+    }
+    // No such folder.
+    refused(&python, &tmp.path().join("nowhere"), "nowhere");
+}
