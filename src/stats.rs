@@ -11,7 +11,8 @@ pub struct StatsMessage {
     pub frames_in: u64,
     /// Frames kept since start.
     pub frames_kept: u64,
-    /// Frames the geometric prior alone dropped without running the model (`screen`).
+    /// Frames the model did not run on: the geometric prior alone bounded their utility below the
+    /// threshold (`screen`; dropped unless warmup, max-gap or a forced keyframe kept them).
     pub frames_screened: u64,
     /// `frames_kept / frames_in` (0 before the first frame).
     pub keep_ratio: f64,

@@ -928,6 +928,54 @@ fn screening_by_the_prior_skips_the_model_and_keeps_every_decision() {
 }
 
 #[test]
+fn a_screened_frame_never_runs_the_model_so_a_failing_model_only_keeps_the_frames_it_scores() {
+    // nan_geometry: NaN on every frame it scores (fail open: kept, reason `error`), fused as
+    // tau_geo + 0.5 s. At threshold 0.6 a 2 px/frame pan is screened while under 16 px (tau_geo
+    // 0.1) from the reference: those frames never reach the model, so they are dropped, where
+    // screen=false keeps every one on its failure (the documented exception to "the same
+    // decisions"). A keep forced on a screened frame (max-gap) stays marked screened.
+    let (w, h) = (160, 120);
+    let run = |props: &str| -> (Vec<gstleangate::GateMeta>, u64) {
+        let mut hs = harness(
+            &format!(
+                "model={} mode=annotate threshold=0.6 {props}",
+                fixture("nan_geometry.onnx")
+            ),
+            &rgb_caps(w, h),
+        );
+        for k in 0..40u64 {
+            hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
+                .unwrap();
+        }
+        let m = drain(&mut hs).iter().map(meta).collect();
+        (m, hs.element().unwrap().property::<u64>("frames-screened"))
+    };
+    let (off, n_off) = run("screen=false");
+    assert_eq!(n_off, 0);
+    assert!(
+        off[1..].iter().all(|m| m.keep && m.reason == Reason::Error && !m.screened),
+        "{off:?}"
+    );
+    let (on, n_on) = run("");
+    let screened: Vec<_> = on.iter().filter(|m| m.screened).collect();
+    assert_eq!(n_on, screened.len() as u64);
+    assert!(screened.len() >= 20, "{on:?}");
+    for m in &on[1..] {
+        if m.screened {
+            assert!(!m.keep && m.utility < 0.6, "{m:?}");
+        } else {
+            assert!(m.keep && m.reason == Reason::Error, "scored, failed, kept: {m:?}");
+        }
+    }
+    let (gap, _) = run("max-gap=3");
+    assert!(
+        gap.iter()
+            .any(|m| m.screened && m.keep && m.reason == Reason::MaxGap),
+        "{gap:?}"
+    );
+}
+
+#[test]
 fn geometric_prior_restarts_at_the_next_keep_after_being_switched_back_on() {
     // While `geometry` is off the chain is not kept up; switched back on, the element uses the
     // model alone until the next keep, then the prior again (measured from that keep).

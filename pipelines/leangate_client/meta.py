@@ -39,7 +39,8 @@ def meta_from_structure(s) -> Dict[str, Any]:
         "reference_pts": None if ref is None or ref == U64_MAX else int(ref),
         "frames_since_keyframe": int(s.get_value("frames-since-keyframe")),
         "inference_us": int(s.get_value("inference-us")),
-        # the prior alone dropped the frame (the element's `screen`); utility is then its bound
+        # the model did not run: the prior alone bounded the utility (then this bound) below the
+        # threshold (the element's `screen`); dropped unless warmup, max-gap or a forced keyframe kept it
         "screened": bool(s.get_value("screened")) if s.has_field("screened") else False,
     }
 

@@ -49,7 +49,8 @@ class LeanGateStats(Mapping):
 
     frames_in: Optional[int] = None
     frames_kept: Optional[int] = None
-    #: frames the geometric prior alone dropped without running the model (``screen``)
+    #: frames the model did not run on: the geometric prior alone bounded their utility below the
+    #: threshold (``screen``; dropped unless warmup, max-gap or a forced keyframe kept them)
     frames_screened: Optional[int] = None
     keep_ratio: Optional[float] = None
     inference_mean_us: Optional[float] = None

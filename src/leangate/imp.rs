@@ -636,9 +636,11 @@ impl ObjectImpl for LeanGate {
                     .blurb(
                         "With the geometric prior in use: skip the model on a frame when no score \
                          it could give would lift the fused utility to the threshold (a small \
-                         motion since the reference). The decisions are the same; such a frame \
-                         reports that bound as its utility and screened=true in its meta, and is \
-                         counted in frames-screened. Off: the model scores every frame",
+                         motion since the reference). The decisions are the same wherever the \
+                         model gives a number (a frame it would have failed on, kept by fail \
+                         open, is dropped: it is not asked); such a frame reports that bound as \
+                         its utility and screened=true in its meta, and is counted in \
+                         frames-screened. Off: the model scores every frame",
                     )
                     .default_value(DEFAULT_SCREEN)
                     .mutable_playing()
@@ -700,8 +702,9 @@ impl ObjectImpl for LeanGate {
                 glib::ParamSpecUInt64::builder("frames-screened")
                     .nick("Frames screened")
                     .blurb(
-                        "Frames the geometric prior alone dropped without running the model \
-                         since start (read-only; see screen)",
+                        "Frames the model did not run on since start because the geometric \
+                         prior alone bounded their utility below the threshold (dropped unless \
+                         warmup, max-gap or a forced keyframe kept them; read-only; see screen)",
                     )
                     .read_only()
                     .build(),
