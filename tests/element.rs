@@ -953,7 +953,9 @@ fn a_screened_frame_never_runs_the_model_so_a_failing_model_only_keeps_the_frame
     let (off, n_off) = run("screen=false");
     assert_eq!(n_off, 0);
     assert!(
-        off[1..].iter().all(|m| m.keep && m.reason == Reason::Error && !m.screened),
+        off[1..]
+            .iter()
+            .all(|m| m.keep && m.reason == Reason::Error && !m.screened),
         "{off:?}"
     );
     let (on, n_on) = run("");
@@ -964,7 +966,10 @@ fn a_screened_frame_never_runs_the_model_so_a_failing_model_only_keeps_the_frame
         if m.screened {
             assert!(!m.keep && m.utility < 0.6, "{m:?}");
         } else {
-            assert!(m.keep && m.reason == Reason::Error, "scored, failed, kept: {m:?}");
+            assert!(
+                m.keep && m.reason == Reason::Error,
+                "scored, failed, kept: {m:?}"
+            );
         }
     }
     let (gap, _) = run("max-gap=3");

@@ -23,7 +23,10 @@ fn fuse(python: &Path, dir: &Path) -> Output {
 }
 
 fn files(dir: &Path) -> Vec<Option<Vec<u8>>> {
-    BUILD.iter().map(|f| std::fs::read(dir.join(f)).ok()).collect()
+    BUILD
+        .iter()
+        .map(|f| std::fs::read(dir.join(f)).ok())
+        .collect()
 }
 
 /// A refusal: non-zero, no traceback, the last line naming `needle`, and the folder as it was.
@@ -40,7 +43,8 @@ fn refused(python: &Path, dir: &Path, needle: &str) {
         .map(|d| d.map(|e| e.unwrap().file_name()).collect())
         .unwrap_or_default();
     assert!(
-        left.iter().all(|n| !n.to_string_lossy().ends_with(".partial")),
+        left.iter()
+            .all(|n| !n.to_string_lossy().ends_with(".partial")),
         "{left:?}"
     );
 }

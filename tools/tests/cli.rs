@@ -1100,17 +1100,32 @@ fn refuse_import(module: &str, args: &[&Path], extra: &[&str], out: &Path, needl
     let last = err.lines().last().unwrap_or("");
     assert!(!res.status.success(), "{module} {extra:?}: accepted\n{err}");
     assert!(!err.contains("Traceback"), "{module} {extra:?}: {err}");
-    assert!(last.contains(needle), "{module} {extra:?}: `{needle}` not named: {err}");
+    assert!(
+        last.contains(needle),
+        "{module} {extra:?}: `{needle}` not named: {err}"
+    );
     assert!(!last.contains("choose from"), "one short line: {last}");
     match before {
-        Some(b) => assert_eq!(std::fs::read(out).ok(), Some(b), "{} changed", out.display()),
-        None => assert!(!out.exists(), "{module} {extra:?}: {} written", out.display()),
+        Some(b) => assert_eq!(
+            std::fs::read(out).ok(),
+            Some(b),
+            "{} changed",
+            out.display()
+        ),
+        None => assert!(
+            !out.exists(),
+            "{module} {extra:?}: {} written",
+            out.display()
+        ),
     }
     // No staging folder is left beside it.
     let parent = out.parent().unwrap();
     for e in std::fs::read_dir(parent).unwrap() {
         let name = e.unwrap().file_name();
-        assert!(!name.to_string_lossy().contains(".partial-"), "{name:?} left behind");
+        assert!(
+            !name.to_string_lossy().contains(".partial-"),
+            "{name:?} left behind"
+        );
     }
 }
 
@@ -1134,7 +1149,13 @@ fn the_importers_refuse_hostile_input_with_one_line_and_write_nothing() {
     };
     let reset_tum = || {
         let _ = std::fs::remove_dir_all(&tum);
-        for f in ["rgb/a.png", "rgb/b.png", "depth/a.png", "depth/b.png", "x/a.png"] {
+        for f in [
+            "rgb/a.png",
+            "rgb/b.png",
+            "depth/a.png",
+            "depth/b.png",
+            "x/a.png",
+        ] {
             write(&tum.join(f), "png");
         }
         write(&tum.join("rgb.txt"), "1.0 rgb/a.png\n1.1 rgb/b.png\n");
@@ -1147,7 +1168,13 @@ fn the_importers_refuse_hostile_input_with_one_line_and_write_nothing() {
     let tum_case = |file: &str, body: &str, needle: &str| {
         reset_tum();
         write(&tum.join(file), body);
-        refuse_import("training.import_tum", &[&tum, &out], &["--camera", "fr1"], &out, needle);
+        refuse_import(
+            "training.import_tum",
+            &[&tum, &out],
+            &["--camera", "fr1"],
+            &out,
+            needle,
+        );
     };
     reset_tum();
     refuse_import(
@@ -1157,18 +1184,42 @@ fn the_importers_refuse_hostile_input_with_one_line_and_write_nothing() {
         &a_file,
         "a_file: exists and is not a folder",
     );
-    tum_case("rgb.txt", "nan rgb/a.png\n1.1 rgb/b.png\n", "rgb.txt:1: `nan`");
-    tum_case("rgb.txt", "1.1 rgb/a.png\n1.1 rgb/b.png\n", "rgb.txt:2: timestamp 1.100000 already");
-    tum_case("rgb.txt", "1.0\n1.1 rgb/b.png\n", "rgb.txt: `1.0` names no file");
-    tum_case("rgb.txt", "1.0 rgb\n1.1 rgb/b.png\n", "rgb is missing (or not a file)");
-    tum_case("groundtruth.txt", "1.0 a b c d e f g\n1.1 0 0 0 0 0 0 1\n", "groundtruth.txt");
+    tum_case(
+        "rgb.txt",
+        "nan rgb/a.png\n1.1 rgb/b.png\n",
+        "rgb.txt:1: `nan`",
+    );
+    tum_case(
+        "rgb.txt",
+        "1.1 rgb/a.png\n1.1 rgb/b.png\n",
+        "rgb.txt:2: timestamp 1.100000 already",
+    );
+    tum_case(
+        "rgb.txt",
+        "1.0\n1.1 rgb/b.png\n",
+        "rgb.txt: `1.0` names no file",
+    );
+    tum_case(
+        "rgb.txt",
+        "1.0 rgb\n1.1 rgb/b.png\n",
+        "rgb is missing (or not a file)",
+    );
+    tum_case(
+        "groundtruth.txt",
+        "1.0 a b c d e f g\n1.1 0 0 0 0 0 0 1\n",
+        "groundtruth.txt",
+    );
     tum_case(
         "groundtruth.txt",
         "1.0 0 0 0 0 0 0 0\n1.1 0 0 0 0 0 0 1\n",
         "not of unit length",
     );
     // Two frames that would both be written as rgb/a.png: found after the first was copied.
-    tum_case("rgb.txt", "1.0 rgb/a.png\n1.1 x/a.png\n", "both be written as rgb/a.png");
+    tum_case(
+        "rgb.txt",
+        "1.0 rgb/a.png\n1.1 x/a.png\n",
+        "both be written as rgb/a.png",
+    );
     reset_tum();
     let bad_k = d.join("bad_intrinsics.txt");
     std::fs::write(&bad_k, "# fx fy cx cy depth_scale\n500 500 320 240\n").unwrap();
@@ -1193,7 +1244,10 @@ fn the_importers_refuse_hostile_input_with_one_line_and_write_nothing() {
     let rot = "1 0 0 0.5\n0 1 0 0\n0 0 1 0\n0 0 0 1\n";
     let reset_sc = || {
         let _ = std::fs::remove_dir_all(&sc);
-        write(&sc.join("camera-intrinsics.txt"), "585 0 320\n0 585 240\n0 0 1\n");
+        write(
+            &sc.join("camera-intrinsics.txt"),
+            "585 0 320\n0 585 240\n0 0 1\n",
+        );
         for k in 0..2 {
             let base = sc.join(format!("frame-{k:06}"));
             write(&base.with_extension("color.jpg"), "jpg");
@@ -1209,7 +1263,13 @@ fn the_importers_refuse_hostile_input_with_one_line_and_write_nothing() {
             std::fs::remove_file(sc.join(file)).unwrap();
             std::fs::create_dir_all(sc.join(file)).unwrap();
         }
-        refuse_import("training.import_7scenes", &[&sc, &out], &["--last", "1"], &out, needle);
+        refuse_import(
+            "training.import_7scenes",
+            &[&sc, &out],
+            &["--last", "1"],
+            &out,
+            needle,
+        );
     };
     // A shear of determinant 1 is not a rotation.
     sc_case(
@@ -1232,7 +1292,11 @@ fn the_importers_refuse_hostile_input_with_one_line_and_write_nothing() {
         Some("0 0 320\n0 585 240\n0 0 1\n"),
         "camera-intrinsics.txt: the focal lengths",
     );
-    sc_case("frame-000001.color.jpg", None, "frame-000001.color.jpg is missing or not a file");
+    sc_case(
+        "frame-000001.color.jpg",
+        None,
+        "frame-000001.color.jpg is missing or not a file",
+    );
     reset_sc();
     refuse_import(
         "training.import_7scenes",
