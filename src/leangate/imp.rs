@@ -637,8 +637,8 @@ impl ObjectImpl for LeanGate {
                         "With the geometric prior in use: skip the model on a frame when no score \
                          it could give would lift the fused utility to the threshold (a small \
                          motion since the reference). The decisions are the same wherever the \
-                         model gives a number (a frame it would have failed on, kept by fail \
-                         open, is dropped: it is not asked); such a frame reports that bound as \
+                         model scores (a frame it would have failed on, kept by fail open, is \
+                         dropped: it is not asked); such a frame reports that bound as \
                          its utility and screened=true in its meta, and is counted in \
                          frames-screened. Off: the model scores every frame",
                     )
