@@ -26,6 +26,8 @@ pub struct StatsMessage {
     pub interval_frames_in: u64,
     /// Frames kept since the previous `leangate-stats` message (or start).
     pub interval_frames_kept: u64,
+    /// Frames screened (see `frames_screened`) since the previous message (or start).
+    pub interval_frames_screened: u64,
     /// Mean inference time over the frames scored since the previous message, microseconds.
     pub interval_inference_mean_us: f64,
     /// Median inference time since the previous message, microseconds.
@@ -78,6 +80,7 @@ impl StatsMessage {
             .field("inference-p99-us", self.inference_p99_us)
             .field("interval-frames-in", self.interval_frames_in)
             .field("interval-frames-kept", self.interval_frames_kept)
+            .field("interval-frames-screened", self.interval_frames_screened)
             .field(
                 "interval-inference-mean-us",
                 self.interval_inference_mean_us,
@@ -130,6 +133,7 @@ impl StatsMessage {
             inference_p99_us: get(s, "inference-p99-us")?,
             interval_frames_in: get(s, "interval-frames-in")?,
             interval_frames_kept: get(s, "interval-frames-kept")?,
+            interval_frames_screened: get(s, "interval-frames-screened")?,
             interval_inference_mean_us: get(s, "interval-inference-mean-us")?,
             interval_inference_p50_us: get(s, "interval-inference-p50-us")?,
             interval_inference_p99_us: get(s, "interval-inference-p99-us")?,
@@ -387,6 +391,7 @@ mod tests {
             inference_p99_us: 1400,
             interval_frames_in: 4,
             interval_frames_kept: 1,
+            interval_frames_screened: 2,
             interval_inference_mean_us: 790.0,
             interval_inference_p50_us: 780,
             interval_inference_p99_us: 900,

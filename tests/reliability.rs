@@ -461,6 +461,41 @@ fn stats_keep_coming_when_pts_goes_backwards_without_a_flush() {
 // D4: bounded statistics, with run and interval percentiles
 
 #[test]
+fn screened_frames_are_counted_per_interval_and_over_the_run() {
+    // mad_geometry's fusion has no student weight: every frame the prior follows is screened.
+    let msgs = run_pipeline(
+        &format!(
+            "videotestsrc num-buffers=40 pattern=pinwheel ! video/x-raw,width=160,height=120,framerate=30/1 ! \
+             leangate model={} stats-interval=300000000 ! fakesink",
+            fixture("mad_geometry.onnx")
+        ),
+        30,
+    );
+    assert!(error_text(&msgs).is_none());
+    let stats: Vec<gstleangate::StatsMessage> = element_message(&msgs, "leangate-stats")
+        .into_iter()
+        .map(|s| gstleangate::StatsMessage::from_structure(s).unwrap())
+        .collect();
+    assert!(stats.len() >= 4);
+    let last = stats.last().unwrap();
+    assert!(
+        last.frames_screened > 0 && last.frames_screened < last.frames_in,
+        "{last:?}"
+    );
+    assert_eq!(
+        stats
+            .iter()
+            .map(|s| s.interval_frames_screened)
+            .sum::<u64>(),
+        last.frames_screened,
+        "the intervals partition the screened frames"
+    );
+    assert!(stats
+        .iter()
+        .all(|s| s.interval_frames_screened <= s.interval_frames_in));
+}
+
+#[test]
 fn stats_carry_run_and_interval_percentiles() {
     let msgs = run_pipeline(
         &format!(

@@ -102,6 +102,8 @@ def fuse_relu_build(d):
     """`--fuse-relu-only DIR`: fuse both models of the INT8 build in `d` (idempotent: a fused build
     stays as it is). Both are read, checked and fused before either is rewritten; a missing or
     unreadable model is an error naming it. Returns [(path, pairs dropped)]."""
+    if not os.path.isdir(d):
+        raise SystemExit(f"--fuse-relu-only {d}: no such folder")
     models = []
     for kind in ("encoder", "head"):
         p = os.path.join(d, f"{NAME}-int8-{kind}.onnx")

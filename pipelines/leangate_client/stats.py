@@ -19,6 +19,7 @@ _FIELDS = {
     "inference-p99-us": ("inference_p99_us", int, "guint64"),
     "interval-frames-in": ("interval_frames_in", int, "guint64"),
     "interval-frames-kept": ("interval_frames_kept", int, "guint64"),
+    "interval-frames-screened": ("interval_frames_screened", int, "guint64"),
     "interval-inference-mean-us": ("interval_inference_mean_us", float, "gdouble"),
     "interval-inference-p50-us": ("interval_inference_p50_us", int, "guint64"),
     "interval-inference-p99-us": ("interval_inference_p99_us", int, "guint64"),
@@ -59,6 +60,7 @@ class LeanGateStats(Mapping):
     #: since the previous message (the whole run for the first one)
     interval_frames_in: Optional[int] = None
     interval_frames_kept: Optional[int] = None
+    interval_frames_screened: Optional[int] = None
     interval_inference_mean_us: Optional[float] = None
     interval_inference_p50_us: Optional[int] = None
     interval_inference_p99_us: Optional[int] = None

@@ -155,7 +155,8 @@ struct State {
     stats: InferenceStats,
     last_stats_pts: Option<gst::ClockTime>,
     /// `frames-in` / `frames-kept` at the previous stats message (for the interval fields).
-    interval_start: (u64, u64),
+    /// `frames-in`, `frames-kept` and `frames-screened` when the current stats interval began.
+    interval_start: (u64, u64, u64),
     last_warning: Option<Instant>,
     suppressed_warnings: u64,
 }
@@ -260,12 +261,13 @@ impl LeanGate {
     fn stats_structure(&self, state: &mut State) -> gst::Structure {
         let frames_in = self.frames_in.load(Ordering::Relaxed);
         let frames_kept = self.frames_kept.load(Ordering::Relaxed);
-        let (in0, kept0) = state.interval_start;
+        let frames_screened = self.frames_screened.load(Ordering::Relaxed);
+        let (in0, kept0, screened0) = state.interval_start;
         let interval = state.stats.interval();
         let s = StatsMessage {
             frames_in,
             frames_kept,
-            frames_screened: self.frames_screened.load(Ordering::Relaxed),
+            frames_screened,
             keep_ratio: if frames_in > 0 {
                 frames_kept as f64 / frames_in as f64
             } else {
@@ -276,6 +278,7 @@ impl LeanGate {
             inference_p99_us: state.stats.percentile_us(99.0),
             interval_frames_in: frames_in.saturating_sub(in0),
             interval_frames_kept: frames_kept.saturating_sub(kept0),
+            interval_frames_screened: frames_screened.saturating_sub(screened0),
             interval_inference_mean_us: interval.mean(),
             interval_inference_p50_us: interval.percentile(50.0),
             interval_inference_p99_us: interval.percentile(99.0),
@@ -286,7 +289,7 @@ impl LeanGate {
             server: state.scorer.server_stats(),
         }
         .to_structure();
-        state.interval_start = (frames_in, frames_kept);
+        state.interval_start = (frames_in, frames_kept, frames_screened);
         state.stats.start_interval();
         s
     }
@@ -1058,7 +1061,7 @@ impl BaseTransformImpl for LeanGate {
             current,
             stats: InferenceStats::default(),
             last_stats_pts: None,
-            interval_start: (0, 0),
+            interval_start: (0, 0, 0),
             last_warning: None,
             suppressed_warnings: 0,
         });
