@@ -774,24 +774,31 @@ fn panned(w: u32, h: u32, dx: f32) -> Vec<u8> {
     v
 }
 
+/// A 160x120 annotate-mode harness with `props`, fed the pan at the offsets `xs` (one frame
+/// each, 33 ms apart): every frame's meta, and `frames-screened` at the end.
+fn pan_metas(props: &str, xs: impl IntoIterator<Item = f32>) -> (Vec<gstleangate::GateMeta>, u64) {
+    let (w, h) = (160, 120);
+    let mut hs = harness(&format!("mode=annotate {props}"), &rgb_caps(w, h));
+    for (k, x) in xs.into_iter().enumerate() {
+        hs.push(buffer(panned(w, h, x), k as u64 * 33)).unwrap();
+    }
+    let m = drain(&mut hs).iter().map(meta).collect();
+    (m, hs.element().unwrap().property::<u64>("frames-screened"))
+}
+
+/// `n` frames of a steady pan, 2 px per frame.
+fn steady(n: usize) -> impl Iterator<Item = f32> {
+    (0..n).map(|k| 2.0 * k as f32)
+}
+
 #[test]
 fn geometric_prior_follows_the_pan_and_can_be_switched_off() {
     // mad_geometry carries leangate.geometry = 0, 1, 0, 0: with the prior on, the utility is the
     // teacher-like overlap of the chained homography alone; with geometry=false, the model's MAD.
-    let (w, h) = (160, 120);
-    let run = |props: &str| -> Vec<gstleangate::GateMeta> {
-        let mut hs = harness(
-            &format!(
-                "model={} mode=annotate threshold=0.99 {props}",
-                fixture("mad_geometry.onnx")
-            ),
-            &rgb_caps(w, h),
-        );
-        for k in 0..25u64 {
-            hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
-                .unwrap();
-        }
-        drain(&mut hs).iter().map(meta).collect()
+    let w = 160;
+    let run = |props: &str| {
+        let model = fixture("mad_geometry.onnx");
+        pan_metas(&format!("model={model} threshold=0.99 {props}"), steady(25)).0
     };
     let on = run("");
     assert_eq!(on.len(), 25);
@@ -832,18 +839,9 @@ fn the_default_element_fuses_the_embedded_student_with_the_prior() {
     .info()
     .geometry
     .expect("the embedded student carries leangate.geometry");
-    let (w, h) = (160, 120);
-    let run = |props: &str| -> Vec<gstleangate::GateMeta> {
-        let mut hs = harness(
-            &format!("mode=annotate threshold=0.99 screen=false {props}"),
-            &rgb_caps(w, h),
-        );
-        for k in 0..20u64 {
-            hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
-                .unwrap();
-        }
-        drain(&mut hs).iter().map(meta).collect()
-    };
+    let w = 160;
+    let run =
+        |props: &str| pan_metas(&format!("threshold=0.99 screen=false {props}"), steady(20)).0;
     let (on, off) = (run(""), run("geometry=false"));
     assert_eq!((on.len(), off.len()), (20, 20));
     for k in 1..20 {
@@ -867,16 +865,12 @@ fn screening_by_the_prior_skips_the_model_and_keeps_every_decision() {
     // The embedded default on a pan that speeds up: frames whose motion since the reference is
     // too small for any score to reach the threshold are decided by the prior alone (screened),
     // and every frame's decision, reason and reference are those of the model scoring every frame.
-    let (w, h) = (160, 120);
-    let run = |props: &str| -> (Vec<gstleangate::GateMeta>, u64) {
-        let mut hs = harness(&format!("mode=annotate {props}"), &rgb_caps(w, h));
-        let mut x = 0.0f32;
-        for k in 0..60u64 {
-            x += 0.5 + 0.15 * k as f32;
-            hs.push(buffer(panned(w, h, x), k * 33)).unwrap();
-        }
-        let m = drain(&mut hs).iter().map(meta).collect();
-        (m, hs.element().unwrap().property::<u64>("frames-screened"))
+    let run = |props: &str| {
+        let xs = (0..60).scan(0.0f32, |x, k| {
+            *x += 0.5 + 0.15 * k as f32;
+            Some(*x)
+        });
+        pan_metas(props, xs)
     };
     let ((on, n_on), (off, n_off)) = (run(""), run("screen=false"));
     assert_eq!((on.len(), off.len()), (60, 60));
@@ -934,21 +928,9 @@ fn a_screened_frame_never_runs_the_model_so_a_failing_model_only_keeps_the_frame
     // 0.1) from the reference: those frames never reach the model, so they are dropped, where
     // screen=false keeps every one on its failure (the documented exception to "the same
     // decisions"). A keep forced on a screened frame (max-gap) stays marked screened.
-    let (w, h) = (160, 120);
-    let run = |props: &str| -> (Vec<gstleangate::GateMeta>, u64) {
-        let mut hs = harness(
-            &format!(
-                "model={} mode=annotate threshold=0.6 {props}",
-                fixture("nan_geometry.onnx")
-            ),
-            &rgb_caps(w, h),
-        );
-        for k in 0..40u64 {
-            hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
-                .unwrap();
-        }
-        let m = drain(&mut hs).iter().map(meta).collect();
-        (m, hs.element().unwrap().property::<u64>("frames-screened"))
+    let run = |props: &str| {
+        let model = fixture("nan_geometry.onnx");
+        pan_metas(&format!("model={model} threshold=0.6 {props}"), steady(40))
     };
     let (off, n_off) = run("screen=false");
     assert_eq!(n_off, 0);

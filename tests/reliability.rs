@@ -460,14 +460,14 @@ fn stats_keep_coming_when_pts_goes_backwards_without_a_flush() {
 // ---------------------------------------------------------------------------------------------
 // D4: bounded statistics, with run and interval percentiles
 
-#[test]
-fn screened_frames_are_counted_per_interval_and_over_the_run() {
-    // mad_geometry's fusion has no student weight: every frame the prior follows is screened.
+/// The `leangate-stats` messages (every 0.3 s of stream time) of 40 frames of `videotestsrc
+/// pattern` at `w`x`h` through `model`; asserts the run had no error and at least 4 messages.
+fn interval_stats(model: &str, pattern: &str, w: u32, h: u32) -> Vec<gstleangate::StatsMessage> {
     let msgs = run_pipeline(
         &format!(
-            "videotestsrc num-buffers=40 pattern=pinwheel ! video/x-raw,width=160,height=120,framerate=30/1 ! \
+            "videotestsrc num-buffers=40 pattern={pattern} ! video/x-raw,width={w},height={h},framerate=30/1 ! \
              leangate model={} stats-interval=300000000 ! fakesink",
-            fixture("mad_geometry.onnx")
+            fixture(model)
         ),
         30,
     );
@@ -477,6 +477,13 @@ fn screened_frames_are_counted_per_interval_and_over_the_run() {
         .map(|s| gstleangate::StatsMessage::from_structure(s).unwrap())
         .collect();
     assert!(stats.len() >= 4);
+    stats
+}
+
+#[test]
+fn screened_frames_are_counted_per_interval_and_over_the_run() {
+    // mad_geometry's fusion has no student weight: every frame the prior follows is screened.
+    let stats = interval_stats("mad_geometry.onnx", "pinwheel", 160, 120);
     let last = stats.last().unwrap();
     assert!(
         last.frames_screened > 0 && last.frames_screened < last.frames_in,
@@ -497,20 +504,7 @@ fn screened_frames_are_counted_per_interval_and_over_the_run() {
 
 #[test]
 fn stats_carry_run_and_interval_percentiles() {
-    let msgs = run_pipeline(
-        &format!(
-            "videotestsrc num-buffers=40 pattern=ball ! video/x-raw,width=64,height=48,framerate=30/1 ! \
-             leangate model={} stats-interval=300000000 ! fakesink",
-            fixture("mad.onnx")
-        ),
-        30,
-    );
-    assert!(error_text(&msgs).is_none());
-    let stats: Vec<gstleangate::StatsMessage> = element_message(&msgs, "leangate-stats")
-        .into_iter()
-        .map(|s| gstleangate::StatsMessage::from_structure(s).unwrap())
-        .collect();
-    assert!(stats.len() >= 4);
+    let stats = interval_stats("mad.onnx", "ball", 64, 48);
     let last = stats.last().unwrap();
     assert_eq!(
         stats.iter().map(|s| s.interval_frames_in).sum::<u64>(),

@@ -7,6 +7,15 @@ fn leangate() -> Command {
     Command::new(env!("CARGO_BIN_EXE_leangate"))
 }
 
+/// `python3 -m <module>` from the repository root, with the Debian python (the training tools
+/// these tests run need only the standard library).
+fn python_module(module: &str) -> Command {
+    let mut c = Command::new("python3");
+    c.current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
+        .args(["-m", module]);
+    c
+}
+
 #[path = "../../tests/common/paths.rs"]
 #[allow(dead_code)]
 mod paths;
@@ -778,11 +787,9 @@ fn a_sequence_sped_up_by_training_speedup_is_judged() {
     let seq = dir.path().join("seq");
     synth(&seq, 21, "pan", 31);
     let out_dir = dir.path().join("speed");
-    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let run = |every: &str| {
-        Command::new("python3")
-            .current_dir(&repo)
-            .args(["-m", "training.speedup", "--every", every, "--out"])
+        python_module("training.speedup")
+            .args(["--every", every, "--out"])
             .arg(&out_dir)
             .arg(&seq)
             .output()
@@ -901,11 +908,8 @@ fn a_7scenes_clip_imported_by_training_import_7scenes_is_judged_like_the_origina
             .collect();
         std::fs::write(base.with_extension("pose.txt"), rows.join("\n") + "\n").unwrap();
     }
-    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let import = |src: &Path, dst: &Path, last: &str| {
-        Command::new("python3")
-            .current_dir(&repo)
-            .args(["-m", "training.import_7scenes"])
+        python_module("training.import_7scenes")
             .arg(src)
             .arg(dst)
             .args(["--last", last])
@@ -1013,11 +1017,8 @@ fn a_tum_sequence_imported_by_training_import_tum_is_judged_like_the_original() 
     std::fs::write(raw.join("rgb.txt"), format!("# color images\n{rgb}")).unwrap();
     std::fs::write(raw.join("depth.txt"), depth).unwrap();
     std::fs::write(raw.join("groundtruth.txt"), format!("# ground truth\n{gt}")).unwrap();
-    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let import = |dst: &Path| {
-        Command::new("python3")
-            .current_dir(&repo)
-            .args(["-m", "training.import_tum"])
+        python_module("training.import_tum")
             .arg(&raw)
             .arg(dst)
             .arg("--intrinsics")
@@ -1087,11 +1088,8 @@ fn a_tum_sequence_imported_by_training_import_tum_is_judged_like_the_original() 
 /// `needle` (the file or argument at fault), and that `out` was not written (absent, or a file
 /// left as it was).
 fn refuse_import(module: &str, args: &[&Path], extra: &[&str], out: &Path, needle: &str) {
-    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let before = std::fs::read(out).ok();
-    let res = Command::new("python3")
-        .current_dir(&repo)
-        .args(["-m", module])
+    let res = python_module(module)
         .args(args)
         .args(extra)
         .output()
