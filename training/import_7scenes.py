@@ -24,7 +24,7 @@ import math
 import os
 import shutil
 
-from .seqio import staged
+from .seqio import staged, write_lists
 
 HEAD = "# 7-Scenes {scene} (Microsoft Research, non-commercial research terms), frames {a}-{b}, nominal 30 Hz"
 
@@ -108,12 +108,11 @@ def import_clip(src, out, first, last, scene):
             rgb.append(f"{t} rgb/{k:06d}.jpg")
             depth.append(f"{t} depth/{k:06d}.png")
             gt.append(f"{t} {pose}")
-        for name, lines in (("rgb.txt", rgb), ("depth.txt", depth), ("groundtruth.txt", gt)):
-            with open(os.path.join(tmp, name), "w") as f:
-                f.write("\n".join(lines) + "\n")
-        with open(os.path.join(tmp, "intrinsics.txt"), "w") as f:
-            f.write("# fx fy cx cy depth_scale (depth units per metre); intrinsics of the depth camera\n")
-            f.write(f"{intr[0][0]:.3f} {intr[1][1]:.3f} {intr[0][2]:.3f} {intr[1][2]:.3f} 1000\n")
+        write_lists(tmp, {
+            "rgb.txt": rgb, "depth.txt": depth, "groundtruth.txt": gt,
+            "intrinsics.txt": ["# fx fy cx cy depth_scale (depth units per metre); intrinsics of the depth camera",
+                               f"{intr[0][0]:.3f} {intr[1][1]:.3f} {intr[0][2]:.3f} {intr[1][2]:.3f} 1000"],
+        })
     return len(names)
 
 

@@ -27,7 +27,7 @@ import math
 import os
 import shutil
 
-from .seqio import check_intrinsics, staged
+from .seqio import check_intrinsics, staged, write_lists
 
 # fx fy cx cy of the TUM RGB-D colour cameras (vision.in.tum.de/data/datasets/rgbd-dataset/file_formats)
 CAMERAS = {
@@ -172,16 +172,14 @@ def import_sequence(src, out, camera, first=None, last=None, jpeg=None, name=Non
             rgb_rows.append(f"{r[0]:.6f} {dst}")
             depth_rows.append(f"{d[0]:.6f} {ddst}")
             gt_rows.append(f"{r[0]:.6f} {p[1]}")
-        for fname, rows in (("rgb.txt", rgb_rows), ("depth.txt", depth_rows), ("groundtruth.txt", gt_rows)):
-            with open(os.path.join(tmp, fname), "w") as f:
-                f.write("\n".join(rows) + "\n")
+        write_lists(tmp, {"rgb.txt": rgb_rows, "depth.txt": depth_rows, "groundtruth.txt": gt_rows})
         if intrinsics is not None:
             shutil.copyfile(intrinsics, os.path.join(tmp, "intrinsics.txt"))
         else:
             fx, fy, cx, cy = CAMERAS[camera]
-            with open(os.path.join(tmp, "intrinsics.txt"), "w") as f:
-                f.write(f"# fx fy cx cy depth_scale (depth units per metre); TUM {camera} colour camera\n")
-                f.write(f"{fx} {fy} {cx} {cy} 5000\n")
+            write_lists(tmp, {"intrinsics.txt": [
+                f"# fx fy cx cy depth_scale (depth units per metre); TUM {camera} colour camera",
+                f"{fx} {fy} {cx} {cy} 5000"]})
     return a, b, len(frames)
 
 

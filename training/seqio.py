@@ -22,6 +22,14 @@ def rows(path):
     return head, body
 
 
+def write_lists(folder, lists):
+    """Write each `name: lines` of `lists` into `folder` (one line each, newline-terminated): the
+    TUM lists and `intrinsics.txt` of every sequence these tools write."""
+    for name, lines in lists.items():
+        with open(os.path.join(folder, name), "w") as f:
+            f.write("\n".join(lines) + "\n")
+
+
 def write_subset(src, out, pick, note):
     """Write `pick(rows, name)` of each of `src`'s three lists into `out` (a `# note` line after
     their comments; image paths made absolute), and copy the intrinsics. A missing list is an
@@ -32,13 +40,14 @@ def write_subset(src, out, pick, note):
         if not os.path.exists(path):
             raise SystemExit(f"{path} is missing: a sequence with depth, poses and intrinsics is needed")
     os.makedirs(out, exist_ok=True)
+    lists = {}
     for name in LISTS:
         head, body = rows(os.path.join(src, name))
         sel = pick(body, name)
         if name != "groundtruth.txt":
             sel = [f"{r.split()[0]} {os.path.join(src, r.split()[1])}" for r in sel]
-        with open(os.path.join(out, name), "w") as f:
-            f.write("\n".join(head + [f"# {note}"] + sel) + "\n")
+        lists[name] = head + [f"# {note}"] + sel
+    write_lists(out, lists)
     with open(os.path.join(src, "intrinsics.txt")) as f, open(os.path.join(out, "intrinsics.txt"), "w") as g:
         g.write(f.read())
 
