@@ -519,7 +519,9 @@ fn geometry_row(name: &str, frames: &[Vec<f32>], w: usize, h: usize, reps: usize
 /// geometric prior and the fusion ([`gstleangate::Utility`]), the gate. `model alone` is the
 /// same with `geometry=false`. The frames are tum_fr1_desk's first 300 (decoded beforehand).
 fn section_scoring(reps: usize) {
-    use gstleangate::{default_model, Gate, GateConfig, Score, Scorer, ScorerOptions, Utility};
+    use gstleangate::{
+        default_model, Composed, Gate, GateConfig, Score, Scorer, ScorerOptions, Utility,
+    };
     println!("\n## The element's scoring per frame, one core (preprocessing 640x480 RGB, the embedded student, the prior, the gate): frames/s, median of {reps}, interleaved");
     let Some(frames) = real_frames(300) else {
         println!("SKIPPED: ../shared/data/tum_fr1_desk absent");
@@ -545,21 +547,15 @@ fn section_scoring(reps: usize) {
                 .unwrap();
             let has_reference = gate.has_reference();
             utility.observe(Some((&current[..], &info.spec)), has_reference, geometry);
-            let screened = if has_reference && screen {
-                utility.screen(threshold, geometry)
-            } else {
-                None
-            };
-            let score = match screened {
-                _ if !has_reference => Score::NoReference,
-                Some(bound) => Score::Utility(bound),
-                None => {
-                    let s = scorer.score(&reference, &current).unwrap() as f64;
-                    Score::Utility(utility.compose(s, geometry).0)
-                }
-            };
+            let composed = has_reference.then(|| {
+                let model = || scorer.score(&reference, &current).map(f64::from);
+                utility
+                    .score_with(threshold, geometry, screen, model)
+                    .unwrap()
+            });
+            let score = composed.map_or(Score::NoReference, |c| Score::Utility(c.utility()));
             if gate.decide(score).keep {
-                scorer.on_keep(has_reference && screened.is_none());
+                scorer.on_keep(matches!(composed, Some(Composed::Scored { .. })));
                 std::mem::swap(&mut reference, &mut current);
                 utility.on_keep();
             }

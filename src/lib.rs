@@ -49,7 +49,7 @@ pub use scorer::{
     ScorerError, ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
 };
 pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};
-pub use utility::Utility;
+pub use utility::{Composed, Utility};
 
 fn plugin_init(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     meta::register();

@@ -7,6 +7,29 @@
 use crate::geometry::{grey_from_tensor, Fusion, Pyramid, Tracker};
 use crate::preprocess::TensorSpec;
 
+/// How the last observed frame's utility was composed ([`Utility::score_with`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Composed {
+    /// The prior alone decided: no score of the model could lift the fused utility to the
+    /// threshold, so the model did not run; the bound stands for the utility.
+    Screened(f64),
+    /// The model's score `s`, fused with the prior's `tau_geo` when it was used.
+    Scored {
+        utility: f64,
+        s: f64,
+        tau_geo: Option<f64>,
+    },
+}
+
+impl Composed {
+    pub fn utility(&self) -> f64 {
+        match *self {
+            Composed::Screened(bound) => bound,
+            Composed::Scored { utility, .. } => utility,
+        }
+    }
+}
+
 /// The per-stream state behind a frame's utility (the tracker) and how it is combined.
 #[derive(Debug, Clone, Default)]
 pub struct Utility {
@@ -81,6 +104,28 @@ impl Utility {
         let f = self.fusion.filter(|_| enabled)?;
         let up = f.upper(self.tau_geo()?);
         (up < threshold).then_some(up)
+    }
+
+    /// The utility of the last observed frame: screened by the prior when `screen` is on and
+    /// [`Utility::screen`] decides it (`model` is not called), else `model`'s score composed
+    /// ([`Utility::compose`]). The one sequence the element and the benchmark run per frame.
+    pub fn score_with<E>(
+        &mut self,
+        threshold: f64,
+        enabled: bool,
+        screen: bool,
+        model: impl FnOnce() -> Result<f64, E>,
+    ) -> Result<Composed, E> {
+        if let Some(bound) = screen.then(|| self.screen(threshold, enabled)).flatten() {
+            return Ok(Composed::Screened(bound));
+        }
+        let s = model()?;
+        let (utility, tau_geo) = self.compose(s, enabled);
+        Ok(Composed::Scored {
+            utility,
+            s,
+            tau_geo,
+        })
     }
 
     /// The tracker's `tau_geo` of the last observed frame (computed once per frame).
@@ -242,5 +287,27 @@ mod tests {
         // The prior off, or a lower threshold that a score could reach: the model runs.
         assert_eq!(u.screen(0.5, false), None);
         assert_eq!(u.screen(0.0, true), None);
+    }
+
+    #[test]
+    fn score_with_asks_the_model_only_when_the_prior_cannot_decide() {
+        let f = Fusion::parse("raster-homography-v1: 0.121524, 0.698698, 0, 0.25").unwrap();
+        let mut u = Utility::new(Some(f));
+        let sp = spec();
+        u.observe(Some((&frame(0.0), &sp)), false, true);
+        u.on_keep();
+        // 2 px of 160: tau_geo about 0.0125, far below what the threshold needs.
+        u.observe(Some((&frame(2.0), &sp)), true, true);
+        let never = || -> Result<f64, ()> { panic!("the model ran on a screened frame") };
+        let c = u.score_with(0.5, true, true, never).unwrap();
+        assert_eq!(c, Composed::Screened(u.screen(0.5, true).unwrap()));
+        // Screening off, or an error from the model: the model is asked and its answer used.
+        let c = u.score_with(0.5, true, false, || Ok::<_, ()>(0.6)).unwrap();
+        assert_eq!(c.utility(), u.compose(0.6, true).0);
+        assert!(matches!(c, Composed::Scored { s, tau_geo: Some(_), .. } if s == 0.6));
+        assert_eq!(
+            u.score_with(0.5, true, false, || Err::<f64, _>("failed")),
+            Err("failed")
+        );
     }
 }

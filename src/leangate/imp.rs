@@ -17,7 +17,7 @@ use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
 use crate::remote::{Backend, Interrupt, RemoteOptions, RemoteScorer};
 use crate::scorer::{ModelSource, Scorer, ScorerError, ScorerOptions};
 use crate::stats::{InferenceStats, StatsMessage};
-use crate::utility::Utility;
+use crate::utility::{Composed, Utility};
 
 static CAT: LazyLock<gst::DebugCategory> = LazyLock::new(|| {
     gst::DebugCategory::new(
@@ -364,44 +364,48 @@ impl LeanGate {
         let spec = &state.scorer.info().spec;
         let frame = frame_readable.then_some((&state.current[..], spec));
         state.utility.observe(frame, has_reference, fs.geometry);
-        // The prior alone drops the frame when no score of the model could keep it.
         let threshold = state.gate.config().threshold;
-        let screened = match pre {
-            Ok(()) if has_reference && fs.screen => state.utility.screen(threshold, fs.geometry),
-            _ => None,
-        };
-        let (score, utility) = match (pre, screened) {
-            (Err(e), _) => {
+        let mut screened = false;
+        let (score, utility) = match pre {
+            Err(e) => {
                 self.warn_rate_limited(state, out, &format!("cannot read frame: {e}"));
                 (Score::Failed, f64::NAN)
             }
-            (Ok(()), _) if !has_reference => (Score::NoReference, f64::NAN),
-            (Ok(()), Some(bound)) => {
-                gst::trace!(
-                    CAT,
-                    imp = self,
-                    "screened by the prior: utility <= {bound:.4}"
-                );
-                (Score::Utility(bound), bound)
-            }
-            (Ok(()), None) => match state.scorer.score(&state.reference, &state.current) {
-                Ok(s) => {
-                    let (u, g) = state.utility.compose(s as f64, fs.geometry);
-                    if let Some(g) = g {
-                        gst::trace!(CAT, imp = self, "student {s:.4} geometry {g:.4}");
+            Ok(()) if !has_reference => (Score::NoReference, f64::NAN),
+            Ok(()) => {
+                let (scorer, reference, current) =
+                    (&mut state.scorer, &state.reference, &state.current);
+                let model = || scorer.score(reference, current).map(f64::from);
+                match state
+                    .utility
+                    .score_with(threshold, fs.geometry, fs.screen, model)
+                {
+                    Ok(Composed::Screened(bound)) => {
+                        screened = true;
+                        gst::trace!(CAT, imp = self, "screened: utility <= {bound:.4}");
+                        (Score::Utility(bound), bound)
                     }
-                    (Score::Utility(u), u)
+                    Ok(Composed::Scored {
+                        utility,
+                        s,
+                        tau_geo,
+                    }) => {
+                        if let Some(g) = tau_geo {
+                            gst::trace!(CAT, imp = self, "student {s:.4} geometry {g:.4}");
+                        }
+                        (Score::Utility(utility), utility)
+                    }
+                    // Stopping or flushing (see `interrupt`): the frame goes nowhere.
+                    Err(ScorerError::Interrupted) => return Ok(None),
+                    Err(e) => {
+                        self.warn_rate_limited(state, out, &e.to_string());
+                        (Score::Failed, f64::NAN)
+                    }
                 }
-                // Stopping or flushing (see `interrupt`): the frame goes nowhere.
-                Err(ScorerError::Interrupted) => return Ok(None),
-                Err(e) => {
-                    self.warn_rate_limited(state, out, &e.to_string());
-                    (Score::Failed, f64::NAN)
-                }
-            },
+            }
         };
         let inference_us = t0.elapsed().as_micros().min(u64::MAX as u128) as u64;
-        if screened.is_some() {
+        if screened {
             self.frames_screened.fetch_add(1, Ordering::Relaxed);
         } else if matches!(score, Score::Utility(_)) {
             state.stats.record(inference_us);
@@ -417,7 +421,7 @@ impl LeanGate {
             // A split model reuses the features it just computed for this frame.
             state
                 .scorer
-                .on_keep(matches!(score, Score::Utility(_)) && screened.is_none());
+                .on_keep(matches!(score, Score::Utility(_)) && !screened);
             if !frame_readable {
                 // The frame could not be read: it cannot serve as a reference tensor.
                 state.gate.drop_reference();
@@ -463,7 +467,7 @@ impl LeanGate {
                 reference_pts,
                 frames_since_keyframe: decision.frames_since_keyframe.min(u32::MAX as u64) as u32,
                 inference_us,
-                screened: screened.is_some(),
+                screened,
             },
         }))
     }
