@@ -98,3 +98,50 @@ fn fuse_relu_only_is_idempotent_and_refuses_bad_builds_without_rewriting_either_
     // No such folder.
     refused(&python, &tmp.path().join("nowhere"), "nowhere");
 }
+
+/// `python -m training.quantize --head-only` (after `training.finetune`: keep an INT8 encoder,
+/// quantize the head alone) refuses what it cannot use before anything is written: no such INT8
+/// encoder, a file that is not ONNX, an FP32 encoder given as the INT8 one, a folder without the
+/// calibrated FP32 student. One line naming it, no traceback, the output folder not created.
+#[test]
+fn head_only_refuses_an_unusable_int8_encoder_before_writing_anything() {
+    let python = repo().join(".venv/bin/python");
+    if !python.exists() {
+        eprintln!("SKIPPED: {} missing (run `make setup`)", python.display());
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let junk = tmp.path().join("junk.onnx");
+    std::fs::write(&junk, "not a model").unwrap();
+    let models = repo().join("models");
+    let fp32 = models.join("leangate-s-encoder.onnx");
+    let missing = tmp.path().join("missing.onnx");
+    let cases: [(&Path, &Path, &str); 4] = [
+        (&models, &missing, "missing.onnx: no such file"),
+        (&models, &junk, "junk.onnx: not an ONNX model"),
+        (&models, &fp32, "not an INT8 encoder"),
+        (tmp.path(), &fp32, "leangate-s-encoder.onnx: no such file"),
+    ];
+    for (k, (from, int8, needle)) in cases.into_iter().enumerate() {
+        let out_dir = tmp.path().join(format!("out{k}"));
+        let out = Command::new(&python)
+            .current_dir(repo())
+            .args(["-m", "training.quantize", "--head-only", "--models"])
+            .arg(from)
+            .arg("--out-dir")
+            .arg(&out_dir)
+            .arg("--int8-encoder")
+            .arg(int8)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "case {k} accepted: {err}");
+        assert!(!err.contains("Traceback"), "case {k}: {err}");
+        let last = err.lines().last().unwrap_or("");
+        assert!(
+            last.contains(needle),
+            "case {k}: `{needle}` not named: {err}"
+        );
+        assert!(!out_dir.exists(), "case {k}: {} created", out_dir.display());
+    }
+}

@@ -26,7 +26,13 @@ leangate.* metadata, leangate.head pointing at the int8 head and leangate.precis
 reports the utility difference to the float student on tum_fr1_rpy's calibration part and
 7-Scenes pairs (never used to quantize).
 
-Usage: python -m training.quantize [--models models] [--out-dir models]
+`--head-only` (after `training.finetune`, whose encoder is the shipped one): the INT8 encoder of
+`--int8-encoder` (the shipped build) is copied into --out-dir with the new models' metadata, and only
+the head is quantized, its activation ranges observed on that encoder's features of --pairs pairs of
+the fine-tuning parts (`config.FINETUNE_PARTS`, real frames read from ../shared/data): the data the
+fine-tuned head was trained on. No cache is needed.
+
+Usage: python -m training.quantize [--models models] [--out-dir models] [--head-only]
 """
 import argparse
 import glob
@@ -36,7 +42,7 @@ import tempfile
 import numpy as np
 import onnx
 
-from .config import DATA_ROOT, MODELS_DIR, NAME
+from .config import ALL_SPLITS, DATA_ROOT, FINETUNE_PARTS, MODELS_DIR, NAME, SHARED
 from .preprocess import normalise
 
 
@@ -153,6 +159,59 @@ def quantize(src, dst, batches, ops):
                         weight_type=QuantType.QInt8, per_channel=True, reduce_range=True, op_types_to_quantize=ops)
 
 
+def int8_encoder_metadata(path):
+    """The metadata of the INT8 encoder `--head-only` keeps; a missing file or a build that is not
+    INT8 is an error naming it."""
+    if not os.path.isfile(path):
+        raise SystemExit(f"--int8-encoder {path}: no such file")
+    try:
+        old = metadata(path)
+    except Exception as e:  # not ONNX
+        raise SystemExit(f"--int8-encoder {path}: not an ONNX model ({str(e).splitlines()[0][:120]})")
+    if old.get("leangate.precision") != "int8" or old.get("leangate.kind") != "encoder":
+        raise SystemExit(f"--int8-encoder {path}: not an INT8 encoder (leangate.precision / leangate.kind)")
+    for name, part in FINETUNE_PARTS.items():
+        if not os.path.isdir(os.path.join(SHARED, name)):
+            raise SystemExit(f"{os.path.join(SHARED, name)} is missing: build it first (training/README.md, the importers)")
+    return old
+
+
+def quantize_head_only(a, head_f, enc_q, head_q, meta, old, rng, ops):
+    """`--head-only`: keep the INT8 encoder, quantize the head on real fine-tuning pairs."""
+    import onnxruntime as ort
+
+    from .preprocess import load_resized, read_list
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 2
+    encq = ort.InferenceSession(a.int8_encoder, so, providers=["CPUExecutionProvider"])
+    per = max(1, a.pairs // 16 // len(FINETUNE_PARTS))
+    batches = []
+    for name, part in FINETUNE_PARTS.items():
+        seq = os.path.join(SHARED, name)
+        lo, hi = ALL_SPLITS[name][part]
+        files = read_list(seq)[lo:hi + 1]
+        for _ in range(per):
+            j = rng.integers(0, len(files) - 1, 16)
+            i = np.minimum(j + rng.integers(1, 61, 16), len(files) - 1)
+            idx = np.unique(np.concatenate([i, j]))
+            F = dict(zip(idx.tolist(), encq.run(None, {"image": normalise(np.stack([load_resized(files[k]) for k in idx]))})[0]))
+            batches.append({"reference_features": np.stack([F[k] for k in j.tolist()]),
+                            "current_features": np.stack([F[k] for k in i.tolist()])})
+    quantize(head_f, head_q, batches, ops)
+    m = onnx.load(a.int8_encoder)
+    onnx.save(m, enc_q)
+    note = (f"; head: ONNX Runtime static QDQ, {'+'.join(ops)} int8 weights per channel (7-bit range), uint8 "
+            f"activations, min/max over {16 * len(batches)} real fine-tuning pairs (quantize --head-only)")
+    set_metadata(enc_q, {**old, **{k: v for k, v in meta.items() if k.startswith("leangate.") and k not in
+                                   ("leangate.precision", "leangate.head", "leangate.quantization", "leangate.kind")},
+                         "leangate.quantization": old.get("leangate.quantization", "") + note})
+    set_metadata(head_q, {**metadata(head_f), "leangate.precision": "int8",
+                          "leangate.quantization": old.get("leangate.quantization", "") + note})
+    for p in (enc_q, head_q):
+        print(f"{p}: {os.path.getsize(p) / 1e6:.2f} MB")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", default=MODELS_DIR, help="directory of the calibrated float leangate-s-*.onnx")
@@ -162,6 +221,10 @@ def main():
     ap.add_argument("--pairs", type=int, default=512)
     ap.add_argument("--ops", default="Conv")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--head-only", action="store_true",
+                    help="keep the INT8 encoder of --int8-encoder and quantize the head alone, on real fine-tuning pairs")
+    ap.add_argument("--int8-encoder", default=os.path.join(MODELS_DIR, f"{NAME}-int8-encoder.onnx"),
+                    help="with --head-only: the INT8 encoder to keep (default: the shipped one)")
     ap.add_argument("--fuse-relu-only", metavar="DIR",
                     help="only apply the Conv+ReLU fusion to the INT8 build in DIR, in place "
                          "(give a copy's directory: the shipped build is not fused)")
@@ -170,19 +233,26 @@ def main():
         for p, n in fuse_relu_build(a.fuse_relu_only):
             print(f"{p}: {n} Q/DQ pairs dropped")
         return
-    import onnxruntime as ort
-
     rng = np.random.default_rng(a.seed)
     ops = a.ops.split(",")
     enc_f = os.path.join(a.models, f"{NAME}-encoder.onnx")
     head_f = os.path.join(a.models, f"{NAME}-head.onnx")
     enc_q = os.path.join(a.out_dir, f"{NAME}-int8-encoder.onnx")
     head_q = os.path.join(a.out_dir, f"{NAME}-int8-head.onnx")
+    for p in (enc_f, head_f):
+        if not os.path.exists(p):
+            raise SystemExit(f"{p}: no such file (--models: the folder of the calibrated FP32 split student)")
     meta = metadata(enc_f)
     if "leangate.calibration" not in meta:
         raise SystemExit(f"{enc_f} is not calibrated: quantize the calibrated student")
     if meta.get("leangate.precision", "fp32") != "fp32":
         raise SystemExit(f"{enc_f} is already quantized")
+    if a.head_only:
+        old = int8_encoder_metadata(a.int8_encoder)  # checked before anything is written
+        os.makedirs(a.out_dir, exist_ok=True)
+        return quantize_head_only(a, head_f, enc_q, head_q, meta, old, rng, ops)
+    import onnxruntime as ort
+
     os.makedirs(a.out_dir, exist_ok=True)
 
     # training data only: tum_fr1_rpy's training part, synthetic training sequences, training photos

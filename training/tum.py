@@ -18,17 +18,17 @@ import subprocess
 
 import numpy as np
 
-from .config import LEANGATE, REAL_SPLITS, SHARED, TUM_SEQ, TUM_SPLIT
+from .config import ALL_SPLITS, LEANGATE, SHARED, TUM_SEQ, TUM_SPLIT
 from .preprocess import load_resized, read_list
 from .seqio import write_subset
 
 
 def make_part(root, part, src=None, seq=TUM_SEQ):
-    """Write one part of a real sequence's documented split (`config.REAL_SPLITS`) as a TUM-layout
+    """Write one part of a real sequence's documented split (`config.ALL_SPLITS`) as a TUM-layout
     directory: <root>/tum/<part>/ for tum_fr1_rpy (the training pipeline's layout), else
     <root>/<seq>/<part>/; returns its path."""
     src = src or os.path.join(SHARED, seq)
-    a, b = REAL_SPLITS[seq][part]
+    a, b = ALL_SPLITS[seq][part]
     out = os.path.join(root, "tum" if seq == TUM_SEQ else seq, part)
 
     def pick(rows, name):

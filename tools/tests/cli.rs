@@ -1304,3 +1304,126 @@ fn the_importers_refuse_hostile_input_with_one_line_and_write_nothing() {
         "a_file: exists and is not a folder",
     );
 }
+
+/// `<repo>/.venv/bin/python -m <module>` from the repository root, with this build's `leangate`
+/// (`$LEANGATE`), for the training tools that need numpy; None (the caller skips) without the venv.
+fn venv_module(module: &str) -> Option<Command> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let python = root.join(".venv/bin/python");
+    if !python.exists() {
+        eprintln!("SKIPPED: {} missing (run `make setup`)", python.display());
+        return None;
+    }
+    let mut c = Command::new(python);
+    c.current_dir(root)
+        .env("LEANGATE", env!("CARGO_BIN_EXE_leangate"))
+        .args(["-m", module]);
+    Some(c)
+}
+
+/// `training.overlap_check` splits the teacher's tau into the 3-D check, depth holes and the
+/// views' own geometry. On a synthetic pan (exact depth, no holes) the 3-D check removes almost
+/// nothing, the dense overlap equals the teacher without the check, everything grows with the gap,
+/// and the prior's tau_geo is reported beside it.
+#[test]
+fn overlap_check_decomposes_the_teachers_tau_on_a_synthetic_pan() {
+    let Some(mut cmd) = venv_module("training.overlap_check") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("pan");
+    synth(&seq, 40, "pan", 7);
+    let out = cmd
+        .arg(&seq)
+        .args(["--gaps", "1,10", "--every", "5"])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rows: Vec<Vec<f64>> = said
+        .lines()
+        .filter(|l| l.starts_with("| pan |"))
+        .map(|l| {
+            l.split('|')
+                .skip(2)
+                .filter(|c| !c.trim().is_empty())
+                .map(|c| c.trim().parse::<f64>().unwrap())
+                .collect()
+        })
+        .collect();
+    assert_eq!(rows.len(), 2, "{said}");
+    for r in &rows {
+        // gap, tau(0.1 m), tau(no check), dense tau, inside, far, tau_geo
+        assert_eq!(r.len(), 7, "{said}");
+        assert!(r.iter().all(|v| v.is_finite()), "{said}");
+        assert!(
+            r[2] <= r[1] + 1e-9,
+            "the check only removes matches: {said}"
+        );
+        assert!(
+            r[1] - r[2] < 0.03,
+            "exact depth: the check removes ~nothing: {said}"
+        );
+        assert!(
+            (r[3] - r[2]).abs() < 0.03,
+            "no holes: dense = teacher without the check: {said}"
+        );
+        assert!(r[4] > 0.0 && r[4] <= 1.0, "{said}");
+    }
+    assert!(
+        rows[1][1] > rows[0][1] + 0.05,
+        "tau grows with the gap: {said}"
+    );
+    assert!(
+        rows[1][6] > rows[0][6],
+        "tau_geo grows with the gap: {said}"
+    );
+}
+
+/// The head fine-tuning tools refuse bad arguments in one line before loading torch or data:
+/// `training.head_loso` with one sequence or a missing one, `training.overlap_check` with a missing
+/// sequence.
+#[test]
+fn finetune_tools_refuse_bad_sequences_in_one_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("nowhere");
+    let one = dir.path().join("one");
+    std::fs::create_dir_all(&one).unwrap();
+    let cases: [(&str, Vec<&Path>, &str); 3] = [
+        ("training.head_loso", vec![&one], "at least two"),
+        (
+            "training.head_loso",
+            vec![&one, &missing],
+            "nowhere: no such directory",
+        ),
+        (
+            "training.overlap_check",
+            vec![&missing],
+            "nowhere: no such sequence directory",
+        ),
+    ];
+    for (module, seqs, needle) in cases {
+        let Some(mut cmd) = venv_module(module) else {
+            return;
+        };
+        for s in &seqs {
+            if module == "training.head_loso" {
+                cmd.arg("--sequence");
+            }
+            cmd.arg(s);
+        }
+        let out = cmd.output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{module}: accepted: {err}");
+        assert!(!err.contains("Traceback"), "{module}: {err}");
+        let last = err.lines().last().unwrap_or("");
+        assert!(
+            last.contains(needle),
+            "{module}: `{needle}` not named: {err}"
+        );
+    }
+}

@@ -1,0 +1,128 @@
+"""Where the teacher's tau comes from on a real sequence, at a few frame gaps: the 0.1 m 3-D check,
+depth holes, or the geometry of the views itself.
+
+For pairs (reference j, current j + gap), j every `--every` frames, from the sequence's depth and
+ground-truth poses (depth at a quarter of the resolution), it prints the mean of:
+
+  * `tau(0.1 m)`: the teacher's own tau (`leangate label --max-dist 0.1`, its default);
+  * `tau(no check)`: the teacher without the 3-D check (`--max-dist 1e6`): a match only has to
+    land inside the reference on a pixel with depth;
+  * `dense tau`: the same overlap with every depth hole filled by the pair's median depth, so that
+    every pixel counts (what a dense pointmap would give): 1 - min(inside fraction, fraction of the
+    reference's pixels hit);
+  * `inside`: the fraction of the current frame's valid pixels that land inside the reference;
+  * `far`: the fraction of valid depth beyond 4 m;
+  * `tau_geo`: the element's prior on the same pairs (`leangate geometry`), for comparison.
+
+Usage: python -m training.overlap_check SEQ [SEQ ...] [--gaps 1,5,10,15] [--every 7]
+"""
+import argparse
+import os
+import subprocess
+import tempfile
+
+import numpy as np
+
+from .config import LEANGATE
+
+
+def rot(q):
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def rows(seq, name):
+    with open(os.path.join(seq, name)) as f:
+        return [line.split() for line in f if line.strip() and not line.startswith("#")]
+
+
+def load(seq):
+    from PIL import Image
+
+    fx, fy, cx, cy, scale = (float(v) for v in rows(seq, "intrinsics.txt")[0][:5])
+    poses = []
+    for r in rows(seq, "groundtruth.txt"):
+        T = np.eye(4)
+        T[:3, :3] = rot([float(v) for v in r[4:8]])
+        T[:3, 3] = [float(v) for v in r[1:4]]
+        poses.append(T)
+    depth = [r[1] for r in rows(seq, "depth.txt")]
+    if len(depth) != len(poses):
+        raise SystemExit(f"{seq}: {len(depth)} depth rows but {len(poses)} poses (one row per frame expected)")
+
+    def z(k):
+        return np.asarray(Image.open(os.path.join(seq, depth[k])), np.float64)[::4, ::4] / scale
+
+    return (fx / 4, fy / 4, cx / 4, cy / 4), poses, z
+
+
+def dense_tau(K, Pj, Pi, zi, zj):
+    fx, fy, cx, cy = K
+    med = np.median(np.concatenate([zi[zi > 0], zj[zj > 0]]))
+    h, w = zi.shape
+    v, u = np.mgrid[0:h, 0:w]
+
+    def project(z, fill):
+        zz = np.where(z > 0, z, fill) if fill else z
+        m = zz > 0
+        X = np.stack([(u - cx) / fx * zz, (v - cy) / fy * zz, zz, np.ones_like(zz)], -1)[m]
+        Y = (np.linalg.inv(Pj) @ Pi @ X.T).T
+        pu = np.round(fx * Y[:, 0] / Y[:, 2] + cx).astype(int)
+        pv = np.round(fy * Y[:, 1] / Y[:, 2] + cy).astype(int)
+        ins = (Y[:, 2] > 0) & (pu >= 0) & (pu < w) & (pv >= 0) & (pv < h)
+        return ins, pu[ins], pv[ins]
+
+    ins, _, _ = project(zi, None)
+    ins2, pu, pv = project(zi, med)
+    hit = np.zeros((h, w), bool)
+    hit[pv, pu] = True
+    return 1 - min(ins2.mean(), hit.mean()), ins.mean()
+
+
+def leangate_tau(seq, pairs, cmd):
+    with tempfile.TemporaryDirectory() as d:
+        p, o = os.path.join(d, "pairs.csv"), os.path.join(d, "out.csv")
+        with open(p, "w") as f:
+            f.write("i,j\n" + "".join(f"{i},{j}\n" for i, j in pairs))
+        subprocess.run([LEANGATE, *cmd, "--sequence", seq, "--pairs", p, "--out", o], check=True,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        with open(o) as f:
+            head = f.readline().strip().split(",")
+            col = head.index("tau" if "tau" in head else "tau_geo")
+            vals = [line.strip().split(",")[col] for line in f]
+    return np.array([float(v) if v else np.nan for v in vals])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("sequence", nargs="+")
+    ap.add_argument("--gaps", default="1,5,10,15")
+    ap.add_argument("--every", type=int, default=7, help="a reference every this many frames")
+    a = ap.parse_args()
+    gaps = [int(g) for g in a.gaps.split(",")]
+    print("| sequence | gap | tau (0.1 m) | tau (no check) | dense tau | inside | far (> 4 m) | tau_geo |")
+    print("|---|---|---|---|---|---|---|---|")
+    for seq in a.sequence:
+        if not os.path.isdir(seq):
+            raise SystemExit(f"{seq}: no such sequence directory")
+        K, poses, z = load(seq)
+        for g in gaps:
+            pairs = [(j + g, j) for j in range(0, len(poses) - g, a.every)]
+            t01 = leangate_tau(seq, pairs, ["label"])
+            tinf = leangate_tau(seq, pairs, ["label", "--max-dist", "1000000"])
+            geo = leangate_tau(seq, pairs, ["geometry"])
+            dense, inside, far = [], [], []
+            for i, j in pairs:
+                zi, zj = z(i), z(j)
+                d, ins = dense_tau(K, poses[j], poses[i], zi, zj)
+                dense.append(d)
+                inside.append(ins)
+                far.append((zi[zi > 0] > 4).mean())
+            print(f"| {os.path.basename(os.path.normpath(seq))} | {g} | {t01.mean():.3f} | {tinf.mean():.3f} | "
+                  f"{np.mean(dense):.3f} | {np.mean(inside):.3f} | {np.mean(far):.3f} | {np.nanmean(geo):.3f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
