@@ -36,6 +36,25 @@ from .preprocess import load_resized, read_list
 HORIZON = 120  # the cached teacher tables (fuse.sequence_data) hold every frame's next 120 frames
 
 
+def need_torch():
+    """torch, or an error saying how to install it (only the fine-tuning steps need it)."""
+    try:
+        import torch
+    except ModuleNotFoundError:
+        raise SystemExit("this step needs torch: .venv-train/bin/pip install -r training/requirements.txt "
+                         "(training/README.md, Setup)")
+    return torch
+
+
+def check_sequence(seq, what="--sequence"):
+    """Exit with an error naming `seq` unless it is a sequence folder with depth and poses."""
+    if not os.path.isdir(seq):
+        raise SystemExit(f"{what} {seq}: no such directory")
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.txt"):
+        if not os.path.isfile(os.path.join(seq, name)):
+            raise SystemExit(f"{what} {seq}: not a sequence with depth and poses (no {name})")
+
+
 def calibration(path):
     """(knots, widths, slopes, offset) of the calibration baked into a head (`calibrate.bake`)."""
     import onnx
@@ -155,8 +174,8 @@ def main():
     for name, seq in seqs.items():
         if not os.path.isdir(seq):
             raise SystemExit(f"{seq} is missing: build it first (training/README.md, the importers)")
-    import torch
-
+        check_sequence(seq, "fine-tuning data")
+    torch = need_torch()
     torch.set_num_threads(2)
     shipped = Shipped(a.models)
     tabs = load_tables(seqs, a.models, a.tables)

@@ -25,7 +25,7 @@ import os
 import numpy as np
 
 from .config import DATA_ROOT, MODELS_DIR
-from .finetune import HORIZON, Shipped, features, finetune_head, load_tables
+from .finetune import HORIZON, Shipped, check_sequence, features, finetune_head, load_tables, need_torch
 from .fuse import STUDENT_WEIGHT, Fusion, cell, evaluate, fit
 
 
@@ -44,11 +44,11 @@ def main():
         raise SystemExit("--sequence: give at least two (one is left out at a time)")
     seqs = {}
     for s in a.sequence:
-        if not os.path.isdir(s):
-            raise SystemExit(f"--sequence {s}: no such directory")
+        check_sequence(s)
         seqs[os.path.basename(os.path.normpath(s))] = s
-    import torch
-
+    if len(seqs) != len(a.sequence):
+        raise SystemExit("--sequence: two sequences share a folder name (their tables would collide)")
+    torch = need_torch()
     torch.set_num_threads(2)
     shipped = Shipped(a.models)
     tabs = load_tables(seqs, a.models, a.tables)

@@ -24,6 +24,7 @@ import tempfile
 import numpy as np
 
 from .config import LEANGATE
+from .seqio import check_intrinsics
 
 
 def rot(q):
@@ -34,26 +35,44 @@ def rot(q):
 
 
 def rows(seq, name):
-    with open(os.path.join(seq, name)) as f:
-        return [line.split() for line in f if line.strip() and not line.startswith("#")]
+    path = os.path.join(seq, name)
+    try:
+        with open(path) as f:
+            return [(n, line.split()) for n, line in enumerate(f, 1) if line.strip() and not line.startswith("#")]
+    except (OSError, UnicodeDecodeError) as e:
+        raise SystemExit(f"{path}: cannot read it: {getattr(e, 'strerror', None) or e}")
 
 
 def load(seq):
+    """Intrinsics (at the quarter resolution), camera-to-world poses and a depth reader (metres) of a
+    one-row-per-frame sequence; bad input is an error naming the file and line."""
     from PIL import Image
 
-    fx, fy, cx, cy, scale = (float(v) for v in rows(seq, "intrinsics.txt")[0][:5])
+    check_intrinsics(os.path.join(seq, "intrinsics.txt"))
+    fx, fy, cx, cy, scale = (float(v) for v in rows(seq, "intrinsics.txt")[0][1][:5])
+    gt = os.path.join(seq, "groundtruth.txt")
     poses = []
-    for r in rows(seq, "groundtruth.txt"):
+    for n, r in rows(seq, "groundtruth.txt"):
+        try:
+            v = [float(x) for x in r[1:8]]
+        except ValueError:
+            v = []
+        q = np.array(v[3:7]) if len(v) == 7 else np.zeros(4)
+        if len(v) != 7 or not np.all(np.isfinite(v)) or abs(np.linalg.norm(q) - 1) > 1e-3:
+            raise SystemExit(f"{gt}:{n}: not `t tx ty tz qx qy qz qw` with a unit quaternion")
         T = np.eye(4)
-        T[:3, :3] = rot([float(v) for v in r[4:8]])
-        T[:3, 3] = [float(v) for v in r[1:4]]
+        T[:3, :3] = rot(q)
+        T[:3, 3] = v[:3]
         poses.append(T)
-    depth = [r[1] for r in rows(seq, "depth.txt")]
+    depth = [os.path.join(seq, r[1]) for _, r in rows(seq, "depth.txt") if len(r) > 1]
     if len(depth) != len(poses):
         raise SystemExit(f"{seq}: {len(depth)} depth rows but {len(poses)} poses (one row per frame expected)")
 
     def z(k):
-        return np.asarray(Image.open(os.path.join(seq, depth[k])), np.float64)[::4, ::4] / scale
+        try:
+            return np.asarray(Image.open(depth[k]), np.float64)[::4, ::4] / scale
+        except OSError as e:
+            raise SystemExit(f"{depth[k]}: cannot read it as a depth image ({e})")
 
     return (fx / 4, fy / 4, cx / 4, cy / 4), poses, z
 
@@ -86,8 +105,11 @@ def leangate_tau(seq, pairs, cmd):
         p, o = os.path.join(d, "pairs.csv"), os.path.join(d, "out.csv")
         with open(p, "w") as f:
             f.write("i,j\n" + "".join(f"{i},{j}\n" for i, j in pairs))
-        subprocess.run([LEANGATE, *cmd, "--sequence", seq, "--pairs", p, "--out", o], check=True,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        r = subprocess.run([LEANGATE, *cmd, "--sequence", seq, "--pairs", p, "--out", o],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if r.returncode != 0:
+            last = (r.stderr.strip().splitlines() or ["no message"])[-1]
+            raise SystemExit(f"leangate {cmd[0]} on {seq} failed: {last}")
         with open(o) as f:
             head = f.readline().strip().split(",")
             col = head.index("tau" if "tau" in head else "tau_geo")
@@ -101,13 +123,22 @@ def main():
     ap.add_argument("--gaps", default="1,5,10,15")
     ap.add_argument("--every", type=int, default=7, help="a reference every this many frames")
     a = ap.parse_args()
-    gaps = [int(g) for g in a.gaps.split(",")]
+    try:
+        gaps = [int(g) for g in a.gaps.split(",")]
+    except ValueError:
+        gaps = []
+    if not gaps or min(gaps) < 1:
+        raise SystemExit(f"--gaps {a.gaps}: expected comma-separated frame gaps of at least 1")
+    if a.every < 1:
+        raise SystemExit(f"--every {a.every}: expected at least 1")
     print("| sequence | gap | tau (0.1 m) | tau (no check) | dense tau | inside | far (> 4 m) | tau_geo |")
     print("|---|---|---|---|---|---|---|---|")
     for seq in a.sequence:
         if not os.path.isdir(seq):
             raise SystemExit(f"{seq}: no such sequence directory")
         K, poses, z = load(seq)
+        if max(gaps) >= len(poses):
+            raise SystemExit(f"--gaps {a.gaps}: {seq} has {len(poses)} frames, fewer than the largest gap + 1")
         for g in gaps:
             pairs = [(j + g, j) for j in range(0, len(poses) - g, a.every)]
             t01 = leangate_tau(seq, pairs, ["label"])

@@ -1384,46 +1384,110 @@ fn overlap_check_decomposes_the_teachers_tau_on_a_synthetic_pan() {
     );
 }
 
-/// The head fine-tuning tools refuse bad arguments in one line before loading torch or data:
-/// `training.head_loso` with one sequence or a missing one, `training.overlap_check` with a missing
-/// sequence.
+/// The fine-tuning and diagnosis tools refuse bad input in one line naming it, before loading
+/// torch or any data: `training.head_loso` with one sequence, a missing one or a folder that is no
+/// sequence, and without torch a clear "needs torch"; `training.overlap_check` with a missing
+/// sequence, bad `--gaps`, a gap longer than the sequence, broken intrinsics or a broken pose row.
 #[test]
-fn finetune_tools_refuse_bad_sequences_in_one_line() {
+fn finetune_tools_refuse_bad_input_in_one_line() {
     let dir = tempfile::tempdir().unwrap();
     let missing = dir.path().join("nowhere");
-    let one = dir.path().join("one");
-    std::fs::create_dir_all(&one).unwrap();
-    let cases: [(&str, Vec<&Path>, &str); 3] = [
-        ("training.head_loso", vec![&one], "at least two"),
+    let empty = dir.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    synth(&a, 8, "pan", 3);
+    synth(&b, 8, "pan", 4);
+    let copy = |name: &str, file: &str, text: &str| {
+        let d = dir.path().join(name);
+        std::fs::create_dir_all(&d).unwrap();
+        for e in std::fs::read_dir(&a).unwrap() {
+            let e = e.unwrap();
+            if e.file_type().unwrap().is_file() {
+                std::fs::copy(e.path(), d.join(e.file_name())).unwrap();
+            }
+        }
+        for sub in ["rgb", "depth"] {
+            if a.join(sub).is_dir() {
+                std::os::unix::fs::symlink(a.join(sub), d.join(sub)).unwrap();
+            }
+        }
+        std::fs::write(d.join(file), text).unwrap();
+        d
+    };
+    let bad_k = copy("bad_k", "intrinsics.txt", "fx fy cx cy 5000\n");
+    let gt = std::fs::read_to_string(a.join("groundtruth.txt")).unwrap();
+    let mut lines: Vec<String> = gt.lines().map(str::to_string).collect();
+    let first = lines.iter().position(|l| !l.starts_with('#')).unwrap();
+    lines[first] = "0.0 0 0 0 0 0 0 0".into();
+    let bad_gt = copy("bad_gt", "groundtruth.txt", &(lines.join("\n") + "\n"));
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let has_torch = Command::new(root.join(".venv/bin/python"))
+        .args(["-c", "import torch"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    let s = |p: &Path| p.to_string_lossy().into_owned();
+    let loso = |seqs: &[&Path]| -> Vec<String> {
+        seqs.iter()
+            .flat_map(|p| ["--sequence".to_string(), s(p)])
+            .collect()
+    };
+    let mut cases: Vec<(&str, Vec<String>, &str)> = vec![
+        ("training.head_loso", loso(&[&a]), "at least two"),
         (
             "training.head_loso",
-            vec![&one, &missing],
+            loso(&[&a, &missing]),
             "nowhere: no such directory",
         ),
         (
+            "training.head_loso",
+            loso(&[&a, &empty]),
+            "not a sequence with depth and poses (no rgb.txt)",
+        ),
+        (
             "training.overlap_check",
-            vec![&missing],
+            vec![s(&missing)],
             "nowhere: no such sequence directory",
         ),
+        (
+            "training.overlap_check",
+            vec![s(&a), "--gaps".into(), "x".into()],
+            "--gaps x: expected",
+        ),
+        (
+            "training.overlap_check",
+            vec![s(&a), "--gaps".into(), "20".into()],
+            "fewer than the largest gap",
+        ),
+        (
+            "training.overlap_check",
+            vec![s(&bad_k)],
+            "intrinsics.txt:1",
+        ),
+        (
+            "training.overlap_check",
+            vec![s(&bad_gt)],
+            "groundtruth.txt",
+        ),
     ];
-    for (module, seqs, needle) in cases {
+    if !has_torch {
+        cases.push((
+            "training.head_loso",
+            loso(&[&a, &b]),
+            "this step needs torch",
+        ));
+    }
+    for (module, args, needle) in cases {
         let Some(mut cmd) = venv_module(module) else {
             return;
         };
-        for s in &seqs {
-            if module == "training.head_loso" {
-                cmd.arg("--sequence");
-            }
-            cmd.arg(s);
-        }
-        let out = cmd.output().unwrap();
+        let out = cmd.args(&args).output().unwrap();
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success(), "{module}: accepted: {err}");
-        assert!(!err.contains("Traceback"), "{module}: {err}");
+        assert!(!out.status.success(), "{module} {args:?}: accepted: {err}");
+        assert!(!err.contains("Traceback"), "{module} {args:?}: {err}");
         let last = err.lines().last().unwrap_or("");
         assert!(
             last.contains(needle),
-            "{module}: `{needle}` not named: {err}"
+            "{module} {args:?}: `{needle}` not named: {err}"
         );
     }
 }
