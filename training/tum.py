@@ -85,3 +85,33 @@ def build(root, horizon=45):
         np.savez(out, frames=frames, pairs=pairs)
         h, _ = np.histogram(pairs[:, 2], bins=10, range=(0, 1))
         print(f"tum {part}: {len(files)} frames, {len(pairs)} labelled pairs, tau histogram {h.tolist()}", flush=True)
+
+
+def main():
+    import argparse
+
+    from .config import DATA_ROOT
+
+    ap = argparse.ArgumentParser(description="Write parts of the documented splits (config.ALL_SPLITS) as TUM-layout "
+                                             "folders <root>/<sequence>/<part>/ (tum_fr1_rpy: <root>/tum/<part>/) for "
+                                             "`leangate eval`; nothing is copied but the intrinsics.")
+    ap.add_argument("--part", action="append", required=True, metavar="SEQUENCE:PART",
+                    help="e.g. tum_fr1_xyz:test (repeat); " + "; ".join(f"{s}: {', '.join(p)}" for s, p in ALL_SPLITS.items()))
+    ap.add_argument("--root", default=DATA_ROOT)
+    a = ap.parse_args()
+    todo = []
+    for spec in a.part:
+        seq, _, part = spec.partition(":")
+        if seq not in ALL_SPLITS or part not in ALL_SPLITS[seq]:
+            raise SystemExit(f"--part {spec}: not a documented part (one of "
+                             + ", ".join(f"{s}:{p}" for s, ps in ALL_SPLITS.items() for p in ps) + ")")
+        src = os.path.join(SHARED, seq)
+        if not os.path.isdir(src):
+            raise SystemExit(f"--part {spec}: {src} is missing (training/README.md says how to build it)")
+        todo.append((seq, part))
+    for seq, part in todo:
+        print(make_part(a.root, part, seq=seq))
+
+
+if __name__ == "__main__":
+    main()

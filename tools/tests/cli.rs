@@ -1491,3 +1491,78 @@ fn finetune_tools_refuse_bad_input_in_one_line() {
         );
     }
 }
+
+/// `python -m training.tum --part SEQUENCE:PART` writes a documented part of a real sequence as a
+/// TUM folder whose lists keep exactly that part's rows (tum_fr1_desk's test part: frames 300–571,
+/// 272 rows each) and that `leangate eval` reads; an undocumented part is one line listing the
+/// documented ones, and nothing is written.
+#[test]
+fn documented_parts_are_written_for_eval() {
+    let Some(desk) = shared_data("tum_fr1_desk") else {
+        return;
+    };
+    let root = tempfile::tempdir().unwrap();
+    let Some(mut cmd) = venv_module("training.tum") else {
+        return;
+    };
+    let out = cmd
+        .args(["--part", "tum_fr1_desk:test", "--root"])
+        .arg(root.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let part = root.path().join("tum_fr1_desk").join("test");
+    let body = |dir: &Path, name: &str| -> Vec<String> {
+        std::fs::read_to_string(dir.join(name))
+            .unwrap()
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .map(str::to_string)
+            .collect()
+    };
+    for name in ["rgb.txt", "depth.txt", "groundtruth.txt"] {
+        let whole = body(&desk, name);
+        let rows = body(&part, name);
+        assert_eq!(rows.len(), 272, "{name}");
+        // the same rows (timestamps and poses), images by absolute path
+        let key = |l: &String| l.split_whitespace().next().unwrap().to_string();
+        assert_eq!(
+            rows.iter().map(key).collect::<Vec<_>>(),
+            whole[300..572].iter().map(key).collect::<Vec<_>>(),
+            "{name}"
+        );
+    }
+    let oracle = leangate()
+        .args(["label", "--sequence"])
+        .arg(&part)
+        .output()
+        .unwrap();
+    assert!(
+        oracle.status.success(),
+        "{}",
+        String::from_utf8_lossy(&oracle.stderr)
+    );
+
+    let Some(mut cmd) = venv_module("training.tum") else {
+        return;
+    };
+    let bad = cmd
+        .args(["--part", "tum_fr1_desk:train", "--root"])
+        .arg(root.path().join("bad"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && !err.contains("Traceback"), "{err}");
+    assert!(
+        err.lines()
+            .last()
+            .unwrap_or("")
+            .contains("tum_fr1_desk:train: not a documented part"),
+        "{err}"
+    );
+    assert!(!root.path().join("bad").exists());
+}
