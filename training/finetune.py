@@ -32,6 +32,7 @@ from .calibrate import bake, encode
 from .config import ALL_SPLITS, DATA_ROOT, FINETUNE_PARTS, MODELS_DIR, NAME, SHARED
 from .fuse import decision_weight, sequence_data
 from .preprocess import load_resized, read_list
+from .quantize import metadata, set_metadata
 
 HORIZON = 120  # the cached teacher tables (fuse.sequence_data) hold every frame's next 120 frames
 
@@ -188,10 +189,7 @@ def main():
     ckpt = os.path.join(a.out, "finetuned.pt")
     torch.save({"model": model.state_dict(), "arch": "s16", "step": a.steps}, ckpt)
     subprocess.run([sys.executable, "-m", "training.export", "--ckpt", ckpt, "--out-dir", a.out], check=True)
-    import onnx
-
-    enc = onnx.load(shipped.enc_path)
-    old = {p.key: p.value for p in enc.metadata_props}
+    old = metadata(shipped.enc_path)
     note = (f"; head fine-tuned through this calibration for {a.steps} steps on "
             + ", ".join(f"{n} frames {s}-{e}" for n, (s, e) in spans.items()) + " (training.finetune)")
     meta = {"leangate.threshold": old["leangate.threshold"], "leangate.calibration": old["leangate.calibration"] + note}
@@ -199,13 +197,7 @@ def main():
         bake(os.path.join(a.out, n), shipped.knots, shipped.v0, shipped.slopes, meta)
     p = os.path.join(a.out, f"{NAME}-encoder.onnx")
     shutil.copyfile(shipped.enc_path, p)  # the encoder is not trained: keep the shipped file's weights exactly
-    m = onnx.load(p)
-    keep = [q for q in m.metadata_props if q.key not in meta]
-    del m.metadata_props[:]
-    m.metadata_props.extend(keep)
-    for k, v in meta.items():
-        m.metadata_props.add(key=k, value=v)
-    onnx.save(m, p)
+    set_metadata(p, {**metadata(p), **meta})
     # check: the calibrated export against the fine-tuned torch model through the calibration
     import onnxruntime as ort
 
