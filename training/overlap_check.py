@@ -18,53 +18,33 @@ Usage: python -m training.overlap_check SEQ [SEQ ...] [--gaps 1,5,10,15] [--ever
 """
 import argparse
 import os
-import subprocess
 import tempfile
 
 import numpy as np
 
-from .config import LEANGATE
-from .seqio import check_intrinsics
-
-
-def rot(q):
-    x, y, z, w = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def rows(seq, name):
-    path = os.path.join(seq, name)
-    try:
-        with open(path) as f:
-            return [(n, line.split()) for n, line in enumerate(f, 1) if line.strip() and not line.startswith("#")]
-    except (OSError, UnicodeDecodeError) as e:
-        raise SystemExit(f"{path}: cannot read it: {getattr(e, 'strerror', None) or e}")
+from .fuse import _csv, _run
+from .import_tum import check_pose, read_list
+from .seqio import check_intrinsics, rows
+from .tum import quat_to_rot
 
 
 def load(seq):
     """Intrinsics (at the quarter resolution), camera-to-world poses and a depth reader (metres) of a
-    one-row-per-frame sequence; bad input is an error naming the file and line."""
+    one-row-per-frame sequence; bad input is an error naming the file (the importers' checks)."""
     from PIL import Image
 
     check_intrinsics(os.path.join(seq, "intrinsics.txt"))
-    fx, fy, cx, cy, scale = (float(v) for v in rows(seq, "intrinsics.txt")[0][1][:5])
+    fx, fy, cx, cy, scale = (float(v) for v in rows(os.path.join(seq, "intrinsics.txt"))[1][0].split()[:5])
     gt = os.path.join(seq, "groundtruth.txt")
     poses = []
-    for n, r in rows(seq, "groundtruth.txt"):
-        try:
-            v = [float(x) for x in r[1:8]]
-        except ValueError:
-            v = []
-        q = np.array(v[3:7]) if len(v) == 7 else np.zeros(4)
-        if len(v) != 7 or not np.all(np.isfinite(v)) or abs(np.linalg.norm(q) - 1) > 1e-3:
-            raise SystemExit(f"{gt}:{n}: not `t tx ty tz qx qy qz qw` with a unit quaternion")
+    for t, rest in read_list(gt):
+        check_pose(gt, t, rest)
+        v = [float(x) for x in rest.split()]
         T = np.eye(4)
-        T[:3, :3] = rot(q)
+        T[:3, :3] = quat_to_rot(np.array(v[3:7]) / np.linalg.norm(v[3:7]))
         T[:3, 3] = v[:3]
         poses.append(T)
-    depth = [os.path.join(seq, r[1]) for _, r in rows(seq, "depth.txt") if len(r) > 1]
+    depth = [os.path.join(seq, rest.split()[0]) for _, rest in read_list(os.path.join(seq, "depth.txt")) if rest]
     if len(depth) != len(poses):
         raise SystemExit(f"{seq}: {len(depth)} depth rows but {len(poses)} poses (one row per frame expected)")
 
@@ -101,20 +81,17 @@ def dense_tau(K, Pj, Pi, zi, zj):
 
 
 def leangate_tau(seq, pairs, cmd):
+    """tau (`label`) or tau_geo (`geometry`) of `pairs` [(i, j)], NaN where undefined."""
     with tempfile.TemporaryDirectory() as d:
         p, o = os.path.join(d, "pairs.csv"), os.path.join(d, "out.csv")
         with open(p, "w") as f:
             f.write("i,j\n" + "".join(f"{i},{j}\n" for i, j in pairs))
-        r = subprocess.run([LEANGATE, *cmd, "--sequence", seq, "--pairs", p, "--out", o],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        if r.returncode != 0:
-            last = (r.stderr.strip().splitlines() or ["no message"])[-1]
-            raise SystemExit(f"leangate {cmd[0]} on {seq} failed: {last}")
-        with open(o) as f:
-            head = f.readline().strip().split(",")
-            col = head.index("tau" if "tau" in head else "tau_geo")
-            vals = [line.strip().split(",")[col] for line in f]
-    return np.array([float(v) if v else np.nan for v in vals])
+        try:
+            _run([*cmd, "--sequence", seq, "--pairs", p, "--out", o])
+        except RuntimeError as e:
+            raise SystemExit(f"leangate {cmd[0]} on {seq} failed: {str(e).strip().splitlines()[-1]}")
+        tab = _csv(o)
+    return np.atleast_1d(tab["tau" if "tau" in tab.dtype.names else "tau_geo"]).astype(float)
 
 
 def main():

@@ -21,13 +21,7 @@ from .calibrate import encode, score_pairs, sessions
 from .compare import pair_set
 from .config import DATA_ROOT
 from .seqio import rows as _rows
-
-
-def quat_to_rot(q):
-    x, y, z, w = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+from .tum import quat_to_rot
 
 
 def nearest(stamps, ts):

@@ -23,6 +23,14 @@ from .preprocess import load_resized, read_list
 from .seqio import write_subset
 
 
+def quat_to_rot(q):
+    """The rotation matrix of a TUM quaternion `qx qy qz qw` (unit length)."""
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
 def make_part(root, part, src=None, seq=TUM_SEQ):
     """Write one part of a real sequence's documented split (`config.ALL_SPLITS`) as a TUM-layout
     directory: <root>/tum/<part>/ for tum_fr1_rpy (the training pipeline's layout), else
