@@ -7,6 +7,10 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+#[path = "common/refusal.rs"]
+mod refusal;
+use refusal::assert_refused;
+
 const BUILD: [&str; 2] = ["leangate-s-int8-encoder.onnx", "leangate-s-int8-head.onnx"];
 
 fn repo() -> PathBuf {
@@ -32,12 +36,7 @@ fn files(dir: &Path) -> Vec<Option<Vec<u8>>> {
 /// A refusal: non-zero, no traceback, the last line naming `needle`, and the folder as it was.
 fn refused(python: &Path, dir: &Path, needle: &str) {
     let before = files(dir);
-    let out = fuse(python, dir);
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "accepted: {err}");
-    assert!(!err.contains("Traceback"), "{err}");
-    let last = err.lines().last().unwrap_or("");
-    assert!(last.contains(needle), "`{needle}` not named: {err}");
+    let err = assert_refused(&fuse(python, dir), &dir.display().to_string(), needle);
     assert!(files(dir) == before, "{} rewritten: {err}", dir.display());
     let left: Vec<_> = std::fs::read_dir(dir)
         .map(|d| d.map(|e| e.unwrap().file_name()).collect())
@@ -134,14 +133,7 @@ fn head_only_refuses_an_unusable_int8_encoder_before_writing_anything() {
             .arg(int8)
             .output()
             .unwrap();
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success(), "case {k} accepted: {err}");
-        assert!(!err.contains("Traceback"), "case {k}: {err}");
-        let last = err.lines().last().unwrap_or("");
-        assert!(
-            last.contains(needle),
-            "case {k}: `{needle}` not named: {err}"
-        );
+        assert_refused(&out, &format!("case {k}"), needle);
         assert!(!out_dir.exists(), "case {k}: {} created", out_dir.display());
     }
 }

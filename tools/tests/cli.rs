@@ -16,6 +16,10 @@ fn python_module(module: &str) -> Command {
     c
 }
 
+#[path = "../../tests/common/refusal.rs"]
+mod refusal;
+use refusal::assert_refused;
+
 #[path = "../../tests/common/paths.rs"]
 #[allow(dead_code)]
 mod paths;
@@ -1094,14 +1098,8 @@ fn refuse_import(module: &str, args: &[&Path], extra: &[&str], out: &Path, needl
         .args(extra)
         .output()
         .unwrap();
-    let err = String::from_utf8_lossy(&res.stderr);
+    let err = assert_refused(&res, &format!("{module} {extra:?}"), needle);
     let last = err.lines().last().unwrap_or("");
-    assert!(!res.status.success(), "{module} {extra:?}: accepted\n{err}");
-    assert!(!err.contains("Traceback"), "{module} {extra:?}: {err}");
-    assert!(
-        last.contains(needle),
-        "{module} {extra:?}: `{needle}` not named: {err}"
-    );
     assert!(!last.contains("choose from"), "one short line: {last}");
     match before {
         Some(b) => assert_eq!(
@@ -1481,14 +1479,7 @@ fn finetune_tools_refuse_bad_input_in_one_line() {
             return;
         };
         let out = cmd.args(&args).output().unwrap();
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success(), "{module} {args:?}: accepted: {err}");
-        assert!(!err.contains("Traceback"), "{module} {args:?}: {err}");
-        let last = err.lines().last().unwrap_or("");
-        assert!(
-            last.contains(needle),
-            "{module} {args:?}: `{needle}` not named: {err}"
-        );
+        assert_refused(&out, &format!("{module} {args:?}"), needle);
     }
 }
 
@@ -1555,14 +1546,10 @@ fn documented_parts_are_written_for_eval() {
         .arg(root.path().join("bad"))
         .output()
         .unwrap();
-    let err = String::from_utf8_lossy(&bad.stderr);
-    assert!(!bad.status.success() && !err.contains("Traceback"), "{err}");
-    assert!(
-        err.lines()
-            .last()
-            .unwrap_or("")
-            .contains("tum_fr1_desk:train: not a documented part"),
-        "{err}"
+    assert_refused(
+        &bad,
+        "training.tum --part tum_fr1_desk:train",
+        "tum_fr1_desk:train: not a documented part",
     );
     assert!(!root.path().join("bad").exists());
 }
