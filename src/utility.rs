@@ -183,6 +183,14 @@ mod tests {
         t
     }
 
+    /// A utility with the fusion `fusion`, its reference the unshifted picture.
+    fn referenced(fusion: &str) -> Utility {
+        let mut u = Utility::new(Some(Fusion::parse(fusion).unwrap()));
+        u.observe(Some((&frame(0.0), &spec())), false, true);
+        u.on_keep();
+        u
+    }
+
     #[test]
     fn without_fusion_the_score_passes_through() {
         let mut u = Utility::new(None);
@@ -194,11 +202,8 @@ mod tests {
     #[test]
     fn fuses_the_prior_of_a_pan_and_falls_back_when_off() {
         // weights 0, 1, 0, 0: the utility is tau_geo itself.
-        let f = Fusion::parse("raster-homography-v1: 0, 1, 0, 0").unwrap();
-        let mut u = Utility::new(Some(f));
+        let mut u = referenced("raster-homography-v1: 0, 1, 0, 0");
         let sp = spec();
-        u.observe(Some((&frame(0.0), &sp)), false, true);
-        u.on_keep();
         let mut last = 0.0;
         for k in 1..=10 {
             u.observe(Some((&frame(2.0 * k as f32), &sp)), true, true);
@@ -231,11 +236,8 @@ mod tests {
 
     #[test]
     fn an_unreadable_frame_or_a_failed_score_loses_nothing() {
-        let f = Fusion::parse("raster-homography-v1: 0.1, 0.8, 0, 0.2").unwrap();
-        let mut u = Utility::new(Some(f));
+        let mut u = referenced("raster-homography-v1: 0.1, 0.8, 0, 0.2");
         let sp = spec();
-        u.observe(Some((&frame(0.0), &sp)), false, true);
-        u.on_keep();
         u.observe(None, true, true);
         assert_eq!(u.compose(0.4, true), (0.4, None));
         // NaN from the model stays NaN (the gate keeps the frame: fail open).
@@ -291,11 +293,8 @@ mod tests {
 
     #[test]
     fn score_with_asks_the_model_only_when_the_prior_cannot_decide() {
-        let f = Fusion::parse("raster-homography-v1: 0.121524, 0.698698, 0, 0.25").unwrap();
-        let mut u = Utility::new(Some(f));
+        let mut u = referenced("raster-homography-v1: 0.121524, 0.698698, 0, 0.25");
         let sp = spec();
-        u.observe(Some((&frame(0.0), &sp)), false, true);
-        u.on_keep();
         // 2 px of 160: tau_geo about 0.0125, far below what the threshold needs.
         u.observe(Some((&frame(2.0), &sp)), true, true);
         let never = || -> Result<f64, ()> { panic!("the model ran on a screened frame") };
