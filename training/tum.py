@@ -20,7 +20,7 @@ import numpy as np
 
 from .config import ALL_SPLITS, LEANGATE, SHARED, TUM_SEQ, TUM_SPLIT
 from .preprocess import load_resized, read_list
-from .seqio import rows, write_subset
+from .seqio import write_subset
 
 
 def quat_to_rot(q):
@@ -31,25 +31,20 @@ def quat_to_rot(q):
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
-def make_part(root, part, src=None, seq=TUM_SEQ, phase=0):
-    """Write one part of a real sequence's documented split (`config.ALL_SPLITS`; `all`: the whole
-    sequence, for any sequence) as a TUM-layout directory: <root>/tum/<part>/ for tum_fr1_rpy (the
-    training pipeline's layout), else <root>/<seq>/<part>/; returns its path. `phase` k > 0 starts
-    it k frames later, into <part>-p<k>/ (the same last frame)."""
+def make_part(root, part, src=None, seq=TUM_SEQ):
+    """Write one part of a real sequence's documented split (`config.ALL_SPLITS`) as a TUM-layout
+    directory: <root>/tum/<part>/ for tum_fr1_rpy (the training pipeline's layout), else
+    <root>/<seq>/<part>/; returns its path."""
     src = src or os.path.join(SHARED, seq)
-    a, b = (0, None) if part == "all" else ALL_SPLITS[seq][part]
-    name = part if phase == 0 else f"{part}-p{phase}"
-    out = os.path.join(root, "tum" if seq == TUM_SEQ else seq, name)
+    a, b = ALL_SPLITS[seq][part]
+    out = os.path.join(root, "tum" if seq == TUM_SEQ else seq, part)
 
-    def pick(rows, list_name):
-        last = len(rows) - 1 if b is None else b
-        if len(rows) <= last or last - (a + phase) < 1:
-            raise SystemExit(f"{src}/{list_name}: {len(rows)} rows, the part needs {max(last, a + phase + 1) + 1}")
-        return rows[a + phase:last + 1]
+    def pick(rows, name):
+        if len(rows) <= b:
+            raise SystemExit(f"{src}/{name}: {len(rows)} rows, the split needs {b + 1}")
+        return rows[a:b + 1]
 
-    span = f"{a + phase}-{'end' if b is None else b}"
-    start = "" if phase == 0 else f", started {phase} frames later"
-    write_subset(src, out, pick, f"{seq} frames {span} ({part} part of the LeanGate split{start})")
+    write_subset(src, out, pick, f"{seq} frames {a}-{b} ({part} part of the LeanGate split)")
     return out
 
 
@@ -109,34 +104,22 @@ def main():
                                              "folders <root>/<sequence>/<part>/ (tum_fr1_rpy: <root>/tum/<part>/) for "
                                              "`leangate eval`; nothing is copied but the intrinsics.")
     ap.add_argument("--part", action="append", required=True, metavar="SEQUENCE:PART",
-                    help="e.g. tum_fr1_xyz:test (repeat); SEQUENCE:all is the whole of any sequence in ../shared/data; "
-                    + "; ".join(f"{s}: {', '.join(p)}" for s, p in ALL_SPLITS.items()))
-    ap.add_argument("--phases", type=int, default=1, metavar="N",
-                    help="also write each part started 1..N-1 frames later (<part>-p<k>/): the keyframe chain "
-                         "depends on the frame it starts from, and `leangate eval` over all N averages that out")
+                    help="e.g. tum_fr1_xyz:test (repeat); " + "; ".join(f"{s}: {', '.join(p)}" for s, p in ALL_SPLITS.items()))
     ap.add_argument("--root", default=DATA_ROOT)
     a = ap.parse_args()
-    if not 1 <= a.phases <= 100:
-        raise SystemExit(f"--phases {a.phases}: expected 1 to 100")
     todo = []
     for spec in a.part:
         seq, _, part = spec.partition(":")
-        documented = seq in ALL_SPLITS and part in ALL_SPLITS[seq]
-        if not documented and not (part == "all" and seq and os.sep not in seq and seq not in (".", "..")):
-            raise SystemExit(f"--part {spec}: not a documented part (SEQUENCE:all, or one of "
+        if seq not in ALL_SPLITS or part not in ALL_SPLITS[seq]:
+            raise SystemExit(f"--part {spec}: not a documented part (one of "
                              + ", ".join(f"{s}:{p}" for s, ps in ALL_SPLITS.items() for p in ps) + ")")
         src = os.path.join(SHARED, seq)
         if not os.path.isdir(src):
             raise SystemExit(f"--part {spec}: {src} is missing (training/README.md says how to build it)")
-        if a.phases > 1:  # checked for every part before anything is written
-            n = len(rows(os.path.join(src, "rgb.txt"))[1])
-            first, last = (0, n - 1) if part == "all" else ALL_SPLITS[seq][part]
-            if last - first + 1 < a.phases + 1:
-                raise SystemExit(f"--phases {a.phases}: {spec} has {last - first + 1} frames, too few to start that late")
         todo.append((seq, part))
     for seq, part in todo:
-        for k in range(a.phases):
-            print(make_part(a.root, part, seq=seq, phase=k))
+        print(make_part(a.root, part, seq=seq))
+
 
 if __name__ == "__main__":
     main()

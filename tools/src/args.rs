@@ -59,6 +59,11 @@ pub fn nonzero(s: &str) -> Result<usize, String> {
     int_in(s, 1..=usize::MAX)
 }
 
+/// `leangate eval --phases`: 1 to 100 start frames per sequence.
+pub fn phases(s: &str) -> Result<usize, String> {
+    int_in(s, 1..=100)
+}
+
 /// A count of at least 1 that fits in a `u32`.
 pub fn nonzero_u32(s: &str) -> Result<u32, String> {
     int_in(s, 1..=u32::MAX)

@@ -176,6 +176,13 @@ enum Command {
         /// several sequences, of the sums over them.
         #[arg(long)]
         sweep_plot: Option<PathBuf>,
+        /// Evaluate each sequence N times, the k-th run started k frames in (k = 0 .. N-1), and
+        /// print the sums over the runs: a keyframe chain depends on the frame it starts on, so
+        /// one run can move by a keyframe or a late keep by chance. JSON: every run in `sequences`
+        /// (with its `phase`) and each sequence's sums in `phase_sums`. Sequence directories only;
+        /// not with --plot, --contact-sheet or --reconstruct.
+        #[arg(long, default_value_t = 1, value_parser = args::phases)]
+        phases: usize,
         #[arg(long, default_value_t = 160, value_parser = args::working_width)]
         working_width: u32,
         #[arg(long, default_value_t = 0.1, value_parser = args::finite_positive)]
@@ -401,6 +408,7 @@ fn run(cli: Cli) -> Res {
             sweep,
             sweep_thresholds,
             sweep_plot,
+            phases,
             working_width,
             max_dist,
             reconstruct,
@@ -427,6 +435,7 @@ fn run(cli: Cli) -> Res {
                 contact_sheet,
                 sweep: (sweep || sweep_plot.is_some()).then_some(sweep_thresholds),
                 sweep_plot,
+                phases,
                 reconstruct: reconstruct.then_some(eval::reconstruct::SfmConfig {
                     python: sfm_python,
                     dense_every,
@@ -452,6 +461,8 @@ struct EvalOutputs {
     /// Thresholds of the equal-budget sweep, when asked for.
     sweep: Option<Vec<f64>>,
     sweep_plot: Option<PathBuf>,
+    /// `--phases`: runs per sequence, each started a frame later.
+    phases: usize,
     /// `--reconstruct` and its settings.
     reconstruct: Option<eval::reconstruct::SfmConfig>,
 }
@@ -469,8 +480,22 @@ fn eval_cmd(
         contact_sheet,
         sweep,
         sweep_plot,
+        phases,
         reconstruct,
     } = out;
+    if phases > 1 {
+        let per_run = [
+            ("--plot", plot.is_some()),
+            ("--contact-sheet", contact_sheet.is_some()),
+            ("--reconstruct", reconstruct.is_some()),
+        ];
+        if let Some((flag, _)) = per_run.iter().find(|(_, on)| *on) {
+            return Err(format!(
+                "--phases {phases} with {flag}: that writes one file per run; use it with one phase"
+            )
+            .into());
+        }
+    }
     if let Some(sfm) = &reconstruct {
         eval::reconstruct::preflight(sfm)?; // before the long part: a missing pycolmap fails now
     }
@@ -481,6 +506,10 @@ fn eval_cmd(
                 s.display()
             )
             .into());
+        }
+        if phases > 1 {
+            // a video, or too few frames for the last start: said now, not after the long part
+            eval::Source::open_from(s, phases - 1).map_err(|e| e.to_string())?;
         }
     }
     let bar = indicatif::ProgressBar::new(0);
@@ -496,7 +525,7 @@ fn eval_cmd(
         }
         bar.set_position(done as u64);
     };
-    let several = sequences.len() > 1;
+    let several = sequences.len() > 1 || phases > 1;
     // Which sequences the sweep can run on, known before the long part: alone, a sequence the
     // teacher cannot judge is an error now; among several, it is evaluated without a sweep (said
     // below its table) and the summed curves cover the others.
@@ -504,7 +533,7 @@ fn eval_cmd(
         None => vec![false; sequences.len()],
         Some(_) => {
             let checks: Vec<_> = sequences.iter().map(|s| eval::check_sweep(s)).collect();
-            if let (false, Some(Err(e))) = (several, checks.first()) {
+            if let (1, Some(Err(e))) = (sequences.len(), checks.first()) {
                 return Err(e.to_string().into());
             }
             if checks.iter().all(Result::is_err) {
@@ -516,66 +545,115 @@ fn eval_cmd(
             checks.iter().map(Result::is_ok).collect()
         }
     };
-    let mut reports = Vec::with_capacity(sequences.len());
+    let mut reports = Vec::with_capacity(sequences.len() * phases);
+    let mut phase_sums = Vec::new();
     for (k, sequence) in sequences.iter().enumerate() {
-        let (mut report, data) = eval::evaluate(sequence, model, threshold, &cfg, &mut show)?;
-        if let (Some(thresholds), true) = (&sweep, sweepable[k]) {
-            report.sweep = Some(eval::sweep(sequence, model, thresholds, &cfg, &mut show)?);
-        }
-        if let Some(sfm) = &reconstruct {
-            // Several sequences: each one's models and trajectories in DIR/K-SEQ/.
-            let sfm = match several {
-                true => sfm.in_subdirectory(&format!("{}-{}", k + 1, sequence_name(sequence))),
-                false => sfm.clone(),
-            };
-            eval::reconstruct::add_reconstruction(sequence, &mut report, &data, &sfm, &mut show)?;
-        }
-        bar.finish_and_clear();
         let name = sequence_name(sequence);
-        // One file per sequence when there are several: NAME-K-SEQ.ext beside the given path.
-        let per_sequence = |p: &Path| -> PathBuf {
-            if !several {
-                return p.to_path_buf();
+        let first_run = reports.len();
+        for phase in 0..phases {
+            let (mut report, data) =
+                eval::evaluate(sequence, phase, model, threshold, &cfg, &mut show)?;
+            report.phase = (phases > 1).then_some(phase);
+            if let (Some(thresholds), true) = (&sweep, sweepable[k]) {
+                report.sweep = Some(eval::sweep(
+                    sequence, phase, model, thresholds, &cfg, &mut show,
+                )?);
             }
-            let stem = p
-                .file_stem()
-                .map(|s| s.to_string_lossy())
-                .unwrap_or_default();
-            let ext = p
-                .extension()
-                .map(|s| format!(".{}", s.to_string_lossy()))
-                .unwrap_or_default();
-            p.with_file_name(format!("{stem}-{}-{name}{ext}", k + 1))
-        };
-        print_summary(&report);
-        if report.reconstruction.is_some() {
-            print_reconstruction(&report);
+            bar.finish_and_clear();
+            if phases > 1 {
+                // one line per run; the sums over the runs follow (per-run files are refused)
+                print_run_line(&report, phase);
+                reports.push(report);
+                continue;
+            }
+            if let Some(sfm) = &reconstruct {
+                // Several sequences: each one's models and trajectories in DIR/K-SEQ/.
+                let sfm = match several {
+                    true => sfm.in_subdirectory(&format!("{}-{}", k + 1, name)),
+                    false => sfm.clone(),
+                };
+                eval::reconstruct::add_reconstruction(
+                    sequence,
+                    &mut report,
+                    &data,
+                    &sfm,
+                    &mut show,
+                )?;
+                bar.finish_and_clear();
+            }
+            // One file per sequence when there are several: NAME-K-SEQ.ext beside the given path.
+            let per_sequence = |p: &Path| -> PathBuf {
+                if !several {
+                    return p.to_path_buf();
+                }
+                let stem = p
+                    .file_stem()
+                    .map(|s| s.to_string_lossy())
+                    .unwrap_or_default();
+                let ext = p
+                    .extension()
+                    .map(|s| format!(".{}", s.to_string_lossy()))
+                    .unwrap_or_default();
+                p.with_file_name(format!("{stem}-{}-{name}{ext}", k + 1))
+            };
+            print_summary(&report);
+            if report.reconstruction.is_some() {
+                print_reconstruction(&report);
+            }
+            if let Some(points) = &report.sweep {
+                print_sweep(points);
+            } else if sweep.is_some() {
+                println!(
+                    "no equal-budget sweep here: no depth, poses or intrinsics for the teacher"
+                );
+            }
+            if let (Some(points), Some(p), false) = (&report.sweep, &sweep_plot, several) {
+                eval::plot_sweep(points, &format!("{name}: equal-budget curves"), p)?;
+                eprintln!("sweep plot written to {}", p.display());
+            }
+            if let Some(p) = plot.as_deref().map(per_sequence) {
+                let title = format!("{name} — threshold {:.3}", report.threshold);
+                eval::plot(&data, &title, &p)?;
+                eprintln!("plot written to {}", p.display());
+            }
+            if let Some(p) = contact_sheet.as_deref().map(per_sequence) {
+                eval::contact_sheet(&data.kept_thumbs, 64, &p)?;
+                eprintln!(
+                    "contact sheet of the kept frames written to {}",
+                    p.display()
+                );
+            }
+            if several {
+                println!();
+            }
+            reports.push(report);
         }
-        if let Some(points) = &report.sweep {
-            print_sweep(points);
-        } else if sweep.is_some() {
-            println!("no equal-budget sweep here: no depth, poses or intrinsics for the teacher");
-        }
-        if let (Some(points), Some(p), false) = (&report.sweep, &sweep_plot, several) {
-            eval::plot_sweep(points, &format!("{name}: equal-budget curves"), p)?;
-            eprintln!("sweep plot written to {}", p.display());
-        }
-        if let Some(p) = plot.as_deref().map(per_sequence) {
-            let title = format!("{name} — threshold {:.3}", report.threshold);
-            eval::plot(&data, &title, &p)?;
-            eprintln!("plot written to {}", p.display());
-        }
-        if let Some(p) = contact_sheet.as_deref().map(per_sequence) {
-            eval::contact_sheet(&data.kept_thumbs, 64, &p)?;
-            eprintln!(
-                "contact sheet of the kept frames written to {}",
-                p.display()
+        if phases > 1 {
+            let sum = eval::sum_phases(&reports[first_run..]);
+            print_sums(
+                &format!(
+                    "{name}, from {phases} start frames (0 to {} frames in)",
+                    phases - 1
+                ),
+                &sum.sums,
             );
-        }
-        if several {
+            let ranges: Vec<String> = sum
+                .kept_range
+                .iter()
+                .map(|(p, (lo, hi))| format!("{p} {lo}–{hi}"))
+                .collect();
+            println!("kept in one run: {}", ranges.join(", "));
+            if let Some(points) = &sum.sweep_sums {
+                println!("summed over the {phases} runs:");
+                print_sweep(points);
+            } else if sweep.is_some() {
+                println!(
+                    "no equal-budget sweep here: no depth, poses or intrinsics for the teacher"
+                );
+            }
             println!();
+            phase_sums.push(sum);
         }
-        reports.push(report);
     }
     let text = if several {
         let sweeps: Vec<Vec<eval::SweepPoint>> =
@@ -585,19 +663,40 @@ fn eval_cmd(
             sums: eval::sum_policies(&reports),
             sweep_sums: (swept > 0).then(|| eval::sum_sweeps(&sweeps)),
             sequences: reports,
+            phase_sums: (phases > 1).then_some(phase_sums),
         };
-        print_sums(&multi.sums);
-        if let Some(points) = &multi.sweep_sums {
+        // runs: sequences, or sequences x start frames with --phases
+        let runs = match phases {
+            1 => "sequences".to_string(),
+            _ => format!(
+                "runs ({} sequences x {phases} start frames)",
+                sequences.len()
+            ),
+        };
+        let frames = multi.sums.first().map_or(0, |s| s.frames);
+        // one sequence from several start frames: its sums above are the whole
+        if sequences.len() > 1 {
+            print_sums(
+                &format!(
+                    "sums over {} {runs} ({frames} frames)",
+                    multi.sequences.len()
+                ),
+                &multi.sums,
+            );
+        }
+        if let (Some(points), true) = (&multi.sweep_sums, sequences.len() > 1) {
             match swept == multi.sequences.len() {
-                true => println!("summed over the {swept} sequences:"),
+                true => println!("summed over the {swept} {runs}:"),
                 false => println!(
-                    "summed over the {swept} sequences with ground truth (of {}):",
+                    "summed over the {swept} {runs} with ground truth (of {}):",
                     multi.sequences.len()
                 ),
             }
             print_sweep(points);
+        }
+        if let Some(points) = &multi.sweep_sums {
             if let Some(p) = &sweep_plot {
-                let title = format!("{swept} sequences: summed equal-budget curves");
+                let title = format!("{swept} {runs}: summed equal-budget curves");
                 eval::plot_sweep(points, &title, p)?;
                 eprintln!("sweep plot of the sums written to {}", p.display());
             }
@@ -612,15 +711,39 @@ fn eval_cmd(
     Ok(())
 }
 
-/// The table of sums per policy over several sequences.
-fn print_sums(sums: &[eval::PolicySum]) {
-    let Some(first) = sums.first() else {
-        return;
+/// One line per run of `--phases`: where it started, what the model and the oracle kept.
+fn print_run_line(report: &eval::EvalReport, phase: usize) {
+    let kept = |p: &str| {
+        report
+            .policies
+            .get(p)
+            .and_then(|r| r.get("kept"))
+            .and_then(|v| v.as_u64())
+    };
+    let late = report
+        .policies
+        .get("model")
+        .and_then(|r| r.get("late_keeps"))
+        .and_then(|v| v.as_u64());
+    let judged = match (kept("oracle"), late) {
+        (Some(o), Some(l)) => format!(", oracle {o}, late {l}"),
+        _ => String::new(),
     };
     println!(
-        "sums over {} sequences ({} frames):",
-        first.sequences, first.frames
+        "{}: started {phase} frames in, {} frames: model kept {}{judged}",
+        report.sequence,
+        report.frames,
+        kept("model").unwrap_or(0)
     );
+}
+
+/// The table of sums per policy over several sequences (or runs), under `heading`.
+fn print_sums(heading: &str, sums: &[eval::PolicySum]) {
+    if sums.is_empty() {
+        return;
+    }
+    let first = &sums[0];
+    println!("{heading}:");
     // Some sequences without ground truth: the teacher's columns are over the others, and
     // `judged` is each policy's kept frames there (what kept/oracle divides).
     let partial = first.judged_sequences < first.sequences;

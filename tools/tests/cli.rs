@@ -614,6 +614,8 @@ fn numeric_arguments_are_checked_at_parse_time() {
         (&eval, "--working-width", "0"),
         (&eval, "--dense-every", "0"),
         (&eval, "--sfm-max-features", "0"),
+        (&eval, "--phases", "0"),
+        (&eval, "--phases", "101"),
         (&synth, "--width", "100000"),
         (&synth, "--height", "100000"),
         (&synth, "--width", "1"),
@@ -1485,9 +1487,8 @@ fn finetune_tools_refuse_bad_input_in_one_line() {
 
 /// `python -m training.tum --part SEQUENCE:PART` writes a documented part of a real sequence as a
 /// TUM folder whose lists keep exactly that part's rows (tum_fr1_desk's test part: frames 300–571,
-/// 272 rows each) and that `leangate eval` reads; `--phases 3` also writes it started 1 and 2 frames
-/// later. An undocumented part, more phases than a part has frames, or none, is one line naming
-/// it, and nothing is written.
+/// 272 rows each) and that `leangate eval` reads; an undocumented part is one line listing the
+/// documented ones, and nothing is written.
 #[test]
 fn documented_parts_are_written_for_eval() {
     let Some(desk) = shared_data("tum_fr1_desk") else {
@@ -1498,7 +1499,7 @@ fn documented_parts_are_written_for_eval() {
         return;
     };
     let out = cmd
-        .args(["--part", "tum_fr1_desk:test", "--phases", "3", "--root"])
+        .args(["--part", "tum_fr1_desk:test", "--root"])
         .arg(root.path())
         .output()
         .unwrap();
@@ -1508,8 +1509,6 @@ fn documented_parts_are_written_for_eval() {
         String::from_utf8_lossy(&out.stderr)
     );
     let part = root.path().join("tum_fr1_desk").join("test");
-    let written: Vec<&str> = std::str::from_utf8(&out.stdout).unwrap().lines().collect();
-    assert_eq!(written.len(), 3, "one folder per phase: {written:?}");
     let body = |dir: &Path, name: &str| -> Vec<String> {
         std::fs::read_to_string(dir.join(name))
             .unwrap()
@@ -1529,18 +1528,6 @@ fn documented_parts_are_written_for_eval() {
             whole[300..572].iter().map(key).collect::<Vec<_>>(),
             "{name}"
         );
-        // --phases 3: the same part started 1 and 2 frames later, up to the same last frame
-        for k in 1..3 {
-            let later = body(
-                &root.path().join("tum_fr1_desk").join(format!("test-p{k}")),
-                name,
-            );
-            assert_eq!(
-                later.iter().map(key).collect::<Vec<_>>(),
-                whole[300 + k..572].iter().map(key).collect::<Vec<_>>(),
-                "{name} phase {k}"
-            );
-        }
     }
     let oracle = leangate()
         .args(["label", "--sequence"])
@@ -1567,42 +1554,21 @@ fn documented_parts_are_written_for_eval() {
         "tum_fr1_desk:train: not a documented part",
     );
     assert!(!root.path().join("bad").exists());
-
-    // more phases than a part has frames, or none: refused before anything is written (the
-    // first part, valid, is not written either)
-    for (phases, needle) in [
-        (
-            "80",
-            "--phases 80: 7scenes_redkitchen_dev:all has 60 frames",
-        ),
-        ("0", "--phases 0: expected 1 to 100"),
-    ] {
-        let Some(mut cmd) = venv_module("training.tum") else {
-            return;
-        };
-        let bad = cmd
-            .args(["--part", "tum_fr1_desk:test", "--part"])
-            .args(["7scenes_redkitchen_dev:all", "--phases", phases, "--root"])
-            .arg(root.path().join("bad"))
-            .output()
-            .unwrap();
-        assert_refused(&bad, &format!("training.tum --phases {phases}"), needle);
-        assert!(!root.path().join("bad").exists());
-    }
 }
 
-/// `python -m training.phases` reads a `leangate eval` report over a part and the same part started
-/// a frame later (`pan`, `pan-p1`, as `training.tum --phases` names them) as one part: every
-/// policy's kept, oracle and late keeps summed over both phases, the smallest and largest kept
-/// count of one phase, and the sweep summed per threshold. A report with one phase twice, or no
-/// report at all, is one line naming it.
+/// `leangate eval --phases N` runs each sequence N times, the k-th started k frames in: its
+/// phase-1 run judges exactly what an eval of the sequence without its first frame does (every
+/// policy's kept frames, late keeps and breaks), and `phase_sums` holds each policy summed over
+/// the runs with the fewest and most frames one run kept, and the sweep summed per threshold.
+/// Too many phases for a sequence, a video, or a per-run file (--plot) is one line naming it,
+/// before anything runs.
 #[test]
-fn phases_sum_a_part_over_its_start_frames() {
+fn eval_phases_start_each_run_a_frame_later_and_sum_them() {
     let dir = tempfile::tempdir().unwrap();
     let pan = dir.path().join("pan");
     synth(&pan, 40, "pan", 11);
-    // the same part started one frame later: every list without its first row
-    let later = dir.path().join("pan-p1");
+    // the same sequence without its first frame: every list without its first row
+    let later = dir.path().join("later");
     std::fs::create_dir_all(&later).unwrap();
     for e in std::fs::read_dir(&pan).unwrap() {
         let e = e.unwrap();
@@ -1612,115 +1578,106 @@ fn phases_sum_a_part_over_its_start_frames() {
         } else if ["rgb.txt", "depth.txt", "groundtruth.txt"].contains(&name.as_str()) {
             let text = std::fs::read_to_string(e.path()).unwrap();
             let mut first = true;
-            let kept: Vec<&str> = text
+            let rows: Vec<&str> = text
                 .lines()
                 .filter(|l| l.starts_with('#') || !std::mem::take(&mut first))
                 .collect();
-            std::fs::write(later.join(&name), kept.join("\n") + "\n").unwrap();
+            std::fs::write(later.join(&name), rows.join("\n") + "\n").unwrap();
         } else {
             std::fs::copy(e.path(), later.join(&name)).unwrap();
         }
     }
-    let json = dir.path().join("eval.json");
-    let out = leangate()
-        .args(["eval", "--sequence"])
-        .arg(&pan)
-        .arg("--sequence")
-        .arg(&later)
-        .args(["--sweep", "--sweep-thresholds", "0.45,0.5", "--json"])
-        .arg(&json)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
-    let seqs = report["sequences"].as_array().unwrap();
-    assert_eq!(seqs.len(), 2);
-    let table = dir.path().join("phases.json");
-    let out = python_module("training.phases")
-        .arg(&json)
-        .arg("--out")
-        .arg(&table)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let said = String::from_utf8_lossy(&out.stdout);
-    let t: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&table).unwrap()).unwrap();
-    let parts = t["parts"].as_object().unwrap();
-    assert_eq!(parts.len(), 1, "pan and pan-p1 are one part: {said}");
-    let (name, part) = parts.iter().next().unwrap();
-    assert!(name.ends_with("pan"), "{name}");
-    assert_eq!(part["phases"], serde_json::json!([0, 1]));
-    let kept = |s: &serde_json::Value, policy: &str, key: &str| {
-        s["policies"][policy][key].as_u64().unwrap()
-    };
-    for policy in ["model", "oracle", "motion", "overlap", "stride"] {
-        let (a, b) = (
-            kept(&seqs[0], policy, "kept"),
-            kept(&seqs[1], policy, "kept"),
-        );
-        assert_eq!(part[policy]["kept"].as_u64().unwrap(), a + b, "{policy}");
-        assert_eq!(part[policy]["lo"].as_u64().unwrap(), a.min(b), "{policy}");
-        assert_eq!(part[policy]["hi"].as_u64().unwrap(), a.max(b), "{policy}");
-        let late = kept(&seqs[0], policy, "late_keeps") + kept(&seqs[1], policy, "late_keeps");
-        assert_eq!(part[policy]["late"].as_u64().unwrap(), late, "{policy}");
-        let oracle = kept(&seqs[0], "oracle", "kept") + kept(&seqs[1], "oracle", "kept");
-        assert_eq!(part[policy]["oracle"].as_u64().unwrap(), oracle, "{policy}");
-        assert!(
-            said.contains(&format!("| {name} | 2 | {policy} | {} / {oracle} |", a + b)),
-            "{said}"
-        );
+    let sweep = ["--sweep", "--sweep-thresholds", "0.45,0.5"];
+    let phased = eval_json(&pan, &[&["--phases", "3"][..], &sweep[..]].concat());
+    let runs = phased["sequences"].as_array().unwrap();
+    assert_eq!(runs.len(), 3);
+    for (k, r) in runs.iter().enumerate() {
+        assert_eq!(r["phase"], k, "{r}");
+        assert_eq!(r["frames"], 40 - k, "{r}");
     }
-    // the sweep, per threshold and policy, summed over both phases
-    let sweep = &t["sweep"][name.as_str()];
-    let mut points = 0;
-    for s in seqs {
-        for pt in s["sweep"].as_array().unwrap() {
-            points += 1;
-            let th = pt["threshold"].as_f64().unwrap();
-            let key = serde_json::to_string(&pt["threshold"]).unwrap();
-            let cell = &sweep[key.as_str()][pt["policy"].as_str().unwrap()];
-            let both: u64 = seqs
-                .iter()
-                .flat_map(|q| q["sweep"].as_array().unwrap())
-                .filter(|q| q["threshold"].as_f64() == Some(th) && q["policy"] == pt["policy"])
-                .map(|q| q["late_keeps"].as_u64().unwrap())
-                .sum();
-            assert_eq!(cell[1].as_u64().unwrap(), both, "{key} {}", pt["policy"]);
+    let alone = eval_json(&later, &sweep);
+    let policies = alone["policies"].as_object().unwrap();
+    assert!(policies.contains_key("oracle") && policies.contains_key("motion"));
+    for (policy, row) in policies {
+        for key in ["kept", "late_keeps", "breaks"] {
+            assert_eq!(
+                runs[1]["policies"][policy][key], row[key],
+                "{policy} {key}: phase 1 = the sequence without its first frame"
+            );
         }
     }
-    assert!(
-        points >= 2 * 2 * 4,
-        "a sweep point per threshold and policy"
-    );
+    assert_eq!(runs[1]["sweep"], alone["sweep"]);
 
-    // one phase twice; no report
-    let twice = dir.path().join("twice.json");
-    let mut doubled = report.clone();
-    let first = doubled["sequences"][0].clone();
-    doubled["sequences"].as_array_mut().unwrap().push(first);
-    std::fs::write(&twice, doubled.to_string()).unwrap();
-    let out = python_module("training.phases")
-        .arg(&twice)
-        .output()
-        .unwrap();
-    assert_refused(&out, "training.phases twice", "phase 0 of");
-    let out = python_module("training.phases")
-        .arg(dir.path().join("nowhere.json"))
-        .output()
-        .unwrap();
-    assert_refused(
-        &out,
-        "training.phases missing",
-        "nowhere.json: cannot read it",
-    );
+    let sums = &phased["phase_sums"][0];
+    assert_eq!(sums["phases"], 3);
+    let n = |v: &serde_json::Value| v.as_u64().unwrap();
+    for sum in sums["sums"].as_array().unwrap() {
+        let policy = sum["policy"].as_str().unwrap();
+        let per_run: Vec<u64> = runs
+            .iter()
+            .map(|r| n(&r["policies"][policy]["kept"]))
+            .collect();
+        assert_eq!(n(&sum["kept"]), per_run.iter().sum::<u64>(), "{policy}");
+        let late: u64 = runs
+            .iter()
+            .map(|r| n(&r["policies"][policy]["late_keeps"]))
+            .sum();
+        assert_eq!(n(&sum["late_keeps"]), late, "{policy}");
+        let range = &sums["kept_range"][policy];
+        assert_eq!(n(&range[0]), *per_run.iter().min().unwrap(), "{policy}");
+        assert_eq!(n(&range[1]), *per_run.iter().max().unwrap(), "{policy}");
+    }
+    for point in sums["sweep_sums"].as_array().unwrap() {
+        let same = |r: &serde_json::Value| {
+            r["sweep"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|q| q["policy"] == point["policy"] && q["threshold"] == point["threshold"])
+                .map(|q| n(&q["late_keeps"]))
+                .unwrap()
+        };
+        assert_eq!(n(&point["late_keeps"]), runs.iter().map(same).sum::<u64>());
+    }
+    // one sequence: the overall sums are its phase sums
+    assert_eq!(phased["sums"], sums["sums"]);
+
+    // refused before anything runs, naming the problem
+    let clip = dir.path().join("clip.mp4");
+    std::fs::write(&clip, b"not looked at").unwrap();
+    let png = dir.path().join("plot.png");
+    let cases: Vec<(Vec<std::ffi::OsString>, &str)> = vec![
+        (
+            vec![pan.clone().into(), "--phases".into(), "40".into()],
+            "40 frames, too few to start 39 frames in (--phases)",
+        ),
+        (
+            vec![clip.clone().into(), "--phases".into(), "2".into()],
+            "--phases needs a sequence directory, not a video file",
+        ),
+        (
+            vec![
+                pan.clone().into(),
+                "--phases".into(),
+                "2".into(),
+                "--plot".into(),
+                png.clone().into(),
+            ],
+            "--phases 2 with --plot",
+        ),
+    ];
+    for (args, needle) in cases {
+        let out = output_within(
+            {
+                let mut c = leangate();
+                c.args(["eval", "--sequence"]).args(&args);
+                c
+            },
+            std::time::Duration::from_secs(60),
+        );
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} accepted");
+        assert!(err.contains(needle), "{args:?}: `{needle}` not in {err}");
+        assert!(!png.exists());
+    }
 }

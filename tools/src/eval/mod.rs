@@ -46,7 +46,7 @@ pub use baselines::{
 pub use judge::{judge, PolicyReport, TeacherCache};
 pub use model_run::{init_gstreamer, run_model, GateModel, ModelRun};
 pub use motion::{motion_for_budget, motion_gate};
-pub use multi::{sum_policies, sum_sweeps, MultiReport, PolicySum};
+pub use multi::{sum_phases, sum_policies, sum_sweeps, MultiReport, PhaseSum, PolicySum};
 pub use overlap::{overlap_for_budget, overlap_gate};
 pub use report::{contact_sheet, plot, plot_sweep};
 
@@ -151,12 +151,43 @@ impl Source {
             )))
         }
     }
+
+    /// [`Source::open`] started `start` frames into the sequence (`leangate eval --phases`): its
+    /// first `start` frames dropped. A video cannot be started later, and at least two frames
+    /// must be left.
+    pub fn open_from(path: &Path, start: usize) -> Result<Source, EvalError> {
+        let mut source = Source::open(path)?;
+        if start > 0 {
+            match &mut source {
+                Source::Sequence(seq) if seq.len() >= start + 2 => {
+                    seq.frames.drain(..start);
+                }
+                Source::Sequence(seq) => {
+                    return Err(EvalError(format!(
+                        "`{}`: {} frames, too few to start {start} frames in (--phases)",
+                        path.display(),
+                        seq.len()
+                    )))
+                }
+                Source::Video(_) => {
+                    return Err(EvalError(format!(
+                        "`{}`: --phases needs a sequence directory, not a video file",
+                        path.display()
+                    )))
+                }
+            }
+        }
+        Ok(source)
+    }
 }
 
 /// The full report written as JSON.
 #[derive(Debug, Clone, Serialize)]
 pub struct EvalReport {
     pub sequence: String,
+    /// With `--phases`: how many frames into the sequence this run started.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub phase: Option<usize>,
     pub frames: usize,
     pub threshold: f64,
     /// The model the element ran (its `leangate.name`) and the execution provider, from the
@@ -188,15 +219,17 @@ pub struct PlotData {
     pub kept_thumbs: Vec<(usize, image::RgbImage)>,
 }
 
-/// Run every policy and judge it. `progress(stage, done, total)`.
+/// Run every policy and judge it, on the sequence started `start` frames in ([`Source::open_from`]).
+/// `progress(stage, done, total)`.
 pub fn evaluate(
     path: &Path,
+    start: usize,
     model: GateModel<'_>,
     threshold: Option<f64>,
     teacher_cfg: &crate::teacher::TeacherConfig,
     mut progress: impl FnMut(&str, usize, usize),
 ) -> Result<(EvalReport, PlotData), EvalError> {
-    let source = Source::open(path)?;
+    let source = Source::open_from(path, start)?;
     let n_hint = match &source {
         Source::Sequence(s) => s.len(),
         Source::Video(_) => 0,
@@ -280,6 +313,7 @@ pub fn evaluate(
     Ok((
         EvalReport {
             sequence: path.display().to_string(),
+            phase: None,
             frames: n,
             threshold: t,
             model: run.model_name.clone(),
@@ -337,14 +371,16 @@ pub struct SweepPoint {
 /// Equal-budget curves: the model at each threshold (the real element, one pipeline run per
 /// threshold), the oracle at the same threshold, and `stride`, `pixel_diff`, `motion` and
 /// `overlap` each at the model's budget. Needs depth and poses (the teacher judges every point).
+/// On the sequence started `start` frames in, like [`evaluate`].
 pub fn sweep(
     path: &Path,
+    start: usize,
     model: GateModel<'_>,
     thresholds: &[f64],
     teacher_cfg: &crate::teacher::TeacherConfig,
     mut progress: impl FnMut(&str, usize, usize),
 ) -> Result<Vec<SweepPoint>, EvalError> {
-    let source = Source::open(path)?;
+    let source = Source::open_from(path, start)?;
     let seq = sweepable(&source, path)?;
     let teacher = Teacher::from_sequence(seq, teacher_cfg).map_err(|e| EvalError(e.to_string()))?;
     let mut cache = TeacherCache::new(&teacher);

@@ -39,6 +39,43 @@ pub struct MultiReport {
     /// The equal-budget sweep summed over the sequences at each model threshold (`--sweep`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sweep_sums: Option<Vec<SweepPoint>>,
+    /// With `--phases`: each sequence's runs from its different start frames, summed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub phase_sums: Option<Vec<PhaseSum>>,
+}
+
+/// One sequence evaluated from several start frames (`leangate eval --phases N`): every policy
+/// and the sweep summed over its N runs, with the fewest and most frames one run kept.
+#[derive(Debug, Clone, Serialize)]
+pub struct PhaseSum {
+    pub sequence: String,
+    pub phases: usize,
+    pub sums: Vec<PolicySum>,
+    /// Per policy: the fewest and the most frames it kept in one run.
+    pub kept_range: std::collections::BTreeMap<String, (usize, usize)>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sweep_sums: Option<Vec<SweepPoint>>,
+}
+
+/// [`PhaseSum`] of one sequence's runs (`runs`: its reports, one per start frame).
+pub fn sum_phases(runs: &[EvalReport]) -> PhaseSum {
+    let sweeps: Vec<Vec<SweepPoint>> = runs.iter().filter_map(|r| r.sweep.clone()).collect();
+    let mut kept_range = std::collections::BTreeMap::new();
+    for r in runs {
+        for policy in POLICIES {
+            if let Some(k) = field_u(r, policy, "kept") {
+                let e = kept_range.entry(policy.to_string()).or_insert((k, k));
+                *e = (e.0.min(k), e.1.max(k));
+            }
+        }
+    }
+    PhaseSum {
+        sequence: runs.first().map(|r| r.sequence.clone()).unwrap_or_default(),
+        phases: runs.len(),
+        sums: sum_policies(runs),
+        kept_range,
+        sweep_sums: (sweeps.len() == runs.len() && !sweeps.is_empty()).then(|| sum_sweeps(&sweeps)),
+    }
 }
 
 fn field_u(r: &EvalReport, policy: &str, key: &str) -> Option<usize> {
@@ -141,6 +178,7 @@ mod tests {
     fn report(name: &str, frames: usize, rows: &[(&str, serde_json::Value)]) -> EvalReport {
         EvalReport {
             sequence: name.into(),
+            phase: None,
             frames,
             threshold: 0.5,
             model: "m".into(),
