@@ -181,7 +181,7 @@ enum Command {
         /// one run can move by a keyframe or a late keep by chance. JSON: every run in `sequences`
         /// (with its `phase`) and each sequence's sums in `phase_sums`. Sequence directories only;
         /// not with --plot, --contact-sheet or --reconstruct.
-        #[arg(long, default_value_t = 1, value_parser = args::phases)]
+        #[arg(long, default_value_t = 1, value_name = "N", value_parser = args::phases)]
         phases: usize,
         #[arg(long, default_value_t = 160, value_parser = args::working_width)]
         working_width: u32,
