@@ -315,4 +315,42 @@ mod tests {
         );
         assert_eq!(s[0].median_pair_s, None);
     }
+
+    #[test]
+    fn phase_sums_hold_each_policys_range_and_sum_the_sweep_only_when_every_run_has_one() {
+        let run = |kept: usize, late: usize| {
+            report(
+                "seq",
+                100,
+                &[
+                    ("model", row(kept, Some(late), Some(0.4))),
+                    ("oracle", row(5, Some(0), Some(0.5))),
+                ],
+            )
+        };
+        let point = |late: usize| SweepPoint {
+            policy: "model".into(),
+            threshold: 0.5,
+            kept: 4,
+            late_keeps: late,
+            breaks: 0,
+            min_pair_s: Some(0.4),
+            median_pair_s: Some(0.5),
+        };
+        let mut runs = vec![run(2, 1), run(4, 0), run(3, 2)];
+        let s = sum_phases(&runs);
+        assert_eq!((s.sequence.as_str(), s.phases), ("seq", 3));
+        assert_eq!(s.kept_range["model"], (2, 4));
+        assert_eq!(s.kept_range["oracle"], (5, 5));
+        let model = s.sums.iter().find(|p| p.policy == "model").unwrap();
+        assert_eq!((model.kept, model.late_keeps), (9, Some(3)));
+        assert_eq!(model.oracle_kept, Some(15));
+        assert!(s.sweep_sums.is_none(), "no run has a sweep");
+        runs[0].sweep = Some(vec![point(1)]);
+        runs[1].sweep = Some(vec![point(2)]);
+        assert!(sum_phases(&runs).sweep_sums.is_none(), "one run lacks it");
+        runs[2].sweep = Some(vec![point(4)]);
+        let swept = sum_phases(&runs).sweep_sums.unwrap();
+        assert_eq!((swept[0].kept, swept[0].late_keeps), (12, 7));
+    }
 }
