@@ -77,6 +77,22 @@ fn synth(dir: &Path, frames: usize, motion: &str, seed: u64) {
     );
 }
 
+/// A copy of the sequence `src` at `dst`: its image folders linked, each top-level file written
+/// through `edit(name, text)` (return `text` to keep it).
+fn sequence_copy(src: &Path, dst: &Path, edit: impl Fn(&str, String) -> String) {
+    std::fs::create_dir_all(dst).unwrap();
+    for e in std::fs::read_dir(src).unwrap() {
+        let e = e.unwrap();
+        let name = e.file_name().to_string_lossy().into_owned();
+        if e.file_type().unwrap().is_dir() {
+            std::os::unix::fs::symlink(e.path(), dst.join(&name)).unwrap();
+        } else {
+            let text = std::fs::read_to_string(e.path()).unwrap();
+            std::fs::write(dst.join(&name), edit(&name, text)).unwrap();
+        }
+    }
+}
+
 #[test]
 fn synth_label_eval_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
@@ -1399,19 +1415,7 @@ fn finetune_tools_refuse_bad_input_in_one_line() {
     synth(&b, 8, "pan", 4);
     let copy = |name: &str, file: &str, text: &str| {
         let d = dir.path().join(name);
-        std::fs::create_dir_all(&d).unwrap();
-        for e in std::fs::read_dir(&a).unwrap() {
-            let e = e.unwrap();
-            if e.file_type().unwrap().is_file() {
-                std::fs::copy(e.path(), d.join(e.file_name())).unwrap();
-            }
-        }
-        for sub in ["rgb", "depth"] {
-            if a.join(sub).is_dir() {
-                std::os::unix::fs::symlink(a.join(sub), d.join(sub)).unwrap();
-            }
-        }
-        std::fs::write(d.join(file), text).unwrap();
+        sequence_copy(&a, &d, |n, old| if n == file { text.into() } else { old });
         d
     };
     let bad_k = copy("bad_k", "intrinsics.txt", "fx fy cx cy 5000\n");
@@ -1569,24 +1573,17 @@ fn eval_phases_start_each_run_a_frame_later_and_sum_them() {
     synth(&pan, 40, "pan", 11);
     // the same sequence without its first frame: every list without its first row
     let later = dir.path().join("later");
-    std::fs::create_dir_all(&later).unwrap();
-    for e in std::fs::read_dir(&pan).unwrap() {
-        let e = e.unwrap();
-        let name = e.file_name().to_string_lossy().into_owned();
-        if e.file_type().unwrap().is_dir() {
-            std::os::unix::fs::symlink(e.path(), later.join(&name)).unwrap();
-        } else if ["rgb.txt", "depth.txt", "groundtruth.txt"].contains(&name.as_str()) {
-            let text = std::fs::read_to_string(e.path()).unwrap();
-            let mut first = true;
-            let rows: Vec<&str> = text
-                .lines()
-                .filter(|l| l.starts_with('#') || !std::mem::take(&mut first))
-                .collect();
-            std::fs::write(later.join(&name), rows.join("\n") + "\n").unwrap();
-        } else {
-            std::fs::copy(e.path(), later.join(&name)).unwrap();
+    sequence_copy(&pan, &later, |name, text| {
+        if !["rgb.txt", "depth.txt", "groundtruth.txt"].contains(&name) {
+            return text;
         }
-    }
+        let mut first = true;
+        let rows: Vec<&str> = text
+            .lines()
+            .filter(|l| l.starts_with('#') || !std::mem::take(&mut first))
+            .collect();
+        rows.join("\n") + "\n"
+    });
     let sweep = ["--sweep", "--sweep-thresholds", "0.45,0.5"];
     let phased = eval_json(&pan, &[&["--phases", "3"][..], &sweep[..]].concat());
     let runs = phased["sequences"].as_array().unwrap();
