@@ -56,6 +56,10 @@ fn eval_json(seq: &Path, extra: &[&str]) -> serde_json::Value {
 }
 
 fn synth(dir: &Path, frames: usize, motion: &str, seed: u64) {
+    synth_sized(dir, frames, motion, seed, (160, 120));
+}
+
+fn synth_sized(dir: &Path, frames: usize, motion: &str, seed: u64, (w, h): (u32, u32)) {
     let out = leangate()
         .args(["synth", "--out"])
         .arg(dir)
@@ -67,7 +71,7 @@ fn synth(dir: &Path, frames: usize, motion: &str, seed: u64) {
             "--motion",
             motion,
         ])
-        .args(["--width", "160", "--height", "120"])
+        .args(["--width", &w.to_string(), "--height", &h.to_string()])
         .output()
         .unwrap();
     assert!(
@@ -91,6 +95,25 @@ fn sequence_copy(src: &Path, dst: &Path, edit: impl Fn(&str, String) -> String) 
             std::fs::write(dst.join(&name), edit(&name, text)).unwrap();
         }
     }
+}
+
+/// Frames whose RGB rows are not a multiple of 4 bytes (162 x 3 = 486, where GStreamer's default
+/// stride is 488): the eval feeds them packed and says so, so the element reads every frame (it
+/// fails open on a frame it cannot read, which would keep all of them) and the report is written.
+#[test]
+fn eval_reads_frames_whose_rows_are_not_padded() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth_sized(&seq, 30, "mixed", 3, (162, 120));
+    let r = eval_json(&seq, &[]);
+    let model = &r["policies"]["model"];
+    let kept = model["kept"].as_u64().unwrap();
+    assert!((1..30).contains(&kept), "kept {kept} of 30: {model}");
+    assert!(
+        model["utility_rmse"].as_f64().unwrap().is_finite(),
+        "{model}"
+    );
+    assert!(r["policies"]["oracle"]["kept"].as_u64().unwrap() >= 1);
 }
 
 #[test]

@@ -203,9 +203,20 @@ pub fn run_model(
                         }
                         let mut b = gst::Buffer::from_mut_slice(img.into_raw());
                         let pts = ((seq.frames[i].timestamp - t0).max(0.0) * 1e9) as u64;
-                        b.get_mut()
-                            .unwrap()
-                            .set_pts(gst::ClockTime::from_nseconds(pts));
+                        let bm = b.get_mut().unwrap();
+                        bm.set_pts(gst::ClockTime::from_nseconds(pts));
+                        // The rows are packed (3 * width bytes), which is not GStreamer's default
+                        // stride (rounded up to 4) when the width is not a multiple of 4: say so.
+                        gst_video::VideoMeta::add_full(
+                            bm,
+                            gst_video::VideoFrameFlags::empty(),
+                            gst_video::VideoFormat::Rgb,
+                            w,
+                            h,
+                            &[0],
+                            &[3 * w as i32],
+                        )
+                        .map_err(err("video meta"))?;
                         if src.push_buffer(b).is_err() {
                             break; // pipeline stopped (error reported on the bus)
                         }
