@@ -35,7 +35,8 @@ mod utility;
 
 pub use default_model::{source as default_model, NAME as DEFAULT_MODEL_NAME};
 pub use leangate::{
-    ExecutionProviderChoice, GateMode, LeanGate, PrecisionChoice, FORCE_KEYFRAME_EVENT, RESET_EVENT,
+    ExecutionProviderChoice, GateMode, LeanGate, PrecisionChoice, FEEDBACK_EVENT,
+    FORCE_KEYFRAME_EVENT, RESET_EVENT,
 };
 pub use meta::{GateMeta, META_NAME};
 pub use policy::{Decision, Gate, GateConfig, Reason, Score};

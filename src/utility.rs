@@ -1,11 +1,15 @@
 //! What a frame's utility is made of: the model's score `s`, fused with the geometric prior
 //! (`tau_geo` of the homographies chained from the reference, [`crate::geometry`]) when the model
 //! carries a [`Fusion`] (metadata `leangate.geometry`, the embedded `leangate-s` among them) and
-//! the `geometry` property is on. The one place that composes it: the element calls it for every
-//! frame, and the tests drive it without a pipeline.
+//! the `geometry` property is on, and corrected by what the consumer reports about the frames it
+//! was given ([`Utility::feedback`], the element's `leangate-feedback` event). The one place that
+//! composes it: the element calls it for every frame, and the tests drive it without a pipeline.
 
 use crate::geometry::{grey_from_tensor, Fusion, Pyramid, Tracker};
 use crate::preprocess::TensorSpec;
+
+/// The most the consumer's feedback ([`Utility::feedback`]) raises the utility.
+pub const FEEDBACK_LIMIT: f64 = 0.3;
 
 /// How the last observed frame's utility was composed ([`Utility::score_with`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -37,6 +41,8 @@ pub struct Utility {
     tracker: Tracker,
     /// The tracker's `tau_geo` of the last observed frame, once asked for.
     tau: Option<Option<f64>>,
+    /// Added to the composed utility: learnt from the consumer's feedback (0 without any).
+    offset: f64,
 }
 
 impl Utility {
@@ -46,6 +52,46 @@ impl Utility {
             fusion,
             tracker: Tracker::new(),
             tau: None,
+            offset: 0.0,
+        }
+    }
+
+    /// What the consumer's feedback adds to every utility (0 until feedback arrives).
+    pub fn offset(&self) -> f64 {
+        self.offset
+    }
+
+    /// The consumer's feedback on a kept frame: `tau` = 1 − S that it measured between that frame
+    /// and its previous keyframe (MASt3R-SLAM computes S for every frame it tracks). The gate
+    /// means to keep a frame when tau reaches `threshold`; a keep measured above it came late
+    /// (the utility reads low on this stream), below it early. The offset moves by
+    /// `rate * (tau − threshold)`, within [0, [`FEEDBACK_LIMIT`]]: a per-stream correction that
+    /// raises the utility where the scene's depth or parallax, which the pictures do not show,
+    /// makes it read low. It never goes below 0, so feedback never makes a keep come later than
+    /// without it (lowering it let the noise of single reports delay keeps into late ones on
+    /// sequences where the default is already right: `training/RESULTS.md`). Returns the new
+    /// offset; a `tau` outside [0, 1] (or not a number) is refused and changes nothing.
+    pub fn feedback(&mut self, tau: f64, threshold: f64, rate: f64) -> Result<f64, String> {
+        if !(0.0..=1.0).contains(&tau) {
+            return Err(format!("tau {tau} is not a number in [0, 1]"));
+        }
+        if rate.is_finite() && threshold.is_finite() {
+            self.offset = (self.offset + rate * (tau - threshold)).clamp(0.0, FEEDBACK_LIMIT);
+        }
+        Ok(self.offset)
+    }
+
+    /// Forget the feedback (a new stream: start, caps change).
+    pub fn reset_feedback(&mut self) {
+        self.offset = 0.0;
+    }
+
+    /// `u` with the feedback's offset, within [0, 1]; `u` itself while the offset is 0.
+    fn corrected(&self, u: f64) -> f64 {
+        if self.offset == 0.0 {
+            u
+        } else {
+            (u + self.offset).clamp(0.0, 1.0)
         }
     }
 
@@ -81,16 +127,17 @@ impl Utility {
         }
     }
 
-    /// The utility of the last observed frame given the model's score `s`, and the prior's
-    /// `tau_geo` when it was used (`None`: the model's score alone: no fusion, the prior off, or
-    /// the chain lost until the next keep).
+    /// The utility of the last observed frame given the model's score `s` (fused, plus the
+    /// feedback's offset), and the prior's `tau_geo` when it was used (`None`: the model's score
+    /// alone: no fusion, the prior off, or the chain lost until the next keep).
     pub fn compose(&mut self, s: f64, enabled: bool) -> (f64, Option<f64>) {
         match self.fusion.filter(|_| enabled) {
             Some(f) => {
                 let g = self.tau_geo();
-                (f.fuse(s, g), g.filter(|_| s.is_finite()))
+                let u = f.fuse(s, g);
+                (self.corrected(u), g.filter(|_| s.is_finite()))
             }
-            None => (s, None),
+            None => (self.corrected(s), None),
         }
     }
 
@@ -102,7 +149,8 @@ impl Utility {
     /// have failed on the frame, which keeps it, is not asked.)
     pub fn screen(&mut self, threshold: f64, enabled: bool) -> Option<f64> {
         let f = self.fusion.filter(|_| enabled)?;
-        let up = f.upper(self.tau_geo()?);
+        let g = self.tau_geo()?;
+        let up = self.corrected(f.upper(g));
         (up < threshold).then_some(up)
     }
 
@@ -308,5 +356,53 @@ mod tests {
             u.score_with(0.5, true, false, || Err::<f64, _>("failed")),
             Err("failed")
         );
+    }
+    #[test]
+    fn feedback_raises_the_utility_by_what_came_late_within_its_limit() {
+        let mut u = Utility::new(None);
+        u.observe(Some((&frame(0.0), &spec())), false, true);
+        assert_eq!(u.compose(0.4, true).0, 0.4, "no feedback, no change");
+        // A keep measured at tau 0.7 came late: the utility reads low, so it is raised.
+        assert!((u.feedback(0.7, 0.5, 0.4).unwrap() - 0.08).abs() < 1e-12);
+        assert!((u.compose(0.4, true).0 - 0.48).abs() < 1e-12);
+        // One measured early takes some back, never below the model's own utility.
+        assert!((u.feedback(0.45, 0.5, 0.4).unwrap() - 0.06).abs() < 1e-12);
+        assert_eq!(u.feedback(0.0, 0.5, 0.4).unwrap(), 0.0);
+        assert_eq!(u.compose(0.4, true).0, 0.4);
+        for _ in 0..50 {
+            u.feedback(1.0, 0.5, 0.4).unwrap();
+        }
+        assert_eq!(u.offset(), FEEDBACK_LIMIT);
+        assert_eq!(u.compose(0.9, true).0, 1.0, "within [0, 1]");
+        assert!(
+            u.compose(f64::NAN, true).0.is_nan(),
+            "a failed score stays failed"
+        );
+        // Refused: not a tau; rate 0 ignores feedback.
+        for bad in [f64::NAN, -0.1, 1.5, f64::INFINITY] {
+            assert!(u.feedback(bad, 0.5, 0.4).is_err());
+        }
+        assert_eq!(u.feedback(0.0, 0.5, 0.0).unwrap(), FEEDBACK_LIMIT);
+        u.reset_feedback();
+        assert_eq!(u.compose(0.4, true).0, 0.4);
+    }
+
+    #[test]
+    fn feedback_raises_the_fused_utility_and_the_screening_bound_alike() {
+        // weights 0, 1, 0, 0.25: utility tau_geo + 0.25 s; a frame is screened when even s = 1
+        // cannot lift it to the threshold. A raised utility screens less.
+        let mut u = referenced("raster-homography-v1: 0, 1, 0, 0.25");
+        let sp = spec();
+        u.observe(Some((&frame(8.0), &sp)), true, true);
+        let (plain, g) = u.compose(0.5, true);
+        let g = g.unwrap();
+        assert!((plain - (g + 0.125)).abs() < 1e-9);
+        let bound = u.screen(1.0, true).unwrap();
+        let t = bound + 0.05; // screened before the feedback, not after it
+        assert!(u.screen(t, true).is_some());
+        u.feedback(0.75, 0.5, 0.4).unwrap(); // offset +0.1
+        assert!((u.compose(0.5, true).0 - (plain + 0.1)).abs() < 1e-9);
+        assert!((u.screen(1.0, true).unwrap() - (bound + 0.1)).abs() < 1e-9);
+        assert!(u.screen(t, true).is_none());
     }
 }

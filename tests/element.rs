@@ -1009,3 +1009,85 @@ fn geometric_prior_restarts_at_the_next_keep_after_being_switched_back_on() {
     assert!((m[7].utility - geo(2.0)).abs() < 0.02, "{}", m[7].utility);
     assert!((m[8].utility - geo(4.0)).abs() < 0.02, "{}", m[8].utility);
 }
+
+#[test]
+fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns() {
+    // mad_geometry: utility = tau_geo, for a 2 px/frame pan on 160 px 2k/160 at k frames from
+    // the reference. A consumer reports tau 0.75 for a keep (late, at threshold 0.5): every later
+    // utility is 0.3 * 0.25 = 0.075 higher (feedback-rate 0.3, the default).
+    let (w, h) = (160, 120);
+    let mut hs = harness(
+        &format!(
+            "model={} mode=annotate threshold=0.5",
+            fixture("mad_geometry.onnx")
+        ),
+        &rgb_caps(w, h),
+    );
+    let e = hs.element().unwrap();
+    let bus = gst::Bus::new();
+    e.set_bus(Some(&bus));
+    let offset = |e: &gst::Element| e.property::<f64>("feedback-offset");
+    let feedback = |s: gst::Structure| gst::event::CustomUpstream::new(s);
+    let tau = |t: f64| {
+        gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
+            .field("tau", t)
+            .build()
+    };
+    let mut k = 0u64;
+    let mut push = |hs: &mut gst_check::Harness, n: u64| {
+        for _ in 0..n {
+            hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
+                .unwrap();
+            k += 1;
+        }
+    };
+    push(&mut hs, 4);
+    assert_eq!(offset(&e), 0.0);
+    assert!(hs.push_upstream_event(feedback(tau(0.75))));
+    push(&mut hs, 4);
+    assert!((offset(&e) - 0.075).abs() < 1e-12, "{}", offset(&e));
+    // Refused, each with the reason, the offset unchanged: not a number, out of range, absent.
+    for bad in [
+        gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
+            .field("tau", "high")
+            .build(),
+        tau(1.5),
+        tau(f64::NAN),
+        gst::Structure::new_empty(gstleangate::FEEDBACK_EVENT),
+    ] {
+        assert!(hs.push_upstream_event(feedback(bad)));
+    }
+    push(&mut hs, 1);
+    assert!((offset(&e) - 0.075).abs() < 1e-12);
+    let warnings: Vec<String> = std::iter::from_fn(|| bus.pop())
+        .filter_map(|m| match m.view() {
+            gst::MessageView::Warning(w) => Some(w.error().to_string()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(warnings.len(), 1, "rate-limited: {warnings:?}");
+    assert!(
+        warnings[0].contains("leangate-feedback ignored") && warnings[0].contains("tau"),
+        "{warnings:?}"
+    );
+    // feedback-rate 0 ignores feedback.
+    e.set_property("feedback-rate", 0.0);
+    assert!(hs.push_upstream_event(feedback(tau(0.0))));
+    push(&mut hs, 1);
+    assert!((offset(&e) - 0.075).abs() < 1e-12);
+    let m: Vec<_> = drain(&mut hs).iter().map(meta).collect();
+    assert_eq!(m.len(), 10);
+    let geo = |k: usize| 2.0 * k as f64 / w as f64;
+    for (k, meta) in m.iter().enumerate().skip(1) {
+        let want = geo(k) + if k >= 4 { 0.075 } else { 0.0 };
+        assert!(
+            (meta.utility - want).abs() < 0.02,
+            "frame {k}: {} against {want}",
+            meta.utility
+        );
+    }
+    // New caps: new pictures, the feedback about the old ones is forgotten.
+    hs.set_src_caps_str(&rgb_caps(80, 60));
+    hs.push(buffer(panned(80, 60, 0.0), 400)).unwrap();
+    assert_eq!(offset(&e), 0.0);
+}

@@ -647,6 +647,54 @@ fn camera_pipeline_parses() {
 }
 
 #[test]
+fn feedback_reaches_the_gate_and_a_bad_tau_is_refused() {
+    if !python_ok() {
+        return;
+    }
+    // The appsink holds at most 8 frames, so a report sent while frame 2 is handled reaches the
+    // gate well before frame 60; tau 0.75 at threshold 0.5 with the default rate 0.3 moves the
+    // gate's utility up by 0.075 (feedback-offset).
+    let script = r#"
+import json, sys
+from leangate_client import LeanGateSource, FEEDBACK_EVENT
+src = LeanGateSource("test://ball?num-buffers=60&width=160&height=120", model=sys.argv[1],
+                     threshold=0.5, mode="annotate")
+out = {"event": FEEDBACK_EVENT}
+with src:
+    for k, (f, m) in enumerate(src):
+        if k == 0:
+            out["before"] = src.gate.get_property("feedback-offset")
+        if k == 2:
+            src.feedback(0.75)
+            for bad in (1.5, -0.1, float("nan")):
+                try:
+                    src.feedback(bad)
+                    out.setdefault("accepted", []).append(bad)
+                except ValueError as e:
+                    out.setdefault("refused", []).append(str(e))
+        if k == 59:
+            out["after"] = src.gate.get_property("feedback-offset")
+print(json.dumps(out))
+"#;
+    let mut c = command(PYTHON);
+    c.env("PYTHONPATH", pkg_dir())
+        .args(["-c", script, &model()]);
+    let out = run(c);
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert_eq!(v["event"], "leangate-feedback");
+    assert_eq!(v["before"], 0.0);
+    assert!((v["after"].as_f64().unwrap() - 0.075).abs() < 1e-9, "{v}");
+    assert!(v.get("accepted").is_none(), "{v}");
+    let refused = v["refused"].as_array().unwrap();
+    assert_eq!(refused.len(), 3, "{v}");
+    assert!(
+        refused[0].as_str().unwrap().contains("not in [0, 1]"),
+        "{v}"
+    );
+}
+
+#[test]
 fn package_imports_from_a_clean_interpreter() {
     if !python_ok() {
         return;
@@ -662,7 +710,8 @@ print(json.dumps({
     "file": lc.__file__, "version": lc.__version__,
     "missing": [n for n in lc.__all__ if not hasattr(lc, n)],
     "api": all(hasattr(lc.LeanGateSource, n) for n in
-               ("force_keyframe", "reset", "start", "close", "gate", "description", "__iter__")),
+               ("force_keyframe", "reset", "feedback", "start", "close", "gate", "description",
+                "__iter__")),
     "gst_initialized": Gst.is_initialized(),
     "slam_client_loaded": "slam_client" in sys.modules,
 }))

@@ -26,6 +26,7 @@ __version__ = "0.1.0"
 
 from .errors import PipelineError, SetupError  # noqa: E402
 from .meta import (  # noqa: E402
+    FEEDBACK_EVENT,
     FORCE_KEYFRAME_EVENT,
     META_KEYS,
     META_NAME,
@@ -58,6 +59,7 @@ __all__ = [
     "META_NAME",
     "META_KEYS",
     "STATS_MESSAGE",
+    "FEEDBACK_EVENT",
     "FORCE_KEYFRAME_EVENT",
     "RESET_EVENT",
     "REASONS",

@@ -9,6 +9,7 @@ U64_MAX = (1 << 64) - 1
 META_NAME = "LeanGateMeta"
 FORCE_KEYFRAME_EVENT = "leangate-force-keyframe"
 RESET_EVENT = "leangate-reset"
+FEEDBACK_EVENT = "leangate-feedback"
 STATS_MESSAGE = "leangate-stats"
 REASONS = ("first", "warmup", "score", "max-gap", "forced", "error")
 

@@ -31,7 +31,7 @@ from .argtypes import (
 )
 from .errors import PipelineError, SetupError
 from .keyframes import KeptFrameSaver
-from .meta import FORCE_KEYFRAME_EVENT, META_NAME, RESET_EVENT, meta_dict
+from .meta import FEEDBACK_EVENT, FORCE_KEYFRAME_EVENT, META_NAME, RESET_EVENT, meta_dict
 from .stats import LeanGateStats
 
 log = logging.getLogger(__name__)
@@ -443,11 +443,26 @@ class LeanGateSource:
         """Ask the gate to drop its reference (the next frame is kept as a new `first`)."""
         return self._push_upstream(RESET_EVENT)
 
-    def _push_upstream(self, name: str) -> bool:
+    def feedback(self, tau: float) -> bool:
+        """Report what the SLAM measured on a kept frame: ``tau`` = 1 - S between it and the
+        keyframe before it (MASt3R-SLAM's match fractions, S = min(f_m, f_u)). The gate raises
+        its utility by ``feedback-rate * (tau - threshold)`` from the next frame it processes
+        (a keep reported above the threshold came late; one below takes some back), within 0 to
+        0.3; ``gate.get_property("feedback-offset")`` says where it stands. Raises ValueError for
+        a tau outside [0, 1]."""
+        tau = float(tau)
+        if not 0.0 <= tau <= 1.0:
+            raise ValueError(f"feedback: tau {tau} is not in [0, 1]")
+        return self._push_upstream(FEEDBACK_EVENT, tau=tau)
+
+    def _push_upstream(self, name: str, **fields) -> bool:
         if self._pipeline is None:
             return False
         Gst = _gst.Gst
-        ev = Gst.Event.new_custom(Gst.EventType.CUSTOM_UPSTREAM, Gst.Structure.new_empty(name))
+        st = Gst.Structure.new_empty(name)
+        for k, v in fields.items():
+            st.set_value(k, v)
+        ev = Gst.Event.new_custom(Gst.EventType.CUSTOM_UPSTREAM, st)
         # push_event on a *sink* pad sends the event to its upstream peer.
         ok = self._sink.get_static_pad("sink").push_event(ev)
         if name == FORCE_KEYFRAME_EVENT:

@@ -9,7 +9,8 @@ use gst_base::prelude::*;
 use gst_base::subclass::prelude::*;
 
 use super::{
-    ExecutionProviderChoice, GateMode, PrecisionChoice, FORCE_KEYFRAME_EVENT, RESET_EVENT,
+    ExecutionProviderChoice, GateMode, PrecisionChoice, FEEDBACK_EVENT, FORCE_KEYFRAME_EVENT,
+    RESET_EVENT,
 };
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
@@ -49,6 +50,7 @@ const DEFAULT_MAX_SESSIONS: u32 = 0;
 const DEFAULT_STATS_INTERVAL: u64 = 0;
 const DEFAULT_GEOMETRY: bool = true;
 const DEFAULT_SCREEN: bool = true;
+const DEFAULT_FEEDBACK_RATE: f64 = 0.3;
 const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
 const DEFAULT_SERVER_MAX_IN_FLIGHT: u32 = 16;
 
@@ -76,6 +78,7 @@ struct Settings {
     stats_interval: u64,
     geometry: bool,
     screen: bool,
+    feedback_rate: f64,
     /// Remote scoring (crate::remote): the V2 server's URL; None = local ONNX Runtime.
     server: Option<String>,
     server_model: Option<String>,
@@ -106,6 +109,7 @@ impl Default for Settings {
             stats_interval: DEFAULT_STATS_INTERVAL,
             geometry: DEFAULT_GEOMETRY,
             screen: DEFAULT_SCREEN,
+            feedback_rate: DEFAULT_FEEDBACK_RATE,
             server: None,
             server_model: None,
             server_timeout_ms: DEFAULT_SERVER_TIMEOUT_MS,
@@ -125,6 +129,7 @@ struct FrameSettings {
     stats_interval: u64,
     geometry: bool,
     screen: bool,
+    feedback_rate: f64,
 }
 
 impl From<&Settings> for FrameSettings {
@@ -137,6 +142,7 @@ impl From<&Settings> for FrameSettings {
             stats_interval: s.stats_interval,
             geometry: s.geometry,
             screen: s.screen,
+            feedback_rate: s.feedback_rate,
         }
     }
 }
@@ -184,6 +190,11 @@ pub struct LeanGate {
     frames_screened: AtomicU64,
     force_pending: AtomicBool,
     reset_pending: AtomicBool,
+    /// `leangate-feedback` events not yet applied (their `tau`, or why it is unusable); taken
+    /// alone, briefly, and applied by the streaming thread at the next frame.
+    feedback: Mutex<Vec<Result<f64, String>>>,
+    /// The utility's offset learnt from feedback (f64 bits), for the `feedback-offset` property.
+    feedback_offset: AtomicU64,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -315,6 +326,13 @@ impl LeanGate {
             gst::debug!(CAT, imp = self, "force-keyframe requested");
             self.force_pending.store(true, Ordering::SeqCst);
             true
+        } else if s.name() == FEEDBACK_EVENT {
+            let tau = s
+                .get::<f64>("tau")
+                .map_err(|_| format!("a {FEEDBACK_EVENT} event without a double `tau`: {s}"));
+            gst::debug!(CAT, imp = self, "feedback: {tau:?}");
+            lock(&self.feedback).push(tau);
+            true
         } else if s.name() == RESET_EVENT {
             gst::debug!(CAT, imp = self, "reset requested");
             self.reset_pending.store(true, Ordering::SeqCst);
@@ -342,6 +360,8 @@ impl LeanGate {
         fs: &FrameSettings,
         out: &mut Outbox,
     ) -> Result<Option<Verdict>, gst::FlowError> {
+        // Taken alone, before the state lock.
+        let feedback = std::mem::take(&mut *lock(&self.feedback));
         let mut guard = lock(&self.state);
         let Some(state) = guard.as_mut() else {
             return Err(gst::FlowError::Flushing);
@@ -355,6 +375,17 @@ impl LeanGate {
         }
         if self.force_pending.swap(false, Ordering::SeqCst) {
             state.gate.force_keyframe();
+        }
+        let threshold = state.gate.config().threshold;
+        for tau in feedback {
+            match tau.and_then(|t| state.utility.feedback(t, threshold, fs.feedback_rate)) {
+                Ok(offset) => self
+                    .feedback_offset
+                    .store(offset.to_bits(), Ordering::Relaxed),
+                Err(e) => {
+                    self.warn_rate_limited(state, out, &format!("{FEEDBACK_EVENT} ignored: {e}"))
+                }
+            }
         }
 
         let t0 = Instant::now();
@@ -652,6 +683,22 @@ impl ObjectImpl for LeanGate {
                     .default_value(DEFAULT_SCREEN)
                     .mutable_playing()
                     .build(),
+                glib::ParamSpecDouble::builder("feedback-rate")
+                    .nick("Feedback rate")
+                    .blurb(
+                        "How far each leangate-feedback event moves the utility: a consumer \
+                         (e.g. the SLAM behind the gate) that reports tau = 1 - S it measured \
+                         between a kept frame and the previous keyframe raises the utility by \
+                         rate * (tau - threshold) when that keep came late and takes it back \
+                         when early, within 0 to 0.3 (feedback-offset: never below the \
+                         model's own utility). 0 ignores feedback. Without feedback events \
+                         nothing changes",
+                    )
+                    .minimum(0.0)
+                    .maximum(1.0)
+                    .default_value(DEFAULT_FEEDBACK_RATE)
+                    .mutable_playing()
+                    .build(),
                 glib::ParamSpecString::builder("server")
                     .nick("Inference server")
                     .blurb(
@@ -704,6 +751,18 @@ impl ObjectImpl for LeanGate {
                 glib::ParamSpecUInt64::builder("frames-kept")
                     .nick("Frames kept")
                     .blurb("Frames kept since start (read-only)")
+                    .read_only()
+                    .build(),
+                glib::ParamSpecDouble::builder("feedback-offset")
+                    .nick("Feedback offset")
+                    .blurb(
+                        "What the consumer's leangate-feedback events add to every frame's \
+                         utility now (0 to 0.3; 0 without feedback; back to 0 at start and \
+                         when the caps change; read-only; see feedback-rate)",
+                    )
+                    .minimum(0.0)
+                    .maximum(1.0)
+                    .default_value(0.0)
                     .read_only()
                     .build(),
                 glib::ParamSpecUInt64::builder("frames-screened")
@@ -824,6 +883,10 @@ impl ObjectImpl for LeanGate {
                     settings.screen = value.get().expect("type checked upstream");
                     None
                 }
+                "feedback-rate" => {
+                    settings.feedback_rate = value.get().expect("type checked upstream");
+                    None
+                }
                 "server" => {
                     settings.server = value.get().expect("type checked upstream");
                     None
@@ -880,6 +943,10 @@ impl LeanGate {
             "stats-interval" => settings.stats_interval.to_value(),
             "geometry" => settings.geometry.to_value(),
             "screen" => settings.screen.to_value(),
+            "feedback-rate" => settings.feedback_rate.to_value(),
+            "feedback-offset" => {
+                f64::from_bits(self.feedback_offset.load(Ordering::Relaxed)).to_value()
+            }
             "server" => settings.server.to_value(),
             "server-model" => settings.server_model.to_value(),
             "server-timeout" => settings.server_timeout_ms.to_value(),
@@ -1054,6 +1121,9 @@ impl BaseTransformImpl for LeanGate {
         self.frames_screened.store(0, Ordering::Relaxed);
         self.force_pending.store(false, Ordering::SeqCst);
         self.reset_pending.store(false, Ordering::SeqCst);
+        lock(&self.feedback).clear();
+        self.feedback_offset
+            .store(0f64.to_bits(), Ordering::Relaxed);
         *lock(&self.state) = Some(State {
             scorer,
             model_threshold: info.threshold,
@@ -1100,8 +1170,12 @@ impl BaseTransformImpl for LeanGate {
         )
         .map_err(|e| gst::loggable_error!(CAT, "{e}"))?;
         gst::debug!(CAT, imp = self, "configured for {incaps}");
-        // A new picture geometry: the old reference is not comparable any more.
+        // A new picture geometry: the old reference is not comparable any more, nor what the
+        // consumer reported about the old pictures.
         state.gate.drop_reference();
+        state.utility.reset_feedback();
+        self.feedback_offset
+            .store(0f64.to_bits(), Ordering::Relaxed);
         state.pre = Some((info, pre));
         Ok(())
     }

@@ -91,6 +91,10 @@ glib::wrapper! {
 pub const FORCE_KEYFRAME_EVENT: &str = "leangate-force-keyframe";
 /// Name of the custom event (upstream or downstream) that drops the reference.
 pub const RESET_EVENT: &str = "leangate-reset";
+/// Name of the custom event (upstream, from the consumer) that reports `tau` (a double, 1 − S)
+/// measured between a kept frame and the keyframe before it: the element corrects its utility
+/// by it (`feedback-rate`, `feedback-offset`).
+pub const FEEDBACK_EVENT: &str = "leangate-feedback";
 
 pub fn register(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     GateMode::static_type().mark_as_plugin_api(gst::PluginAPIFlags::empty());

@@ -153,6 +153,14 @@ enum Command {
         /// tau_keep, 0 to 1 (default: the model's leangate.threshold, else 0.5).
         #[arg(long, value_parser = args::unit_interval)]
         threshold: Option<f64>,
+        /// Act as a consumer that reports what it measured: each kept frame's teacher tau against
+        /// the previous kept frame goes back to the element as a `leangate-feedback` event (what
+        /// a SLAM front end that sends its S upstream gives the gate), DELAY frames after the
+        /// keep (default 3: its latency). Frames then go through one at a time. Needs depth and
+        /// poses.
+        #[arg(long, value_name = "DELAY", num_args = 0..=1, default_missing_value = "3",
+              value_parser = clap::value_parser!(u16).range(0..=1000))]
+        feedback: Option<u16>,
         /// Write the JSON report here.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -402,6 +410,7 @@ fn run(cli: Cli) -> Res {
             model,
             precision,
             threshold,
+            feedback,
             json,
             plot,
             contact_sheet,
@@ -427,6 +436,7 @@ fn run(cli: Cli) -> Res {
                     "int8" => gstleangate::PrecisionChoice::Int8,
                     _ => gstleangate::PrecisionChoice::Auto,
                 }),
+                feedback: feedback.map(usize::from),
             },
             threshold,
             EvalOutputs {
@@ -510,6 +520,9 @@ fn eval_cmd(
         if phases > 1 {
             // a video, or too few frames for the last start: said now, not after the long part
             eval::Source::open_from(s, phases - 1).map_err(|e| e.to_string())?;
+        }
+        if model.feedback.is_some() {
+            eval::check_feedback(s)?;
         }
     }
     let bar = indicatif::ProgressBar::new(0);
@@ -786,8 +799,11 @@ fn print_sums(heading: &str, sums: &[eval::PolicySum]) {
 }
 
 fn print_summary(r: &eval::EvalReport) {
+    let feedback = r.feedback_offset.map_or(String::new(), |o| {
+        format!(", with feedback (offset {o:+.3} at the end)")
+    });
     println!(
-        "{}: {} frames, model {} ({}, {}), threshold {:.3}",
+        "{}: {} frames, model {} ({}, {}), threshold {:.3}{feedback}",
         r.sequence, r.frames, r.model, r.model_precision, r.execution_provider, r.threshold
     );
     println!(

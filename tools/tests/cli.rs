@@ -116,6 +116,65 @@ fn eval_reads_frames_whose_rows_are_not_padded() {
     assert!(r["policies"]["oracle"]["kept"].as_u64().unwrap() >= 1);
 }
 
+/// `--feedback`: the eval reports each kept frame's teacher tau back to the element (as a
+/// consumer would, three frames later by default), frame by frame, so the run repeats exactly; the
+/// element's correction is in the JSON. Refused before anything runs where the teacher cannot
+/// measure (a video, a sequence without depth).
+#[test]
+fn eval_feedback_reports_to_the_element_reproducibly_and_needs_the_teacher() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 90, "mixed", 8);
+    // The prior alone (mad_geometry: utility = tau_geo) reads the image overlap, which the
+    // teacher's tau exceeds (parallax, its rounding): its keeps come late, so the reports raise
+    // its utility.
+    let model = fixture("mad_geometry.onnx");
+    let plain = eval_json(&seq, &["--model", &model]);
+    assert!(plain.get("feedback_offset").is_none(), "{plain}");
+    let a = eval_json(&seq, &["--model", &model, "--feedback"]);
+    let b = eval_json(&seq, &["--model", &model, "--feedback"]);
+    let offset = a["feedback_offset"].as_f64().unwrap();
+    assert!(
+        offset > 0.0 && offset <= 0.3,
+        "the reports raised the utility within its limit: {offset}"
+    );
+    assert_eq!(a["feedback_offset"], b["feedback_offset"]);
+    for key in ["kept", "late_keeps", "breaks", "min_pair_S"] {
+        assert_eq!(
+            a["policies"]["model"][key], b["policies"]["model"][key],
+            "{key}: the same decisions in every run"
+        );
+    }
+    let immediate = eval_json(&seq, &["--model", &model, "--feedback", "0"]);
+    let o = immediate["feedback_offset"].as_f64().unwrap();
+    assert!((0.0..=0.3).contains(&o), "{o}");
+
+    let clip = dir.path().join("clip.mp4");
+    std::fs::write(&clip, b"not looked at").unwrap();
+    let no_depth = dir.path().join("no_depth");
+    sequence_copy(&seq, &no_depth, |_, text| text);
+    std::fs::remove_file(no_depth.join("depth.txt")).unwrap();
+    for (path, needle) in [(&clip, "is a video"), (&no_depth, "lacks them")] {
+        let out = leangate()
+            .args(["eval", "--feedback", "--sequence"])
+            .arg(&seq)
+            .arg("--sequence")
+            .arg(path)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{path:?} accepted");
+        assert!(
+            err.contains("--feedback needs") && err.contains(needle),
+            "{path:?}: {err}"
+        );
+        assert!(
+            !String::from_utf8_lossy(&out.stdout).contains("policy"),
+            "refused before running"
+        );
+    }
+}
+
 #[test]
 fn synth_label_eval_end_to_end() {
     let dir = tempfile::tempdir().unwrap();

@@ -196,6 +196,10 @@ pub struct EvalReport {
     /// `fp32` or `int8` (the element's `precision`; the embedded student runs INT8 on the CPU).
     pub model_precision: String,
     pub execution_provider: String,
+    /// With `--feedback`: what the element's `feedback-offset` had settled at when the run ended
+    /// (the correction the teacher's reports taught it; `model` is that run).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub feedback_offset: Option<f64>,
     pub policies: serde_json::Map<String, serde_json::Value>,
     /// Equal-budget curves (`--sweep`).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -234,21 +238,29 @@ pub fn evaluate(
         Source::Sequence(s) => s.len(),
         Source::Video(_) => 0,
     };
-    let run = run_model(&source, model, threshold, |d| progress("model", d, n_hint))?;
-    let n = run.metas.len();
-    let t = run.threshold;
     let teacher = match &source {
         Source::Sequence(seq) if seq.has_ground_truth() => {
-            if seq.len() != n {
-                return Err(EvalError(format!(
-                    "the pipeline returned {n} frames for a sequence of {}",
-                    seq.len()
-                )));
-            }
             Some(Teacher::from_sequence(seq, teacher_cfg).map_err(|e| EvalError(e.to_string()))?)
         }
         _ => None,
     };
+    if model.feedback.is_some() {
+        judged(&source, path, "--feedback")?;
+    }
+    let fb = teacher.as_ref().filter(|_| model.feedback.is_some());
+    let run = run_model(&source, model, threshold, fb, |d| {
+        progress("model", d, n_hint)
+    })?;
+    let n = run.metas.len();
+    let t = run.threshold;
+    if let (Some(_), Source::Sequence(seq)) = (&teacher, &source) {
+        if seq.len() != n {
+            return Err(EvalError(format!(
+                "the pipeline returned {n} frames for a sequence of {}",
+                seq.len()
+            )));
+        }
+    }
     let mut cache = teacher.as_ref().map(TeacherCache::new);
 
     let model_trace = run.trace();
@@ -319,6 +331,7 @@ pub fn evaluate(
             model: run.model_name.clone(),
             model_precision: run.model_precision.clone(),
             execution_provider: run.provider.clone(),
+            feedback_offset: run.feedback_offset,
             policies,
             sweep: None,
             reconstruction: None,
@@ -336,17 +349,23 @@ pub fn evaluate(
 /// Whether the teacher can judge a sweep on the sequence at `path` (depth, poses and
 /// intrinsics); the error says what it lacks. Cheap: it reads the lists, not the images.
 pub fn check_sweep(path: &Path) -> Result<(), EvalError> {
-    sweepable(&Source::open(path)?, path).map(|_| ())
+    judged(&Source::open(path)?, path, "--sweep").map(|_| ())
 }
 
-fn sweepable<'a>(source: &'a Source, path: &Path) -> Result<&'a Sequence, EvalError> {
+/// Whether `--feedback` can run on `path` (the teacher measures what the consumer reports).
+pub fn check_feedback(path: &Path) -> Result<(), EvalError> {
+    judged(&Source::open(path)?, path, "--feedback").map(|_| ())
+}
+
+/// The sequence, when the teacher can judge it (`flag` names what needs it).
+fn judged<'a>(source: &'a Source, path: &Path, flag: &str) -> Result<&'a Sequence, EvalError> {
     match source {
         Source::Video(_) => Err(EvalError(format!(
-            "--sweep needs a sequence with depth and poses; `{}` is a video",
+            "{flag} needs a sequence with depth and poses; `{}` is a video",
             path.display()
         ))),
         Source::Sequence(seq) if !seq.has_ground_truth() => Err(EvalError(format!(
-            "--sweep needs depth, poses and intrinsics; `{}` lacks them",
+            "{flag} needs depth, poses and intrinsics; `{}` lacks them",
             path.display()
         ))),
         Source::Sequence(seq) => Ok(seq),
@@ -381,7 +400,7 @@ pub fn sweep(
     mut progress: impl FnMut(&str, usize, usize),
 ) -> Result<Vec<SweepPoint>, EvalError> {
     let source = Source::open_from(path, start)?;
-    let seq = sweepable(&source, path)?;
+    let seq = judged(&source, path, "--sweep")?;
     let teacher = Teacher::from_sequence(seq, teacher_cfg).map_err(|e| EvalError(e.to_string()))?;
     let mut cache = TeacherCache::new(&teacher);
     let n = seq.len();
@@ -403,7 +422,8 @@ pub fn sweep(
     };
     for (k, &t) in thresholds.iter().enumerate() {
         progress("sweep", k, thresholds.len());
-        let run = run_model(&source, model, Some(t), |_| {})?;
+        let fb = model.feedback.map(|_| &teacher);
+        let run = run_model(&source, model, Some(t), fb, |_| {})?;
         if run.metas.len() != n {
             return Err(EvalError(format!(
                 "the pipeline returned {} frames for a sequence of {n}",

@@ -26,6 +26,8 @@ pub struct ModelRun {
     pub model_name: String,
     /// `model-precision` of the element's stats (`fp32`, `int8`).
     pub model_precision: String,
+    /// With feedback: the element's `feedback-offset` at the end of the run.
+    pub feedback_offset: Option<f64>,
 }
 
 impl ModelRun {
@@ -97,6 +99,39 @@ fn thumbnail(
     Ok(image::RgbImage::from_raw(THUMB_W, THUMB_H, rgb).expect("thumbnail size"))
 }
 
+/// The feeder waits for the sink: frame `i` is fed once `i` frames have left the element.
+#[derive(Default)]
+struct LockStep {
+    /// (frames the sink has finished, whether it stopped pulling)
+    state: std::sync::Mutex<(usize, bool)>,
+    cv: std::sync::Condvar,
+}
+
+impl LockStep {
+    /// Block until `i` frames are finished; false when the sink stopped first.
+    fn wait_for(&self, i: usize) -> bool {
+        let mut st = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        while st.0 < i && !st.1 {
+            st = self
+                .cv
+                .wait_timeout(st, std::time::Duration::from_millis(100))
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
+        st.0 >= i
+    }
+
+    fn finished(&self, n: usize) {
+        self.state.lock().unwrap_or_else(|e| e.into_inner()).0 = n;
+        self.cv.notify_all();
+    }
+
+    fn stop(&self) {
+        self.state.lock().unwrap_or_else(|e| e.into_inner()).1 = true;
+        self.cv.notify_all();
+    }
+}
+
 fn grey(rgb: &image::RgbImage) -> Vec<u8> {
     rgb.pixels()
         .map(|p| ((p[0] as u16 + p[1] as u16 + p[2] as u16) / 3) as u8)
@@ -109,16 +144,27 @@ fn grey(rgb: &image::RgbImage) -> Vec<u8> {
 pub struct GateModel<'a> {
     pub path: Option<&'a Path>,
     pub precision: Option<gstleangate::PrecisionChoice>,
+    /// Act as a consumer that reports, for each kept frame, the teacher's tau against the
+    /// previous kept frame (`leangate-feedback`; what MASt3R-SLAM measures on the frames it gets),
+    /// this many frames after the keep (its latency).
+    pub feedback: Option<usize>,
 }
 
 /// Run the real element in annotate mode over the source, with `model`. `progress(done)` is
-/// called per frame.
+/// called per frame. With `feedback` (the sequence's teacher), each kept frame's teacher tau
+/// against the previous kept frame is sent back to the element as a `leangate-feedback` event,
+/// as a consumer would, `model.feedback` frames after the keep; the frames then travel one at a
+/// time (the next is fed once the last one has left the element), so the report of a keep at
+/// frame j reaches the element exactly before frame j + 1 + delay, whatever the threads do.
 pub fn run_model(
     source: &Source,
     model: GateModel<'_>,
     threshold: Option<f64>,
+    feedback: Option<&crate::teacher::Teacher>,
     mut progress: impl FnMut(usize),
 ) -> Result<ModelRun, EvalError> {
+    let delay = model.feedback.unwrap_or(0);
+    let step = std::sync::Arc::new(LockStep::default());
     init_gstreamer()?;
     let gate = gst::ElementFactory::make("leangate")
         .build()
@@ -189,10 +235,14 @@ pub fn run_model(
             src.link(&gate).map_err(err("link"))?;
             gate.link(&sink).map_err(err("link"))?;
             let seq = seq.clone();
+            let lock_step = feedback.is_some().then(|| step.clone());
             feeder = Some(std::thread::spawn(move || -> Result<(), EvalError> {
                 let t0 = seq.frames.first().map(|f| f.timestamp).unwrap_or(0.0);
                 let feed = || {
                     for i in 0..seq.len() {
+                        if lock_step.as_ref().is_some_and(|s| !s.wait_for(i)) {
+                            break; // the sink stopped pulling (an error, reported there)
+                        }
                         let img = seq.load_rgb(i).map_err(err("frame"))?;
                         if img.dimensions() != (w, h) {
                             return Err(EvalError(format!(
@@ -246,6 +296,8 @@ pub fn run_model(
     let mut kept_thumbs = Vec::new();
     let mut cache = None;
     let mut failure = None;
+    // Reports not yet sent: (the frame at which the consumer sends it, tau).
+    let mut reports = std::collections::VecDeque::new();
     // Pull until EOS, watching the bus: a source that fails (a file that is not a video, an
     // unreadable image) posts an error and never reaches EOS.
     while log.error.is_none() {
@@ -271,14 +323,35 @@ pub fn run_model(
             }
         };
         thumbs.push(grey(&rgb));
+        let i = metas.len();
         if m.keep {
-            kept_thumbs.push((metas.len(), rgb));
+            if let (Some(teacher), Some(&(prev, _))) = (feedback, kept_thumbs.last()) {
+                match teacher.try_score(i, prev) {
+                    Ok(p) => reports.push_back((i + delay, p.tau)),
+                    Err(e) => {
+                        failure = Some(EvalError(format!("feedback: {e}")));
+                        break;
+                    }
+                }
+            }
+            kept_thumbs.push((i, rgb));
+        }
+        while reports.front().is_some_and(|&(due, _)| due <= i) {
+            let (_, tau) = reports.pop_front().unwrap();
+            let s = gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
+                .field("tau", tau)
+                .build();
+            sink.send_event(gst::event::CustomUpstream::new(s));
         }
         metas.push(m);
+        step.finished(metas.len());
         progress(metas.len());
     }
+    step.stop();
     let elapsed = start.elapsed().as_secs_f64();
     log.drain(&bus);
+    // Read before the element stops (its start resets it).
+    let feedback_offset = feedback.map(|_| gate.property::<f64>("feedback-offset"));
     let _ = pipeline.set_state(gst::State::Null);
     if let Some(f) = feeder {
         f.join()
@@ -307,6 +380,7 @@ pub fn run_model(
             .unwrap_or_default(),
         model_name: stats.as_ref().map(|s| s.model.clone()).unwrap_or_default(),
         model_precision: stats.map(|s| s.model_precision).unwrap_or_default(),
+        feedback_offset,
     })
 }
 

@@ -184,6 +184,7 @@ mod tests {
             model: "m".into(),
             model_precision: "int8".into(),
             execution_provider: "cpu".into(),
+            feedback_offset: None,
             policies: rows
                 .iter()
                 .map(|(k, v)| (k.to_string(), v.clone()))
