@@ -1086,6 +1086,15 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
             meta.utility
         );
     }
+    // A float `tau` counts too.
+    e.set_property("feedback-rate", 0.3);
+    let single = gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
+        .field("tau", 0.75f32)
+        .build();
+    assert!(hs.push_upstream_event(feedback(single)));
+    push(&mut hs, 1);
+    assert!((offset(&e) - 0.15).abs() < 1e-9, "{}", offset(&e));
+    drain(&mut hs);
     // New caps: new pictures, the feedback about the old ones is forgotten.
     hs.set_src_caps_str(&rgb_caps(80, 60));
     hs.push(buffer(panned(80, 60, 0.0), 400)).unwrap();

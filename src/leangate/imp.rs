@@ -54,6 +54,9 @@ const DEFAULT_FEEDBACK_RATE: f64 = 0.3;
 const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
 const DEFAULT_SERVER_MAX_IN_FLIGHT: u32 = 16;
 
+/// Most `leangate-feedback` reports held between two frames (the oldest are dropped beyond).
+const MAX_PENDING_FEEDBACK: usize = 256;
+
 /// Minimum time between two run-time warnings posted on the bus.
 const WARN_EVERY: std::time::Duration = std::time::Duration::from_secs(5);
 
@@ -192,7 +195,7 @@ pub struct LeanGate {
     reset_pending: AtomicBool,
     /// `leangate-feedback` events not yet applied (their `tau`, or why it is unusable); taken
     /// alone, briefly, and applied by the streaming thread at the next frame.
-    feedback: Mutex<Vec<Result<f64, String>>>,
+    feedback: Mutex<std::collections::VecDeque<Result<f64, String>>>,
     /// The utility's offset learnt from feedback (f64 bits), for the `feedback-offset` property.
     feedback_offset: AtomicU64,
 }
@@ -329,9 +332,16 @@ impl LeanGate {
         } else if s.name() == FEEDBACK_EVENT {
             let tau = s
                 .get::<f64>("tau")
-                .map_err(|_| format!("a {FEEDBACK_EVENT} event without a double `tau`: {s}"));
+                .or_else(|_| s.get::<f32>("tau").map(f64::from))
+                .map_err(|_| format!("a {FEEDBACK_EVENT} event without a number `tau`: {s}"));
             gst::debug!(CAT, imp = self, "feedback: {tau:?}");
-            lock(&self.feedback).push(tau);
+            let mut pending = lock(&self.feedback);
+            // A consumer that reports faster than frames arrive (or while the stream waits)
+            // must not grow this without bound: the oldest reports go first.
+            if pending.len() >= MAX_PENDING_FEEDBACK {
+                pending.pop_front();
+            }
+            pending.push_back(tau);
             true
         } else if s.name() == RESET_EVENT {
             gst::debug!(CAT, imp = self, "reset requested");
