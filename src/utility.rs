@@ -41,8 +41,9 @@ pub struct Utility {
     tracker: Tracker,
     /// The tracker's `tau_geo` of the last observed frame, once asked for.
     tau: Option<Option<f64>>,
-    /// Added to the composed utility: learnt from the consumer's feedback (0 without any).
-    offset: f64,
+    /// The consumer's reports accumulated (`rate * (tau − threshold)` each, within
+    /// ±[`FEEDBACK_LIMIT`]); the utility gets its positive part ([`Utility::offset`]).
+    feedback: f64,
 }
 
 impl Utility {
@@ -52,46 +53,52 @@ impl Utility {
             fusion,
             tracker: Tracker::new(),
             tau: None,
-            offset: 0.0,
+            feedback: 0.0,
         }
     }
 
-    /// What the consumer's feedback adds to every utility (0 until feedback arrives).
+    /// What the consumer's feedback adds to every utility (0 until feedback arrives, never
+    /// negative).
     pub fn offset(&self) -> f64 {
-        self.offset
+        self.feedback.max(0.0)
     }
 
     /// The consumer's feedback on a kept frame: `tau` = 1 − S that it measured between that frame
     /// and its previous keyframe (MASt3R-SLAM computes S for every frame it tracks). The gate
     /// means to keep a frame when tau reaches `threshold`; a keep measured above it came late
-    /// (the utility reads low on this stream), below it early. The offset moves by
-    /// `rate * (tau − threshold)`, within [0, [`FEEDBACK_LIMIT`]]: a per-stream correction that
-    /// raises the utility where the scene's depth or parallax, which the pictures do not show,
-    /// makes it read low. It never goes below 0, so feedback never makes a keep come later than
-    /// without it (lowering it let the noise of single reports delay keeps into late ones on
-    /// sequences where the default is already right: `training/RESULTS.md`). Returns the new
-    /// offset; a `tau` outside [0, 1] (or not a number) is refused and changes nothing.
+    /// (the utility reads low on this stream), below it early. Each report adds
+    /// `rate * (tau − threshold)` to a sum kept within ±[`FEEDBACK_LIMIT`], and the utility is
+    /// raised by the sum's positive part ([`Utility::offset`]): a per-stream correction where
+    /// the scene's depth or parallax, which the pictures do not show, makes the utility read
+    /// low. The utility is never lowered, so feedback never makes a keep come later than without
+    /// it (lowering it let the noise of single reports delay keeps into late ones where the
+    /// default is already right), and the sum itself may go below 0, so that noise does not
+    /// ratchet the offset up on a stream where keeps come on time (`training/RESULTS.md`).
+    /// Returns the new offset; a `tau` outside [0, 1] (or not a number) is refused and changes
+    /// nothing.
     pub fn feedback(&mut self, tau: f64, threshold: f64, rate: f64) -> Result<f64, String> {
         if !(0.0..=1.0).contains(&tau) {
             return Err(format!("tau {tau} is not a number in [0, 1]"));
         }
         if rate.is_finite() && threshold.is_finite() {
-            self.offset = (self.offset + rate * (tau - threshold)).clamp(0.0, FEEDBACK_LIMIT);
+            self.feedback =
+                (self.feedback + rate * (tau - threshold)).clamp(-FEEDBACK_LIMIT, FEEDBACK_LIMIT);
         }
-        Ok(self.offset)
+        Ok(self.offset())
     }
 
     /// Forget the feedback (a new stream: start, caps change).
     pub fn reset_feedback(&mut self) {
-        self.offset = 0.0;
+        self.feedback = 0.0;
     }
 
     /// `u` with the feedback's offset, within [0, 1]; `u` itself while the offset is 0.
     fn corrected(&self, u: f64) -> f64 {
-        if self.offset == 0.0 {
+        let o = self.offset();
+        if o == 0.0 {
             u
         } else {
-            (u + self.offset).clamp(0.0, 1.0)
+            (u + o).clamp(0.0, 1.0)
         }
     }
 
@@ -365,10 +372,13 @@ mod tests {
         // A keep measured at tau 0.7 came late: the utility reads low, so it is raised.
         assert!((u.feedback(0.7, 0.5, 0.4).unwrap() - 0.08).abs() < 1e-12);
         assert!((u.compose(0.4, true).0 - 0.48).abs() < 1e-12);
-        // One measured early takes some back, never below the model's own utility.
+        // One measured early takes some back, never below the model's own utility; the sum
+        // goes on below 0 (-0.14), so it takes more than one late report to raise it again.
         assert!((u.feedback(0.45, 0.5, 0.4).unwrap() - 0.06).abs() < 1e-12);
         assert_eq!(u.feedback(0.0, 0.5, 0.4).unwrap(), 0.0);
         assert_eq!(u.compose(0.4, true).0, 0.4);
+        assert_eq!(u.feedback(0.75, 0.5, 0.4).unwrap(), 0.0);
+        assert!((u.feedback(0.75, 0.5, 0.4).unwrap() - 0.06).abs() < 1e-12);
         for _ in 0..50 {
             u.feedback(1.0, 0.5, 0.4).unwrap();
         }

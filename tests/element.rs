@@ -1014,7 +1014,7 @@ fn geometric_prior_restarts_at_the_next_keep_after_being_switched_back_on() {
 fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns() {
     // mad_geometry: utility = tau_geo, for a 2 px/frame pan on 160 px 2k/160 at k frames from
     // the reference. A consumer reports tau 0.75 for a keep (late, at threshold 0.5): every later
-    // utility is 0.3 * 0.25 = 0.075 higher (feedback-rate 0.3, the default).
+    // utility is 0.2 * 0.25 = 0.05 higher (feedback-rate 0.2, the default).
     let (w, h) = (160, 120);
     let mut hs = harness(
         &format!(
@@ -1045,7 +1045,7 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
     assert_eq!(offset(&e), 0.0);
     assert!(hs.push_upstream_event(feedback(tau(0.75))));
     push(&mut hs, 4);
-    assert!((offset(&e) - 0.075).abs() < 1e-12, "{}", offset(&e));
+    assert!((offset(&e) - 0.05).abs() < 1e-12, "{}", offset(&e));
     // Refused, each with the reason, the offset unchanged: not a number, out of range, absent.
     for bad in [
         gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
@@ -1058,7 +1058,7 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
         assert!(hs.push_upstream_event(feedback(bad)));
     }
     push(&mut hs, 1);
-    assert!((offset(&e) - 0.075).abs() < 1e-12);
+    assert!((offset(&e) - 0.05).abs() < 1e-12);
     let warnings: Vec<String> = std::iter::from_fn(|| bus.pop())
         .filter_map(|m| match m.view() {
             gst::MessageView::Warning(w) => Some(w.error().to_string()),
@@ -1074,12 +1074,12 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
     e.set_property("feedback-rate", 0.0);
     assert!(hs.push_upstream_event(feedback(tau(0.0))));
     push(&mut hs, 1);
-    assert!((offset(&e) - 0.075).abs() < 1e-12);
+    assert!((offset(&e) - 0.05).abs() < 1e-12);
     let m: Vec<_> = drain(&mut hs).iter().map(meta).collect();
     assert_eq!(m.len(), 10);
     let geo = |k: usize| 2.0 * k as f64 / w as f64;
     for (k, meta) in m.iter().enumerate().skip(1) {
-        let want = geo(k) + if k >= 4 { 0.075 } else { 0.0 };
+        let want = geo(k) + if k >= 4 { 0.05 } else { 0.0 };
         assert!(
             (meta.utility - want).abs() < 0.02,
             "frame {k}: {} against {want}",
@@ -1093,7 +1093,7 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
         .build();
     assert!(hs.push_upstream_event(feedback(single)));
     push(&mut hs, 1);
-    assert!((offset(&e) - 0.15).abs() < 1e-9, "{}", offset(&e));
+    assert!((offset(&e) - 0.125).abs() < 1e-9, "{}", offset(&e));
     drain(&mut hs);
     // New caps: new pictures, the feedback about the old ones is forgotten.
     hs.set_src_caps_str(&rgb_caps(80, 60));

@@ -652,8 +652,8 @@ fn feedback_reaches_the_gate_and_a_bad_tau_is_refused() {
         return;
     }
     // The appsink holds at most 8 frames, so a report sent while frame 2 is handled reaches the
-    // gate well before frame 60; tau 0.75 at threshold 0.5 with the default rate 0.3 moves the
-    // gate's utility up by 0.075 (feedback-offset).
+    // gate well before frame 60; tau 0.75 at threshold 0.5 with the default rate 0.2 moves the
+    // gate's utility up by 0.05 (feedback-offset).
     let script = r#"
 import json, sys
 from leangate_client import LeanGateSource, FEEDBACK_EVENT
@@ -684,7 +684,7 @@ print(json.dumps(out))
     let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
     assert_eq!(v["event"], "leangate-feedback");
     assert_eq!(v["before"], 0.0);
-    assert!((v["after"].as_f64().unwrap() - 0.075).abs() < 1e-9, "{v}");
+    assert!((v["after"].as_f64().unwrap() - 0.05).abs() < 1e-9, "{v}");
     assert!(v.get("accepted").is_none(), "{v}");
     let refused = v["refused"].as_array().unwrap();
     assert_eq!(refused.len(), 3, "{v}");

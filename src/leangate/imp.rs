@@ -50,7 +50,7 @@ const DEFAULT_MAX_SESSIONS: u32 = 0;
 const DEFAULT_STATS_INTERVAL: u64 = 0;
 const DEFAULT_GEOMETRY: bool = true;
 const DEFAULT_SCREEN: bool = true;
-const DEFAULT_FEEDBACK_RATE: f64 = 0.3;
+const DEFAULT_FEEDBACK_RATE: f64 = 0.2;
 const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
 const DEFAULT_SERVER_MAX_IN_FLIGHT: u32 = 16;
 
@@ -698,11 +698,11 @@ impl ObjectImpl for LeanGate {
                     .blurb(
                         "How far each leangate-feedback event moves the utility: a consumer \
                          (e.g. the SLAM behind the gate) that reports tau = 1 - S it measured \
-                         between a kept frame and the previous keyframe raises the utility by \
-                         rate * (tau - threshold) when that keep came late and takes it back \
-                         when early, within 0 to 0.3 (feedback-offset: never below the \
-                         model's own utility). 0 ignores feedback. Without feedback events \
-                         nothing changes",
+                         between a kept frame and the previous keyframe moves a sum by \
+                         rate * (tau - threshold) (within +-0.3): up when that keep came late, \
+                         down when early; the utility is raised by the sum's positive part \
+                         (feedback-offset), never lowered. 0 ignores feedback. Without feedback \
+                         events nothing changes",
                     )
                     .minimum(0.0)
                     .maximum(1.0)
