@@ -445,11 +445,12 @@ class LeanGateSource:
 
     def feedback(self, tau: float) -> bool:
         """Report what the SLAM measured on a kept frame: ``tau`` = 1 - S between it and the
-        keyframe before it (MASt3R-SLAM's match fractions, S = min(f_m, f_u)). The gate raises
-        its utility by ``feedback-rate * (tau - threshold)`` from the next frame it processes
-        (a keep reported above the threshold came late; one below takes some back), within 0 to
-        0.3; ``gate.get_property("feedback-offset")`` says where it stands. Raises ValueError for
-        a tau outside [0, 1]."""
+        keyframe before it (MASt3R-SLAM's match fractions, S = min(f_m, f_u)). Each report adds
+        ``feedback-rate * (tau - threshold)`` to a sum (a keep reported above the threshold came
+        late, one below came early) whose positive part raises the gate's utility from the next
+        frame it processes (at most 0.3, never lowering it);
+        ``gate.get_property("feedback-offset")`` says where it stands. Raises ValueError for a
+        tau outside [0, 1]."""
         tau = float(tau)
         if not 0.0 <= tau <= 1.0:
             raise ValueError(f"feedback: tau {tau} is not in [0, 1]")

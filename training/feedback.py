@@ -1,0 +1,138 @@
+"""Replay the element's gate with feedback from the SLAM (`leangate-feedback`), to choose its rule
+and rate without running pipelines.
+
+For each sequence directory (e.g. the documented parts written by `python -m training.tum`), the
+teacher's tau, the student's INT8 score and the prior's tau_geo of every frame against each of its
+next 120 frames (`fuse.sequence_data`'s cached tables) give the default's fused utility (the
+model's `leangate.geometry`). The gate is replayed from ten start frames as `leangate eval
+--phases 10` runs it; after each keep the teacher's tau of that keep reaches the gate `--delays`
+frames later and moves the correction by one of three rules:
+
+  sum+       the element's rule: a sum moved by rate * (tau - threshold) within +-0.3, the utility
+             raised by its positive part;
+  floor      an offset moved the same way, kept within 0..0.3;
+  symmetric  an offset moved the same way, within +-0.3 (the utility may go down).
+
+Prints, per rule, rate and delay, each sequence's kept / oracle and late keeps and the sums
+(`training/RESULTS.md`, "Feedback from the SLAM", has the tables that chose the default).
+
+Usage: python -m training.feedback SEQ [SEQ ...] [--rules sum+,floor,symmetric]
+       [--rates 0.2,0.3,0.4] [--delays 3,10] [--phases 10]
+"""
+import argparse
+import os
+
+import numpy as np
+
+from .config import DATA_ROOT, MODELS_DIR, NAME
+from .fuse import KEYFRAME_S, sequence_data
+from .quantize import metadata
+
+LIMIT = 0.3
+RULES = ("sum+", "floor", "symmetric")
+
+
+def fusion_weights(models):
+    """w0..w3 of the model's `leangate.geometry` (`raster-homography-v1: w0, w1, w2, w3`)."""
+    meta = metadata(os.path.join(models, f"{NAME}-int8-encoder.onnx"))
+    form, rest = meta["leangate.geometry"].split(":", 1)
+    return [float(v) for v in rest.split(",")]
+
+
+def fused(tab, w):
+    """The element's utility of every (reference, k) pair: the fusion, or the student alone
+    where the prior's chain is lost."""
+    s, g = tab["s"], tab["geo"]
+    u = np.clip(w[0] + w[1] * g + w[2] * g * g + w[3] * np.clip(s, 0, 1), 0, 1)
+    return np.where(np.isfinite(g), u, s)
+
+
+def oracle(tau, a, b, threshold=0.5):
+    """Frames the oracle keeps over a..b (the teacher's own tau drives the gate)."""
+    H = tau.shape[1]
+    ref, kept = a, 1
+    for i in range(a + 1, b + 1):
+        k = i - ref - 1
+        t = tau[ref, k] if k < H else 1.0
+        if not np.isfinite(t) or t >= threshold:
+            kept += 1
+            ref = i
+    return kept
+
+
+def replay(u, tau, a, b, rule=None, rate=0.0, delay=0, threshold=0.5):
+    """(kept, late keeps) of the gate over a..b with feedback by `rule` (None: without)."""
+    H = u.shape[1]
+    ref, kept, late = a, 1, 0
+    acc = 0.0
+    pending = []
+    for i in range(a + 1, b + 1):
+        while pending and pending[0][0] <= i:
+            step = rate * (pending.pop(0)[1] - threshold)
+            lo = 0.0 if rule == "floor" else -LIMIT
+            acc = min(max(acc + step, lo), LIMIT)
+        off = max(acc, 0.0) if rule == "sum+" else acc
+        k = i - ref - 1
+        v = u[ref, k] if k < H else 1.0
+        if not np.isfinite(v) or v + off >= threshold:
+            t = tau[ref, k] if k < H else 1.0
+            late += (1.0 - t) < KEYFRAME_S
+            kept += 1
+            if rule and np.isfinite(t):
+                pending.append((i + 1 + delay, t))
+            ref = i
+    return kept, late
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("sequences", nargs="+", help="sequence directories (TUM layout with depth and poses)")
+    ap.add_argument("--rules", default=",".join(RULES))
+    ap.add_argument("--rates", default="0.2,0.3,0.4")
+    ap.add_argument("--delays", default="3,10", help="frames between a keep and its report")
+    ap.add_argument("--phases", type=int, default=10, help="start frames per sequence")
+    ap.add_argument("--models", default=MODELS_DIR)
+    ap.add_argument("--tables", default=os.path.join(DATA_ROOT, "evals", "feedback"))
+    a = ap.parse_args()
+    rules = [r for r in a.rules.split(",") if r]
+    bad = [r for r in rules if r not in RULES]
+    if bad:
+        raise SystemExit(f"--rules: {', '.join(bad)} unknown (known: {', '.join(RULES)})")
+    try:
+        rates = [float(x) for x in a.rates.split(",")]
+        delays = [int(x) for x in a.delays.split(",")]
+    except ValueError as e:
+        raise SystemExit(f"--rates / --delays: {e}")
+    if a.phases < 1:
+        raise SystemExit("--phases must be at least 1")
+    w = fusion_weights(a.models)
+    data = []
+    for seq in a.sequences:
+        if not os.path.isfile(os.path.join(seq, "depth.txt")):
+            raise SystemExit(f"{seq}: not a sequence with depth and poses")
+        name = os.path.basename(os.path.normpath(seq))
+        parent = os.path.basename(os.path.dirname(os.path.normpath(seq)))
+        tab = sequence_data(seq, os.path.join(a.tables, f"{parent}_{name}"), a.models, 120)
+        data.append((f"{parent}/{name}", fused(tab, w), tab["tau"]))
+
+    def row(label, rule, rate, delay):
+        cells, K, O, L = [], 0, 0, 0
+        for name, u, tau in data:
+            n = tau.shape[0]
+            k = l = o = 0
+            for p in range(a.phases):
+                kk, ll = replay(u, tau, p, n - 1, rule, rate, delay)
+                k, l, o = k + kk, l + ll, o + oracle(tau, p, n - 1)
+            cells.append(f"{name} {k}/{o} ({k / o:.2f}), {l} late")
+            K, O, L = K + k, O + o, L + l
+        print(f"{label:<24} sum {K}/{O} ({K / O:.3f}), {L} late | " + "; ".join(cells))
+
+    row("without feedback", None, 0.0, 0)
+    for rule in rules:
+        for rate in rates:
+            for delay in delays:
+                row(f"{rule} rate {rate} delay {delay}", rule, rate, delay)
+
+
+if __name__ == "__main__":
+    main()
