@@ -1065,3 +1065,85 @@ proptest! {
         prop_assert_eq!(got, want);
     }
 }
+
+#[test]
+fn a_flood_of_feedback_from_another_thread_neither_hangs_nor_floods_the_bus() {
+    // A consumer thread sends leangate-feedback as fast as it can (half of the reports invalid)
+    // while 300 frames stream; a synchronous bus handler reads feedback-offset and sets
+    // feedback-rate. The run ends, every frame is gated, the offset stays within its bounds,
+    // and the invalid reports give rate-limited warnings, not one per report.
+    init();
+    let desc = format!(
+        "videotestsrc num-buffers=300 pattern=ball ! video/x-raw,width=160,height=120 ! \
+         leangate name=gate model={} ! fakesink name=out sync=false",
+        fixture("mad_geometry.onnx")
+    );
+    let pipeline = gst::parse::launch(&desc)
+        .unwrap()
+        .downcast::<gst::Pipeline>()
+        .unwrap();
+    let gate = pipeline.by_name("gate").unwrap();
+    let sink = pipeline.by_name("out").unwrap();
+    let bus = pipeline.bus().unwrap();
+    let (warnings, seen) = (
+        Arc::new(std::sync::Mutex::new(0usize)),
+        Arc::new(std::sync::Mutex::new(Vec::<f64>::new())),
+    );
+    {
+        let (warnings, seen, gate) = (warnings.clone(), seen.clone(), gate.clone());
+        bus.set_sync_handler(move |_, msg| {
+            if let gst::MessageView::Warning(_) = msg.view() {
+                *warnings.lock().unwrap() += 1;
+            }
+            seen.lock()
+                .unwrap()
+                .push(gate.property::<f64>("feedback-offset"));
+            gate.set_property("feedback-rate", 0.5);
+            gst::BusSyncReply::Pass
+        });
+    }
+    pipeline.set_state(gst::State::Playing).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let flood = {
+        let (stop, sink) = (stop.clone(), sink.clone());
+        std::thread::spawn(move || {
+            let mut n = 0u64;
+            while !stop.load(Ordering::Relaxed) {
+                let tau = if n % 2 == 0 { 0.9 } else { 5.0 };
+                let s = gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
+                    .field("tau", tau)
+                    .build();
+                sink.send_event(gst::event::CustomUpstream::new(s));
+                n += 1;
+            }
+            n
+        })
+    };
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    let mut ended = false;
+    while std::time::Instant::now() < deadline {
+        if let Some(msg) = bus.timed_pop(gst::ClockTime::from_mseconds(100)) {
+            match msg.view() {
+                gst::MessageView::Eos(_) => {
+                    ended = true;
+                    break;
+                }
+                gst::MessageView::Error(e) => panic!("{}", e.error()),
+                _ => {}
+            }
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    let sent = flood.join().unwrap();
+    let offset = gate.property::<f64>("feedback-offset");
+    let frames = gate.property::<u64>("frames-in");
+    pipeline.set_state(gst::State::Null).unwrap();
+    assert!(ended, "no EOS within 60 s ({sent} reports sent)");
+    assert_eq!(frames, 300);
+    assert!(sent > 300, "the flood outran the frames: {sent}");
+    assert!((0.0..=0.3).contains(&offset), "{offset}");
+    assert!(offset > 0.0, "the valid reports (tau 0.9) raised it");
+    let w = *warnings.lock().unwrap();
+    assert!((1..=5).contains(&w), "rate-limited warnings, got {w}");
+    assert!(seen.lock().unwrap().iter().all(|o| (0.0..=0.3).contains(o)));
+}
