@@ -1109,7 +1109,7 @@ fn a_flood_of_feedback_from_another_thread_neither_hangs_nor_floods_the_bus() {
         std::thread::spawn(move || {
             let mut n = 0u64;
             while !stop.load(Ordering::Relaxed) {
-                let tau = if n % 2 == 0 { 0.9 } else { 5.0 };
+                let tau = if n.is_multiple_of(2) { 0.9 } else { 5.0 };
                 let s = gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
                     .field("tau", tau)
                     .build();
