@@ -42,6 +42,8 @@ pub struct StatsMessage {
     pub model_precision: String,
     /// The threshold in force.
     pub threshold: f64,
+    /// What the consumer's `leangate-feedback` adds to the utility now (0 without feedback).
+    pub feedback_offset: f64,
     /// Remote scoring only (the `server` property set): the `server-*` fields.
     pub server: Option<ServerStats>,
 }
@@ -91,6 +93,7 @@ impl StatsMessage {
             .field("model", self.model.as_str())
             .field("model-precision", self.model_precision.as_str())
             .field("threshold", self.threshold)
+            .field("feedback-offset", self.feedback_offset)
             .field_if_some("server", self.server.as_ref().map(|v| v.server.as_str()))
             .field_if_some(
                 "server-model",
@@ -141,6 +144,7 @@ impl StatsMessage {
             model: get(s, "model")?,
             model_precision: get(s, "model-precision")?,
             threshold: get(s, "threshold")?,
+            feedback_offset: get(s, "feedback-offset")?,
             server: if s.has_field("server") {
                 Some(ServerStats {
                     server: get(s, "server")?,
@@ -399,12 +403,14 @@ mod tests {
             model: "leangate-s".into(),
             model_precision: "int8".into(),
             threshold: 0.5,
+            feedback_offset: 0.05,
             server: None,
         };
         let s = m.to_structure();
         assert_eq!(s.name(), STATS_MESSAGE);
         assert_eq!(s.get::<u64>("frames-kept").unwrap(), 3);
         assert_eq!(s.get::<u64>("frames-screened").unwrap(), 5);
+        assert_eq!(s.get::<f64>("feedback-offset").unwrap(), 0.05);
         assert_eq!(StatsMessage::from_structure(&s).unwrap(), m);
         let mut broken = s.clone();
         broken.remove_field("threshold");

@@ -674,6 +674,8 @@ with src:
                     out.setdefault("refused", []).append(str(e))
         if k == 59:
             out["after"] = src.gate.get_property("feedback-offset")
+out["stats_offset"] = src.stats.feedback_offset
+out["stats_extra"] = src.stats.extra
 print(json.dumps(out))
 "#;
     let mut c = command(PYTHON);
@@ -685,6 +687,12 @@ print(json.dumps(out))
     assert_eq!(v["event"], "leangate-feedback");
     assert_eq!(v["before"], 0.0);
     assert!((v["after"].as_f64().unwrap() - 0.05).abs() < 1e-9, "{v}");
+    // The EOS statistics carry it too (a typed field, not an unknown extra).
+    assert!(
+        (v["stats_offset"].as_f64().unwrap() - 0.05).abs() < 1e-9,
+        "{v}"
+    );
+    assert_eq!(v["stats_extra"], serde_json::json!({}));
     assert!(v.get("accepted").is_none(), "{v}");
     let refused = v["refused"].as_array().unwrap();
     assert_eq!(refused.len(), 3, "{v}");

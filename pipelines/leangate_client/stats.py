@@ -33,6 +33,7 @@ _FIELDS = {
     "model": ("model", str, "gchararray"),
     "model-precision": ("model_precision", str, "gchararray"),
     "threshold": ("threshold", float, "gdouble"),
+    "feedback-offset": ("feedback_offset", float, "gdouble"),
 }
 _ATTR_TO_WIRE = {attr: wire for wire, (attr, _, _) in _FIELDS.items()}
 
@@ -76,6 +77,8 @@ class LeanGateStats(Mapping):
     #: the arithmetic of the graph that runs: "fp32" or "int8" (the element's ``precision``)
     model_precision: Optional[str] = None
     threshold: Optional[float] = None
+    #: what the consumer's ``leangate-feedback`` adds to the utility now (0 without feedback)
+    feedback_offset: Optional[float] = None
     extra: Dict[str, Any] = dataclasses.field(default_factory=dict, hash=False)
 
     # -- construction ------------------------------------------------------------------------

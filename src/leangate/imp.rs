@@ -300,6 +300,7 @@ impl LeanGate {
             model: state.scorer.info().name.clone(),
             model_precision: state.scorer.info().precision.clone(),
             threshold: state.gate.config().threshold,
+            feedback_offset: state.utility.offset(),
             server: state.scorer.server_stats(),
         }
         .to_structure();
