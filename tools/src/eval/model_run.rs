@@ -287,6 +287,7 @@ pub fn run_model(
     if pipeline.set_state(gst::State::Playing).is_err() {
         log.drain(&bus);
         let _ = pipeline.set_state(gst::State::Null);
+        step.stop(); // a feeder waiting for the sink stops too
         return Err(log
             .error
             .unwrap_or_else(|| EvalError("pipeline failed to start".into())));
