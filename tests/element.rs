@@ -562,13 +562,7 @@ fn nan_model_keeps_frames_and_warns() {
         30,
     );
     assert!(error_text(&msgs).is_none());
-    let warnings: Vec<_> = msgs
-        .iter()
-        .filter_map(|m| match m.view() {
-            gst::MessageView::Warning(w) => Some(w.error().to_string()),
-            _ => None,
-        })
-        .collect();
+    let warnings = warning_texts(&msgs);
     assert_eq!(warnings.len(), 1, "rate-limited to one: {warnings:?}");
     assert!(
         warnings[0].contains("not finite") && warnings[0].contains("kept"),
@@ -1059,12 +1053,7 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
     }
     push(&mut hs, 1);
     assert!((offset(&e) - 0.05).abs() < 1e-12);
-    let warnings: Vec<String> = std::iter::from_fn(|| bus.pop())
-        .filter_map(|m| match m.view() {
-            gst::MessageView::Warning(w) => Some(w.error().to_string()),
-            _ => None,
-        })
-        .collect();
+    let warnings: Vec<String> = bus_warnings(&bus);
     assert_eq!(warnings.len(), 1, "rate-limited: {warnings:?}");
     assert!(
         warnings[0].contains("leangate-feedback ignored") && warnings[0].contains("tau"),

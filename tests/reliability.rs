@@ -395,12 +395,7 @@ fn model_change_while_running_is_refused_and_the_property_stays() {
         e.property::<gstleangate::PrecisionChoice>("precision"),
         gstleangate::PrecisionChoice::Auto
     );
-    let warnings: Vec<String> = std::iter::from_fn(|| bus.pop())
-        .filter_map(|m| match m.view() {
-            gst::MessageView::Warning(w) => Some(w.error().to_string()),
-            _ => None,
-        })
-        .collect();
+    let warnings: Vec<String> = bus_warnings(&bus);
     assert_eq!(warnings.len(), 3, "{warnings:?}");
     assert!(warnings[0].contains("`model` cannot change while the element runs"));
     assert!(warnings[2].contains("`precision` cannot change while the element runs"));

@@ -515,12 +515,7 @@ fn server_killed_mid_stream_fails_open_and_scoring_resumes() {
         "frames flowed while the server was down: {failed}"
     );
     // A warning on the bus names the server (rate-limited: one or two, not one per frame).
-    let warnings: Vec<String> = std::iter::from_fn(|| bus.pop())
-        .filter_map(|m| match m.view() {
-            gst::MessageView::Warning(w) => Some(w.error().to_string()),
-            _ => None,
-        })
-        .collect();
+    let warnings: Vec<String> = bus_warnings(&bus);
     assert!(
         !warnings.is_empty() && warnings.len() <= 2,
         "{} warnings: {warnings:?}",
@@ -663,15 +658,6 @@ fn push_frames(h: &mut gst_check::Harness, n: usize, gap: Duration) -> Vec<gstle
     }
     assert_eq!(metas.len(), n, "annotate mode: every frame leaves");
     metas
-}
-
-fn bus_warnings(bus: &gst::Bus) -> Vec<String> {
-    std::iter::from_fn(|| bus.pop())
-        .filter_map(|m| match m.view() {
-            gst::MessageView::Warning(w) => Some(w.error().to_string()),
-            _ => None,
-        })
-        .collect()
 }
 
 /// Every log line of the `leangate*` categories (down to DEBUG) from the first call on, for the

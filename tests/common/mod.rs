@@ -174,6 +174,23 @@ pub fn error_text(msgs: &[gst::Message]) -> Option<String> {
     })
 }
 
+/// The texts of the warnings among `msgs`, in order.
+pub fn warning_texts<M: std::borrow::Borrow<gst::Message>>(
+    msgs: impl IntoIterator<Item = M>,
+) -> Vec<String> {
+    msgs.into_iter()
+        .filter_map(|m| match m.borrow().view() {
+            gst::MessageView::Warning(w) => Some(w.error().to_string()),
+            _ => None,
+        })
+        .collect()
+}
+
+/// The texts of the warnings waiting on `bus` (popped), in order.
+pub fn bus_warnings(bus: &gst::Bus) -> Vec<String> {
+    warning_texts(std::iter::from_fn(|| bus.pop()))
+}
+
 pub fn element_message<'a>(msgs: &'a [gst::Message], name: &str) -> Vec<&'a gst::StructureRef> {
     msgs.iter()
         .filter_map(|m| match m.view() {
