@@ -90,6 +90,15 @@ fn client_module(args: &[&str]) -> Output {
     run(c)
 }
 
+/// `python3 -c SCRIPT ARGS...`, the package found through PYTHONPATH.
+fn client_script<S: AsRef<std::ffi::OsStr>>(script: &str, args: &[S]) -> Output {
+    let mut c = command(PYTHON);
+    c.env("PYTHONPATH", pkg_dir())
+        .args(["-c", script])
+        .args(args);
+    run(c)
+}
+
 /// Whether every GStreamer element named exists (SKIPPED message otherwise).
 fn have_elements(names: &[&str]) -> bool {
     for n in names {
@@ -256,10 +265,7 @@ print(json.dumps({"end": True, "frames_in": src.frames_in, "received": src.recei
                   "module": sys.modules["leangate_client"].__file__,
                   "plugin": Gst.ElementFactory.find("leangate").get_plugin().get_filename()}))
 "#;
-    let mut c = command(PYTHON);
-    c.env("PYTHONPATH", pkg_dir())
-        .args(["-c", script, &model()]);
-    let out = run(c);
+    let out = client_script(script, &[model()]);
     assert!(out.status.success());
     let vals: Vec<serde_json::Value> = stdout(&out)
         .lines()
@@ -678,10 +684,7 @@ out["stats_offset"] = src.stats.feedback_offset
 out["stats_extra"] = src.stats.extra
 print(json.dumps(out))
 "#;
-    let mut c = command(PYTHON);
-    c.env("PYTHONPATH", pkg_dir())
-        .args(["-c", script, &model()]);
-    let out = run(c);
+    let out = client_script(script, &[model()]);
     assert!(out.status.success());
     let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
     assert_eq!(v["event"], "leangate-feedback");
@@ -929,10 +932,7 @@ from leangate_client import LeanGateSource
 n = sum(1 for _ in LeanGateSource(sys.argv[2], model=sys.argv[1], threshold=0.03))
 print("received", n)
 "#;
-    let mut c = command(PYTHON);
-    c.env("PYTHONPATH", pkg_dir())
-        .args(["-c", script, &model(), src]);
-    let out = run(c);
+    let out = client_script(script, &[model().as_str(), src]);
     assert!(out.status.success());
     let text = stdout(&out);
     assert!(
@@ -1019,10 +1019,7 @@ for s in (sys.argv[2], pathlib.Path(sys.argv[2]).as_uri()):
                       "received": src.received, "stats_kept": src.stats.frames_kept,
                       "stats_in": src.stats.frames_in}))
 "#;
-    let mut c = command(PYTHON);
-    c.env("PYTHONPATH", pkg_dir())
-        .args(["-c", script, &model(), odd.to_str().unwrap()]);
-    let out = run(c);
+    let out = client_script(script, &[model().as_str(), odd.to_str().unwrap()]);
     assert!(out.status.success());
     let runs: Vec<serde_json::Value> = stdout(&out)
         .lines()
@@ -1096,9 +1093,7 @@ print(json.dumps({
     "wrong_name": wrong,
 }))
 "#;
-    let mut c = command(PYTHON);
-    c.env("PYTHONPATH", pkg_dir()).args(["-c", script]);
-    let out = run(c);
+    let out = client_script::<&str>(script, &[]);
     assert!(out.status.success());
     let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
     assert_eq!(
@@ -1211,9 +1206,7 @@ except SetupError as e:
     out["error"] = str(e)
 print(json.dumps(out))
 "#;
-    let mut c = command(PYTHON);
-    c.env("PYTHONPATH", pkg_dir()).args(["-c", script]);
-    let out = run(c);
+    let out = client_script::<&str>(script, &[]);
     assert!(out.status.success(), "{}", stderr(&out));
     let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
     assert_eq!(v["int8"][1], "int8");
@@ -1275,9 +1268,7 @@ for kw in ({"stats_interval": float("nan")}, {"threshold": 1.5}, {"warmup": -1},
     except SetupError as e:
         print("refused", e)
 "#;
-    let mut c = command(PYTHON);
-    c.env("PYTHONPATH", pkg_dir()).args(["-c", script]);
-    let out = run(c);
+    let out = client_script::<&str>(script, &[]);
     assert!(out.status.success(), "{}", stderr(&out));
     let text = stdout(&out);
     let lines: Vec<&str> = text.lines().collect();
@@ -1535,12 +1526,10 @@ print(json.dumps({"kept": kept, "rows1": [r["frame"] for r in src.saver.rows],
                   "frames_in": src.frames_in, "n2": len(saver.rows),
                   "n3": len(src3.saver.rows), "received3": src3.received}))
 "#;
-    let mut c = command(PYTHON);
-    c.env("PYTHONPATH", pkg_dir())
-        .args(["-c", script, clip.to_str().unwrap()])
-        .args(&d)
-        .arg(model());
-    let out = run(c);
+    let mut args: Vec<PathBuf> = vec![clip.clone()];
+    args.extend(d.iter().cloned());
+    args.push(model().into());
+    let out = client_script(script, &args);
     assert!(out.status.success(), "{}", stderr(&out));
     let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
     let kept = v["kept"].as_array().unwrap();
