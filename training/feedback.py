@@ -25,7 +25,7 @@ import os
 import numpy as np
 
 from .config import DATA_ROOT, MODELS_DIR, NAME
-from .fuse import KEYFRAME_S, sequence_data
+from .fuse import replay, sequence_data
 from .quantize import metadata
 
 LIMIT = 0.3
@@ -47,41 +47,25 @@ def fused(tab, w):
     return np.where(np.isfinite(g), u, s)
 
 
-def oracle(tau, a, b, threshold=0.5):
-    """Frames the oracle keeps over a..b (the teacher's own tau drives the gate)."""
-    H = tau.shape[1]
-    ref, kept = a, 1
-    for i in range(a + 1, b + 1):
-        k = i - ref - 1
-        t = tau[ref, k] if k < H else 1.0
-        if not np.isfinite(t) or t >= threshold:
-            kept += 1
-            ref = i
-    return kept
+class Feedback:
+    """The consumer's reports and the correction they make (`fuse.replay`'s `correction`): the
+    report of a keep at frame i reaches the gate before frame i + 1 + `delay`, as in `leangate
+    eval --feedback`, and moves the correction by `rule` (module docstring)."""
 
+    def __init__(self, rule, rate, delay, threshold=0.5):
+        self.rule, self.rate, self.delay, self.threshold = rule, rate, delay, threshold
+        self.acc = 0.0
+        self.pending = []
 
-def replay(u, tau, a, b, rule=None, rate=0.0, delay=0, threshold=0.5):
-    """(kept, late keeps) of the gate over a..b with feedback by `rule` (None: without)."""
-    H = u.shape[1]
-    ref, kept, late = a, 1, 0
-    acc = 0.0
-    pending = []
-    for i in range(a + 1, b + 1):
-        while pending and pending[0][0] <= i:
-            step = rate * (pending.pop(0)[1] - threshold)
-            lo = 0.0 if rule == "floor" else -LIMIT
-            acc = min(max(acc + step, lo), LIMIT)
-        off = max(acc, 0.0) if rule == "sum+" else acc
-        k = i - ref - 1
-        v = u[ref, k] if k < H else 1.0
-        if not np.isfinite(v) or v + off >= threshold:
-            t = tau[ref, k] if k < H else 1.0
-            late += (1.0 - t) < KEYFRAME_S
-            kept += 1
-            if rule and np.isfinite(t):
-                pending.append((i + 1 + delay, t))
-            ref = i
-    return kept, late
+    def report(self, i, tau):
+        self.pending.append((i + 1 + self.delay, tau))
+
+    def offset(self, i):
+        while self.pending and self.pending[0][0] <= i:
+            step = self.rate * (self.pending.pop(0)[1] - self.threshold)
+            lo = 0.0 if self.rule == "floor" else -LIMIT
+            self.acc = min(max(self.acc + step, lo), LIMIT)
+        return max(self.acc, 0.0) if self.rule == "sum+" else self.acc
 
 
 def main():
@@ -121,8 +105,9 @@ def main():
             n = tau.shape[0]
             k = l = o = 0
             for p in range(a.phases):
-                kk, ll = replay(u, tau, p, n - 1, rule, rate, delay)
-                k, l, o = k + kk, l + ll, o + oracle(tau, p, n - 1)
+                fb = Feedback(rule, rate, delay) if rule else None
+                kk, ll, _, _ = replay(u, tau, 0.5, p, n - 1, fb)
+                k, l, o = k + kk, l + ll, o + replay(tau, tau, 0.5, p, n - 1)[0]
             cells.append(f"{name} {k}/{o} ({k / o:.2f}), {l} late")
             K, O, L = K + k, O + o, L + l
         print(f"{label:<24} sum {K}/{O} ({K / O:.3f}), {L} late | " + "; ".join(cells))

@@ -198,15 +198,18 @@ def candidates():
 
 
 # --------------------------------------------------------------------------------- the gate
-def replay(u, tau, threshold, a, b):
+def replay(u, tau, threshold, a, b, correction=None):
     """The gate over frames a..b on the dense tables: kept frames, late keeps, breaks, min pair S.
-    A frame beyond the horizon from its reference is kept (the tables end there)."""
+    A frame beyond the horizon from its reference is kept (the tables end there). `correction`
+    (optional; `training.feedback`) adds `correction.offset(i)` to frame i's utility and is told
+    `correction.report(i, tau)` of every keep, as the element's feedback is."""
     H = u.shape[1]
     ref, kept, late, breaks, min_s = a, 1, 0, 0, 1.0
     for i in range(a + 1, b + 1):
         k = i - ref - 1
         v = u[ref, k] if k < H else 1.0
-        if not np.isfinite(v) or v >= threshold:
+        off = correction.offset(i) if correction is not None else 0.0
+        if not np.isfinite(v) or v + off >= threshold:
             t = tau[ref, k] if k < H else 1.0
             S = 1.0 - t
             late += S < KEYFRAME_S
@@ -214,6 +217,8 @@ def replay(u, tau, threshold, a, b):
             min_s = min(min_s, S)
             kept += 1
             ref = i
+            if correction is not None and np.isfinite(t):
+                correction.report(i, t)
     return kept, late, breaks, min_s
 
 
