@@ -15,7 +15,7 @@ so what separates the sequences has to be seen per stream). With `--depth`, also
 sequence's median sensor depth, its share of depth readings beyond 3.5 m and of pixels without
 depth (every 6th frame), the scene property the teacher's 0.1 m check is most sensitive to.
 
-Usage: python -m training.band SEQ [SEQ ...] [--offsets -0.06:0.08:0.005] [--phases 10]
+Usage: python -m training.band SEQ [SEQ ...] [--offsets=-0.06:0.08:0.005] [--phases 10]
        [--threshold 0.5] [--depth]
 """
 import argparse
