@@ -78,7 +78,7 @@ impl Utility {
     /// nothing.
     pub fn feedback(&mut self, tau: f64, threshold: f64, rate: f64) -> Result<f64, String> {
         if !(0.0..=1.0).contains(&tau) {
-            return Err(format!("tau {tau} is not a number in [0, 1]"));
+            return Err(format!("its `tau` {tau} is outside [0, 1]"));
         }
         if rate.is_finite() && threshold.is_finite() {
             self.feedback =

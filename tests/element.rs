@@ -1040,10 +1040,13 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
     assert!(hs.push_upstream_event(feedback(tau(0.75))));
     push(&mut hs, 4);
     assert!((offset(&e) - 0.05).abs() < 1e-12, "{}", offset(&e));
-    // Refused, each with the reason, the offset unchanged: not a number, out of range, absent.
+    // Refused, the offset unchanged: not a number, out of range, absent (the first one carries
+    // 1 MB besides, which the warning must not repeat: it names the problem in a few words).
+    let junk = "x".repeat(1 << 20);
     for bad in [
         gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
             .field("tau", "high")
+            .field("junk", junk.as_str())
             .build(),
         tau(1.5),
         tau(f64::NAN),
@@ -1055,15 +1058,22 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
     assert!((offset(&e) - 0.05).abs() < 1e-12);
     let warnings: Vec<String> = bus_warnings(&bus);
     assert_eq!(warnings.len(), 1, "rate-limited: {warnings:?}");
+    let w0 = &warnings[0];
     assert!(
-        warnings[0].contains("leangate-feedback ignored") && warnings[0].contains("tau"),
-        "{warnings:?}"
+        w0.contains("leangate-feedback ignored")
+            && w0.contains("`tau` is a gchararray, not a number")
+            && w0.len() < 200
+            && !w0.contains("fail open"),
+        "{}",
+        &w0[..w0.len().min(300)]
     );
-    // feedback-rate 0 ignores feedback.
+    // feedback-rate 0 ignores feedback: the rate in force when a report arrives counts, not
+    // the one at the next frame.
     e.set_property("feedback-rate", 0.0);
-    assert!(hs.push_upstream_event(feedback(tau(0.0))));
+    assert!(hs.push_upstream_event(feedback(tau(1.0))));
+    e.set_property("feedback-rate", 0.3);
     push(&mut hs, 1);
-    assert!((offset(&e) - 0.05).abs() < 1e-12);
+    assert!((offset(&e) - 0.05).abs() < 1e-12, "{}", offset(&e));
     let m: Vec<_> = drain(&mut hs).iter().map(meta).collect();
     assert_eq!(m.len(), 10);
     let geo = |k: usize| 2.0 * k as f64 / w as f64;
@@ -1075,17 +1085,76 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
             meta.utility
         );
     }
-    // A float `tau` counts too.
-    e.set_property("feedback-rate", 0.3);
+    // A float `tau` counts too, and an integer one (0 or 1).
     let single = gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
         .field("tau", 0.75f32)
         .build();
     assert!(hs.push_upstream_event(feedback(single)));
     push(&mut hs, 1);
     assert!((offset(&e) - 0.125).abs() < 1e-9, "{}", offset(&e));
+    let int = gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
+        .field("tau", 1i32)
+        .build();
+    assert!(hs.push_upstream_event(feedback(int)));
+    push(&mut hs, 1);
+    assert!((offset(&e) - 0.275).abs() < 1e-9, "{}", offset(&e));
+    // A flush (a seek) stays in the stream: the offset stays.
+    assert!(hs.push_event(gst::event::FlushStart::new()));
+    assert!(hs.push_event(gst::event::FlushStop::new(true)));
+    let segment = || gst::event::Segment::new(&gst::FormattedSegment::<gst::ClockTime>::new());
+    assert!(hs.push_event(segment()));
+    assert!((offset(&e) - 0.275).abs() < 1e-9, "{}", offset(&e));
+    // A new stream (stream-start) may be another scene: forgotten.
+    assert!(hs.push_event(gst::event::StreamStart::new("another scene")));
+    assert_eq!(offset(&e), 0.0);
+    assert!(hs.push_event(segment()));
+    push(&mut hs, 2);
+    assert!(hs.push_upstream_event(feedback(tau(1.0))));
+    push(&mut hs, 1);
+    assert!((offset(&e) - 0.15).abs() < 1e-9, "{}", offset(&e));
     drain(&mut hs);
-    // New caps: new pictures, the feedback about the old ones is forgotten.
+    // New caps: new pictures, the feedback about the old ones is forgotten, also reports that
+    // arrived after the last frame of the old caps.
+    for _ in 0..5 {
+        assert!(hs.push_upstream_event(feedback(tau(1.0))));
+    }
     hs.set_src_caps_str(&rgb_caps(80, 60));
+    assert_eq!(offset(&e), 0.0);
     hs.push(buffer(panned(80, 60, 0.0), 400)).unwrap();
     assert_eq!(offset(&e), 0.0);
+}
+
+#[test]
+fn bad_feedback_and_failing_frames_warn_apart() {
+    // nan.onnx fails on every frame it scores (kept, fail open, a rate-limited warning). An
+    // unusable report is another kind of problem: its own warning, which neither silences the
+    // frames' failures nor claims a frame was kept.
+    let (w, h) = (32, 32);
+    let mut hs = harness(&format!("model={}", fixture("nan.onnx")), &rgb_caps(w, h));
+    let e = hs.element().unwrap();
+    let bus = gst::Bus::new();
+    e.set_bus(Some(&bus));
+    hs.push(buffer(panned(w, h, 0.0), 0)).unwrap();
+    let bad = gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
+        .field("tau", 3.0)
+        .build();
+    assert!(hs.push_upstream_event(gst::event::CustomUpstream::new(bad)));
+    for k in 1..6u64 {
+        hs.push(buffer(panned(w, h, k as f32), k * 33)).unwrap();
+    }
+    let warnings = bus_warnings(&bus);
+    assert_eq!(warnings.len(), 2, "{warnings:?}");
+    let (fb, frames): (Vec<_>, Vec<_>) = warnings
+        .iter()
+        .partition(|w| w.contains("leangate-feedback"));
+    assert_eq!(fb.len(), 1, "{warnings:?}");
+    assert!(
+        fb[0].contains("`tau` 3 is outside [0, 1]") && !fb[0].contains("kept"),
+        "{fb:?}"
+    );
+    assert!(
+        frames[0].contains("not finite") && frames[0].contains("fail open"),
+        "{frames:?}"
+    );
+    assert!(!frames[0].contains("suppressed"), "{frames:?}");
 }

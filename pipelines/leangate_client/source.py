@@ -450,7 +450,9 @@ class LeanGateSource:
         late, one below came early) whose positive part raises the gate's utility from the next
         frame it processes (at most 0.3, never lowering it);
         ``gate.get_property("feedback-offset")`` says where it stands. Raises ValueError for a
-        tau outside [0, 1]."""
+        tau outside [0, 1]. Returns whether an upstream element reported handling the event
+        (often False, as for `force_keyframe`: leangate applies it, then forwards it upstream,
+        where sources usually do not handle custom events)."""
         tau = float(tau)
         if not 0.0 <= tau <= 1.0:
             raise ValueError(f"feedback: tau {tau} is not in [0, 1]")

@@ -18,7 +18,7 @@ use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
 use crate::remote::{Backend, Interrupt, RemoteOptions, RemoteScorer};
 use crate::scorer::{ModelSource, Scorer, ScorerError, ScorerOptions};
 use crate::stats::{InferenceStats, StatsMessage};
-use crate::utility::{Composed, Utility};
+use crate::utility::{Composed, Utility, FEEDBACK_LIMIT};
 
 static CAT: LazyLock<gst::DebugCategory> = LazyLock::new(|| {
     gst::DebugCategory::new(
@@ -132,7 +132,6 @@ struct FrameSettings {
     stats_interval: u64,
     geometry: bool,
     screen: bool,
-    feedback_rate: f64,
 }
 
 impl From<&Settings> for FrameSettings {
@@ -145,9 +144,24 @@ impl From<&Settings> for FrameSettings {
             stats_interval: s.stats_interval,
             geometry: s.geometry,
             screen: s.screen,
-            feedback_rate: s.feedback_rate,
         }
     }
+}
+
+/// The `tau` of a `leangate-feedback` structure: any number type (the range is checked where it
+/// is applied, `Utility::feedback`). Refusals name the problem in a few words, never the
+/// structure itself (a report may carry anything, and refusals are held until the next frame).
+fn feedback_tau(s: &gst::StructureRef) -> Result<f64, String> {
+    let v = s
+        .value("tau")
+        .map_err(|_| "it has no `tau` field".to_string())?;
+    v.get::<f64>()
+        .or_else(|_| v.get::<f32>().map(f64::from))
+        .or_else(|_| v.get::<i32>().map(f64::from))
+        .or_else(|_| v.get::<u32>().map(f64::from))
+        .or_else(|_| v.get::<i64>().map(|x| x as f64))
+        .or_else(|_| v.get::<u64>().map(|x| x as f64))
+        .map_err(|_| format!("its `tau` is a {}, not a number", v.type_().name()))
 }
 
 struct State {
@@ -166,8 +180,38 @@ struct State {
     /// `frames-in` / `frames-kept` at the previous stats message (for the interval fields).
     /// `frames-in`, `frames-kept` and `frames-screened` when the current stats interval began.
     interval_start: (u64, u64, u64),
-    last_warning: Option<Instant>,
-    suppressed_warnings: u64,
+    /// Run-time failures on frames (unreadable, inference failed): each kept, fail open.
+    frame_warnings: RateLimit,
+    /// Unusable `leangate-feedback` reports: counted apart, so that neither kind of warning
+    /// silences or is counted as the other.
+    feedback_warnings: RateLimit,
+}
+
+/// Posts one warning of a kind at most every WARN_EVERY, counting those held back.
+#[derive(Debug, Default)]
+struct RateLimit {
+    last: Option<Instant>,
+    suppressed: u64,
+}
+
+impl RateLimit {
+    /// `msg` for the bus now (with how many were held back since the last one), or None.
+    fn admit(&mut self, msg: &str) -> Option<String> {
+        let now = Instant::now();
+        if self
+            .last
+            .is_some_and(|t| now.duration_since(t) < WARN_EVERY)
+        {
+            self.suppressed += 1;
+            return None;
+        }
+        let msg = match std::mem::take(&mut self.suppressed) {
+            0 => msg.to_string(),
+            n => format!("{msg} ({n} similar warnings suppressed)"),
+        };
+        self.last = Some(now);
+        Some(msg)
+    }
 }
 
 /// What the streaming thread posts or pushes, collected under the state lock and sent after it
@@ -193,9 +237,10 @@ pub struct LeanGate {
     frames_screened: AtomicU64,
     force_pending: AtomicBool,
     reset_pending: AtomicBool,
-    /// `leangate-feedback` events not yet applied (their `tau`, or why it is unusable); taken
-    /// alone, briefly, and applied by the streaming thread at the next frame.
-    feedback: Mutex<std::collections::VecDeque<Result<f64, String>>>,
+    /// `leangate-feedback` events not yet applied (their `tau` and the `feedback-rate` when they
+    /// arrived, or in a few words why one is unusable); taken alone, briefly, and applied by the
+    /// streaming thread at the next frame.
+    feedback: Mutex<std::collections::VecDeque<Result<(f64, f64), String>>>,
     /// The utility's offset learnt from feedback (f64 bits), for the `feedback-offset` property.
     feedback_offset: AtomicU64,
 }
@@ -246,29 +291,19 @@ impl LeanGate {
         FrameSettings::from(&*lock(&self.settings))
     }
 
-    /// Log a run-time warning, and queue it for the bus at most every WARN_EVERY.
+    /// Forget what the consumer's feedback taught the utility (a new stream or new caps).
+    fn reset_feedback(&self, state: &mut State) {
+        state.utility.reset_feedback();
+        self.feedback_offset
+            .store(0f64.to_bits(), Ordering::Relaxed);
+    }
+
+    /// Log a run-time failure on a frame (which is kept, fail open), and queue it for the bus
+    /// at most every WARN_EVERY.
     fn warn_rate_limited(&self, state: &mut State, out: &mut Outbox, msg: &str) {
         gst::warning!(CAT, imp = self, "{msg}");
-        let now = Instant::now();
-        let due = state
-            .last_warning
-            .is_none_or(|t| now.duration_since(t) >= WARN_EVERY);
-        if due {
-            let extra = if state.suppressed_warnings > 0 {
-                format!(
-                    " ({} similar warnings suppressed)",
-                    state.suppressed_warnings
-                )
-            } else {
-                String::new()
-            };
-            out.warnings
-                .push(format!("{msg}; the frame was kept (fail open){extra}"));
-            state.last_warning = Some(now);
-            state.suppressed_warnings = 0;
-        } else {
-            state.suppressed_warnings += 1;
-        }
+        let msg = format!("{msg}; the frame was kept (fail open)");
+        out.warnings.extend(state.frame_warnings.admit(&msg));
     }
 
     /// The `leangate-stats` structure; starts a new interval.
@@ -331,18 +366,21 @@ impl LeanGate {
             self.force_pending.store(true, Ordering::SeqCst);
             true
         } else if s.name() == FEEDBACK_EVENT {
-            let tau = s
-                .get::<f64>("tau")
-                .or_else(|_| s.get::<f32>("tau").map(f64::from))
-                .map_err(|_| format!("a {FEEDBACK_EVENT} event without a number `tau`: {s}"));
-            gst::debug!(CAT, imp = self, "feedback: {tau:?}");
+            // The rate in force when the report arrives (0: ignored from the start).
+            let rate = lock(&self.settings).feedback_rate;
+            if rate == 0.0 {
+                gst::debug!(CAT, imp = self, "feedback ignored (feedback-rate 0)");
+                return true;
+            }
+            let report = feedback_tau(s).map(|tau| (tau, rate));
+            gst::debug!(CAT, imp = self, "feedback: {report:?}");
             let mut pending = lock(&self.feedback);
             // A consumer that reports faster than frames arrive (or while the stream waits)
             // must not grow this without bound: the oldest reports go first.
             if pending.len() >= MAX_PENDING_FEEDBACK {
                 pending.pop_front();
             }
-            pending.push_back(tau);
+            pending.push_back(report);
             true
         } else if s.name() == RESET_EVENT {
             gst::debug!(CAT, imp = self, "reset requested");
@@ -388,13 +426,15 @@ impl LeanGate {
             state.gate.force_keyframe();
         }
         let threshold = state.gate.config().threshold;
-        for tau in feedback {
-            match tau.and_then(|t| state.utility.feedback(t, threshold, fs.feedback_rate)) {
+        for report in feedback {
+            match report.and_then(|(tau, rate)| state.utility.feedback(tau, threshold, rate)) {
                 Ok(offset) => self
                     .feedback_offset
                     .store(offset.to_bits(), Ordering::Relaxed),
                 Err(e) => {
-                    self.warn_rate_limited(state, out, &format!("{FEEDBACK_EVENT} ignored: {e}"))
+                    let msg = format!("{FEEDBACK_EVENT} ignored: {e}");
+                    gst::warning!(CAT, imp = self, "{msg}");
+                    out.warnings.extend(state.feedback_warnings.admit(&msg));
                 }
             }
         }
@@ -768,11 +808,11 @@ impl ObjectImpl for LeanGate {
                     .nick("Feedback offset")
                     .blurb(
                         "What the consumer's leangate-feedback events add to every frame's \
-                         utility now (0 to 0.3; 0 without feedback; back to 0 at start and \
-                         when the caps change; read-only; see feedback-rate)",
+                         utility now (0 to 0.3; 0 without feedback; back to 0 at start, at a \
+                         new stream and when the caps change; read-only; see feedback-rate)",
                     )
                     .minimum(0.0)
-                    .maximum(1.0)
+                    .maximum(FEEDBACK_LIMIT)
                     .default_value(0.0)
                     .read_only()
                     .build(),
@@ -1147,8 +1187,8 @@ impl BaseTransformImpl for LeanGate {
             stats: InferenceStats::default(),
             last_stats_pts: None,
             interval_start: (0, 0, 0),
-            last_warning: None,
-            suppressed_warnings: 0,
+            frame_warnings: RateLimit::default(),
+            feedback_warnings: RateLimit::default(),
         });
         Ok(())
     }
@@ -1167,6 +1207,8 @@ impl BaseTransformImpl for LeanGate {
             .map_err(|_| gst::loggable_error!(CAT, "cannot parse video caps {incaps}"))?;
         let format = PixelFormat::from_video_format(info.format())
             .ok_or_else(|| gst::loggable_error!(CAT, "unsupported format {:?}", info.format()))?;
+        // Reports waiting for the next frame are about the old pictures (taken alone).
+        lock(&self.feedback).clear();
         let mut guard = lock(&self.state);
         let state = guard
             .as_mut()
@@ -1181,12 +1223,10 @@ impl BaseTransformImpl for LeanGate {
         )
         .map_err(|e| gst::loggable_error!(CAT, "{e}"))?;
         gst::debug!(CAT, imp = self, "configured for {incaps}");
-        // A new picture geometry: the old reference is not comparable any more, nor what the
-        // consumer reported about the old pictures.
+        // New caps (a new picture geometry, format or rate): the old reference is not
+        // comparable any more, nor what the consumer reported about the old pictures.
         state.gate.drop_reference();
-        state.utility.reset_feedback();
-        self.feedback_offset
-            .store(0f64.to_bits(), Ordering::Relaxed);
+        self.reset_feedback(state);
         state.pre = Some((info, pre));
         Ok(())
     }
@@ -1226,10 +1266,19 @@ impl BaseTransformImpl for LeanGate {
                 self.note_custom_event(&event);
             }
             gst::EventView::FlushStop(_) | gst::EventView::StreamStart(_) => {
+                // A new stream (stream-start) may be another scene: its feedback starts afresh.
+                // A flush (a seek) stays in the stream and keeps it.
+                let new_stream = matches!(event.view(), gst::EventView::StreamStart(_));
                 self.interrupt(Interrupt::resume);
+                if new_stream {
+                    lock(&self.feedback).clear();
+                }
                 if let Some(state) = lock(&self.state).as_mut() {
                     state.gate.restart();
                     state.last_stats_pts = None;
+                    if new_stream {
+                        self.reset_feedback(state);
+                    }
                 }
                 self.force_pending.store(false, Ordering::SeqCst);
                 self.reset_pending.store(false, Ordering::SeqCst);
