@@ -87,7 +87,7 @@ impl Utility {
         Ok(self.offset())
     }
 
-    /// Forget the feedback (a new stream: start, caps change).
+    /// Forget the feedback (a new stream: start, stream-start, caps change).
     pub fn reset_feedback(&mut self) {
         self.feedback = 0.0;
     }
