@@ -195,6 +195,8 @@ pub struct Sequence {
 /// Reads the non-comment lines of a text file as `(1-based line number, trimmed line)`.
 fn read_lines(path: &Path) -> Result<Vec<(usize, String)>, DatasetError> {
     let text = fs::read_to_string(path).map_err(io_err(path))?;
+    // A UTF-8 byte-order mark (some Windows editors write one) is not part of the first line.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     Ok(text
         .lines()
         .enumerate()
@@ -256,10 +258,20 @@ fn read_file_list(path: &Path, root: &Path) -> Result<Vec<(f64, PathBuf)>, Datas
                 line: no,
                 message: format!("timestamp `{ts}` is not a finite number"),
             })?;
-        out.push((t, root.join(file)));
+        out.push((t, root.join(file), no));
     }
     out.sort_by(|a, b| a.0.total_cmp(&b.0));
-    Ok(out)
+    // Two rows at one time would be associated with the same depth and pose, and their order
+    // would be the file's, not time's: refused, naming both lines.
+    if let Some(w) = out.windows(2).find(|w| w[0].0 == w[1].0) {
+        let (a, b) = (w[0].2.min(w[1].2), w[0].2.max(w[1].2));
+        return Err(DatasetError::Parse {
+            path: path.to_path_buf(),
+            line: b,
+            message: format!("timestamp {} is also on line {a}", w[0].0),
+        });
+    }
+    Ok(out.into_iter().map(|(t, p, _)| (t, p)).collect())
 }
 
 /// Parses a TUM trajectory (`t tx ty tz qx qy qz qw`, camera-to-world), sorted by time.
@@ -299,6 +311,15 @@ pub fn read_intrinsics(path: &Path) -> Result<Intrinsics, DatasetError> {
             path: path.to_path_buf(),
             line: *no,
             message: "fx, fy and depth_scale must be positive".into(),
+        });
+    }
+    // Depth is value / depth_scale in f32: a scale whose inverse is not a normal f32 turns
+    // every reading into infinity or zero (no reading).
+    if !(1.0 / n[4] as f32).is_normal() {
+        return Err(DatasetError::Parse {
+            path: path.to_path_buf(),
+            line: *no,
+            message: format!("depth_scale {:e} is out of range (units per metre)", n[4]),
         });
     }
     Ok(Intrinsics {
@@ -480,7 +501,19 @@ impl Sequence {
     /// Loads colour frame `i` as 8-bit RGB (grayscale images are expanded).
     pub fn load_rgb(&self, i: usize) -> Result<RgbImage, DatasetError> {
         let path = &self.frame(i)?.rgb;
-        let img = image::open(path).map_err(|source| image_err(path, source))?;
+        let bytes = fs::read(path).map_err(io_err(path))?;
+        let reader = image::ImageReader::new(std::io::Cursor::new(&bytes))
+            .with_guessed_format()
+            .map_err(io_err(path))?;
+        // The JPEG decoder fills a cut-off file with grey instead of failing: a file that
+        // ends before its end-of-image marker is refused here.
+        if reader.format() == Some(image::ImageFormat::Jpeg) && !jpeg_is_complete(&bytes) {
+            return Err(DatasetError::Invalid {
+                path: path.to_path_buf(),
+                message: "the JPEG ends before its end-of-image marker (a truncated file?)".into(),
+            });
+        }
+        let img = reader.decode().map_err(|source| image_err(path, source))?;
         Ok(img.into_rgb8())
     }
 
@@ -497,6 +530,14 @@ impl Sequence {
         })?;
         read_depth_png(path, intr.depth_scale)
     }
+}
+
+/// Whether a JPEG file holds its end-of-image marker (FF D9) near its end: some writers pad the
+/// file after it, a truncated file never has it there (inside the compressed data FF is always
+/// followed by 00 or a restart marker, FF D0-D7).
+fn jpeg_is_complete(bytes: &[u8]) -> bool {
+    let tail = &bytes[bytes.len().saturating_sub(1024)..];
+    tail.windows(2).any(|w| w == [0xFF, 0xD9])
 }
 
 fn image_err(path: &Path, source: image::ImageError) -> DatasetError {

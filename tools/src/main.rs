@@ -232,6 +232,41 @@ enum Command {
     },
 }
 
+/// The report's printed lines go through `say!`: a standard output that fails (a full disk, a
+/// reader that went away) must not panic halfway and lose the files still to be written. The
+/// first failure is kept, printing stops, and `eval` reports it once its files are written.
+static STDOUT_ERROR: std::sync::Mutex<Option<std::io::Error>> = std::sync::Mutex::new(None);
+
+macro_rules! say {
+    ($($arg:tt)*) => {
+        say_line(format_args!($($arg)*))
+    };
+}
+
+fn say_line(args: std::fmt::Arguments) {
+    let mut failed = STDOUT_ERROR.lock().unwrap_or_else(|e| e.into_inner());
+    if failed.is_none() {
+        let mut out = std::io::stdout().lock();
+        if let Err(e) = out.write_fmt(args).and_then(|()| out.write_all(b"\n")) {
+            *failed = Some(e);
+        }
+    }
+}
+
+/// The standard-output failure `say!` met, if any (a reader that went away is not one).
+fn stdout_result() -> Res {
+    let failed = STDOUT_ERROR
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .take();
+    match failed {
+        Some(e) if e.kind() != std::io::ErrorKind::BrokenPipe => {
+            Err(format!("cannot print the report on standard output: {e}").into())
+        }
+        _ => Ok(()),
+    }
+}
+
 fn main() -> ExitCode {
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
@@ -323,18 +358,26 @@ fn run(cli: Cli) -> Res {
                 max_dist_m: max_dist,
             };
             let teacher = Teacher::from_sequence(&seq, &cfg)?;
+            let list = if let Some(p) = pairs {
+                Some(read_pairs(&p, teacher.len(), false)?)
+            } else if let Some(k) = within {
+                Some(teacher::pairs_within(teacher.len(), k))
+            } else if let (Some(_), true) = (random, teacher.len() < 2) {
+                return Err(format!(
+                    "--random: `{}` has {} frame(s); a pair needs 2",
+                    sequence.display(),
+                    teacher.len()
+                )
+                .into());
+            } else {
+                random.map(|n| random_pairs(teacher.len(), n, max_gap, seed))
+            };
+            // Created once the input is known to be good: a bad pairs file leaves `--out` as it was.
             let mut sink: Box<dyn Write> = match &out {
                 Some(p) => Box::new(std::io::BufWriter::new(
                     std::fs::File::create(p).map_err(|e| format!("`{}`: {e}", p.display()))?,
                 )),
                 None => Box::new(std::io::BufWriter::new(std::io::stdout().lock())),
-            };
-            let list = if let Some(p) = pairs {
-                Some(read_pairs(&p, teacher.len())?)
-            } else if let Some(k) = within {
-                Some(teacher::pairs_within(teacher.len(), k))
-            } else {
-                random.map(|n| random_pairs(teacher.len(), n, max_gap, seed))
             };
             match list {
                 Some(list) => teacher::label_pairs_csv(&teacher, &list, &mut sink)?,
@@ -380,14 +423,7 @@ fn run(cli: Cli) -> Res {
                 format!("--resize {resize:?}: expected short-side-crop or stretch")
             })?;
             let seq = Sequence::open(&sequence)?;
-            let list = read_pairs(&pairs, seq.len())?;
-            if let Some((i, j)) = list.iter().find(|(i, j)| j >= i) {
-                return Err(format!(
-                    "{}: pair {i},{j}: the reference must come before the current frame",
-                    pairs.display()
-                )
-                .into());
-            }
+            let list = read_pairs(&pairs, seq.len(), true)?;
             let rows = leangate_tools::geometry::pair_geometry(&seq, &list, w, h, resize)?;
             let mut sink: Box<dyn Write> = match &out {
                 Some(p) => Box::new(std::io::BufWriter::new(
@@ -429,39 +465,56 @@ fn run(cli: Cli) -> Res {
             sfm_matcher,
             sfm_max_features,
             trajectory_dir,
-        } => eval_cmd(
-            &sequence[..],
-            eval::GateModel {
-                path: model.as_deref(),
-                precision: precision.as_deref().map(|p| match p {
-                    "fp32" => gstleangate::PrecisionChoice::Fp32,
-                    "int8" => gstleangate::PrecisionChoice::Int8,
-                    _ => gstleangate::PrecisionChoice::Auto,
-                }),
-                feedback: feedback.map(usize::from),
-            },
-            threshold,
-            EvalOutputs {
-                json,
-                plot,
-                contact_sheet,
-                sweep: (sweep || sweep_plot.is_some()).then_some(sweep_thresholds),
-                sweep_plot,
-                phases,
-                reconstruct: reconstruct.then_some(eval::reconstruct::SfmConfig {
-                    python: sfm_python,
-                    dense_every,
-                    work_dir: sfm_dir,
-                    matcher: sfm_matcher,
-                    max_features: sfm_max_features,
-                    trajectory_dir,
-                }),
-            },
-            TeacherConfig {
-                working_width,
-                max_dist_m: max_dist,
-            },
-        ),
+        } => {
+            if let (Some(m), Some(p)) = (&model, &precision) {
+                if p != "auto" {
+                    eprintln!(
+                        "note: --precision {p} chooses a build of the embedded student; `{}` runs as it is",
+                        m.display()
+                    );
+                }
+            }
+            // A threshold given twice would run the same pipeline twice.
+            let mut thresholds: Vec<f64> = Vec::with_capacity(sweep_thresholds.len());
+            for t in sweep_thresholds {
+                if !thresholds.contains(&t) {
+                    thresholds.push(t);
+                }
+            }
+            eval_cmd(
+                &sequence[..],
+                eval::GateModel {
+                    path: model.as_deref(),
+                    precision: precision.as_deref().map(|p| match p {
+                        "fp32" => gstleangate::PrecisionChoice::Fp32,
+                        "int8" => gstleangate::PrecisionChoice::Int8,
+                        _ => gstleangate::PrecisionChoice::Auto,
+                    }),
+                    feedback: feedback.map(usize::from),
+                },
+                threshold,
+                EvalOutputs {
+                    json,
+                    plot,
+                    contact_sheet,
+                    sweep: (sweep || sweep_plot.is_some()).then_some(thresholds),
+                    sweep_plot,
+                    phases,
+                    reconstruct: reconstruct.then_some(eval::reconstruct::SfmConfig {
+                        python: sfm_python,
+                        dense_every,
+                        work_dir: sfm_dir,
+                        matcher: sfm_matcher,
+                        max_features: sfm_max_features,
+                        trajectory_dir,
+                    }),
+                },
+                TeacherConfig {
+                    working_width,
+                    max_dist_m: max_dist,
+                },
+            )
+        }
     }
 }
 
@@ -510,6 +563,18 @@ fn eval_cmd(
     }
     if let Some(sfm) = &reconstruct {
         eval::reconstruct::preflight(sfm)?; // before the long part: a missing pycolmap fails now
+    }
+    // Where the files go, checked before the long part rather than after it.
+    let outputs = [
+        ("--json", &json),
+        ("--plot", &plot),
+        ("--contact-sheet", &contact_sheet),
+        ("--sweep-plot", &sweep_plot),
+    ];
+    for (flag, path) in outputs {
+        if let Some(p) = path {
+            check_output(flag, p)?;
+        }
     }
     for s in sequences {
         if !s.exists() {
@@ -618,9 +683,7 @@ fn eval_cmd(
             if let Some(points) = &report.sweep {
                 print_sweep(points);
             } else if sweep.is_some() {
-                println!(
-                    "no equal-budget sweep here: no depth, poses or intrinsics for the teacher"
-                );
+                say!("no equal-budget sweep here: no depth, poses or intrinsics for the teacher");
             }
             if let (Some(points), Some(p), false) = (&report.sweep, &sweep_plot, several) {
                 eval::plot_sweep(points, &format!("{name}: equal-budget curves"), p)?;
@@ -639,7 +702,7 @@ fn eval_cmd(
                 );
             }
             if several {
-                println!();
+                say!("");
             }
             reports.push(report);
         }
@@ -657,16 +720,14 @@ fn eval_cmd(
                 .iter()
                 .map(|(p, (lo, hi))| format!("{p} {lo}–{hi}"))
                 .collect();
-            println!("kept in one run: {}", ranges.join(", "));
+            say!("kept in one run: {}", ranges.join(", "));
             if let Some(points) = &sum.sweep_sums {
-                println!("summed over the {phases} runs:");
+                say!("summed over the {phases} runs:");
                 print_sweep(points);
             } else if sweep.is_some() {
-                println!(
-                    "no equal-budget sweep here: no depth, poses or intrinsics for the teacher"
-                );
+                say!("no equal-budget sweep here: no depth, poses or intrinsics for the teacher");
             }
-            println!();
+            say!("");
             phase_sums.push(sum);
         }
     }
@@ -701,8 +762,8 @@ fn eval_cmd(
         }
         if let (Some(points), true) = (&multi.sweep_sums, sequences.len() > 1) {
             match swept == multi.sequences.len() {
-                true => println!("summed over the {swept} {runs}:"),
-                false => println!(
+                true => say!("summed over the {swept} {runs}:"),
+                false => say!(
                     "summed over the {swept} {runs} with ground truth (of {}):",
                     multi.sequences.len()
                 ),
@@ -723,7 +784,23 @@ fn eval_cmd(
     if let Some(p) = &json {
         std::fs::write(p, &text).map_err(|e| format!("`{}`: {e}", p.display()))?;
     }
-    Ok(())
+    stdout_result()
+}
+
+/// An output file `path` can be written: not a directory, in a directory that exists.
+fn check_output(flag: &str, path: &Path) -> Res {
+    if path.is_dir() {
+        return Err(format!("{flag} `{}`: is a directory, not a file", path.display()).into());
+    }
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => Err(format!(
+            "{flag} `{}`: no directory `{}`",
+            path.display(),
+            dir.display()
+        )
+        .into()),
+        _ => Ok(()),
+    }
 }
 
 /// One line per run of `--phases`: where it started, what the model and the oracle kept.
@@ -744,7 +821,7 @@ fn print_run_line(report: &eval::EvalReport, phase: usize) {
         (Some(o), Some(l)) => format!(", oracle {o}, late {l}"),
         _ => String::new(),
     };
-    println!(
+    say!(
         "{}: started {phase} frames in, {} frames: model kept {}{judged}",
         report.sequence,
         report.frames,
@@ -758,12 +835,12 @@ fn print_sums(heading: &str, sums: &[eval::PolicySum]) {
         return;
     }
     let first = &sums[0];
-    println!("{heading}:");
+    say!("{heading}:");
     // Some sequences without ground truth: the teacher's columns are over the others, and
     // `judged` is each policy's kept frames there (what kept/oracle divides).
     let partial = first.judged_sequences < first.sequences;
     if partial {
-        println!(
+        say!(
             "(oracle, kept/oracle, late, breaks, min S: over the {} with ground truth; judged = kept there)",
             first.judged_sequences
         );
@@ -772,7 +849,7 @@ fn print_sums(heading: &str, sums: &[eval::PolicySum]) {
         true => format!(" {:>6}", s.judged_kept),
         false => String::new(),
     };
-    println!(
+    say!(
         "{:<11} {:>5}{} {:>8} {:>11} {:>6} {:>6} {:>7}",
         "policy",
         "kept",
@@ -786,7 +863,7 @@ fn print_sums(heading: &str, sums: &[eval::PolicySum]) {
     let u = |v: Option<usize>| v.map_or("-".to_string(), |x| x.to_string());
     let f = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.3}"));
     for s in sums {
-        println!(
+        say!(
             "{:<11} {:>5}{} {:>8} {:>11} {:>6} {:>6} {:>7}",
             s.policy,
             s.kept,
@@ -804,11 +881,16 @@ fn print_summary(r: &eval::EvalReport) {
     let feedback = r.feedback_offset.map_or(String::new(), |o| {
         format!(", with feedback (offset {o:+.3} at the end)")
     });
-    println!(
+    say!(
         "{}: {} frames, model {} ({}, {}), threshold {:.3}{feedback}",
-        r.sequence, r.frames, r.model, r.model_precision, r.execution_provider, r.threshold
+        r.sequence,
+        r.frames,
+        r.model,
+        r.model_precision,
+        r.execution_provider,
+        r.threshold
     );
-    println!(
+    say!(
         "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7}",
         "policy",
         "kept",
@@ -829,7 +911,7 @@ fn print_summary(r: &eval::EvalReport) {
     };
     for (name, p) in &r.policies {
         let g = |k: &str| p.get(k).cloned().unwrap_or(serde_json::Value::Null);
-        println!(
+        say!(
             "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7}",
             name,
             f(&g("kept"), 0),
@@ -848,10 +930,12 @@ fn print_summary(r: &eval::EvalReport) {
 
 /// The last component of a sequence's path (its name in titles and file names).
 fn sequence_name(sequence: &Path) -> String {
-    sequence
+    // `.` or `..` have no file name of their own: the directory's real one.
+    let named = sequence
         .file_name()
-        .map(|s| s.to_string_lossy().to_string())
-        .unwrap_or_default()
+        .map(|s| s.to_os_string())
+        .or_else(|| Some(sequence.canonicalize().ok()?.file_name()?.to_os_string()));
+    named.map_or_else(|| "sequence".into(), |s| s.to_string_lossy().to_string())
 }
 
 /// The `--reconstruct` table: per policy, frames kept, registered / kept, ATE and ATE relative to
@@ -859,13 +943,14 @@ fn sequence_name(sequence: &Path) -> String {
 /// speed-up (gate + SfM); then the model's headline in one sentence.
 fn print_reconstruction(r: &eval::EvalReport) {
     if let Some(info) = &r.reconstruction {
-        println!(
+        say!(
             "reconstruction ({}; dense = every {}th frame; ATE after a similarity alignment; \
              speed-up = dense's SfM time / the policy's):",
-            info.engine, info.dense_every
+            info.engine,
+            info.dense_every
         );
     }
-    println!(
+    say!(
         "{:<11} {:>5} {:>10} {:>6} {:>7} {:>8} {:>7} {:>8} {:>7} {:>9}",
         "policy",
         "kept",
@@ -887,13 +972,13 @@ fn print_reconstruction(r: &eval::EvalReport) {
     for (name, p) in &r.policies {
         let kept = p.get("kept").and_then(|v| v.as_u64()).unwrap_or(0);
         if let Some(e) = p.get("sfm_error").and_then(|v| v.as_str()) {
-            println!("{name:<11} {kept:>5} failed: {e}");
+            say!("{name:<11} {kept:>5} failed: {e}");
             continue;
         }
         let Some(reg) = p.get("registered").and_then(|v| v.as_u64()) else {
             continue;
         };
-        println!(
+        say!(
             "{:<11} {:>5} {:>10} {:>6} {:>7} {:>8} {:>7} {:>8} {:>7} {:>9}",
             name,
             kept,
@@ -913,14 +998,14 @@ fn print_reconstruction(r: &eval::EvalReport) {
         let e2e = field("end_to_end_speedup")
             .map(|x| format!(" ({x:.2}x counting the gate)"))
             .unwrap_or_default();
-        println!("model: SfM {speed:.2}x faster than dense{e2e} at {ate:.2}x dense's ATE");
+        say!("model: SfM {speed:.2}x faster than dense{e2e} at {ate:.2}x dense's ATE");
     }
 }
 
 fn print_sweep(points: &[eval::SweepPoint]) {
-    println!("equal-budget sweep (late keeps / breaks / min pair S at each model threshold):");
+    say!("equal-budget sweep (late keeps / breaks / min pair S at each model threshold):");
     let header: String = eval::POLICIES.iter().map(|p| format!(" {p:>12}")).collect();
-    println!("{:>6}{header}", "T");
+    say!("{:>6}{header}", "T");
     let mut thresholds: Vec<f64> = points.iter().map(|p| p.threshold).collect();
     thresholds.dedup();
     for t in thresholds {
@@ -935,7 +1020,7 @@ fn print_sweep(points: &[eval::SweepPoint]) {
             .iter()
             .map(|p| format!(" {:>12}", cell(p)))
             .collect();
-        println!("{t:>6.3}{row}");
+        say!("{t:>6.3}{row}");
     }
 }
 
@@ -943,8 +1028,11 @@ fn print_sweep(points: &[eval::SweepPoint]) {
 /// lines and `#` comments are skipped; only the first other line may be a header (it is one when
 /// no field of it looks like a number); any later line that is not two frame indices is an error
 /// naming the line.
-fn read_pairs(path: &Path, n: usize) -> Result<Vec<(usize, usize)>, String> {
+/// `i,j` pairs of frame indices below `n`, one per line (a header line is allowed); with
+/// `ordered`, the reference `j` must come before the current frame `i`. Errors name the line.
+fn read_pairs(path: &Path, n: usize, ordered: bool) -> Result<Vec<(usize, usize)>, String> {
     let text = std::fs::read_to_string(path).map_err(|e| format!("`{}`: {e}", path.display()))?;
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     let mut out = Vec::new();
     let mut first = true;
     for (k, line) in text.lines().enumerate() {
@@ -976,6 +1064,12 @@ fn read_pairs(path: &Path, n: usize) -> Result<Vec<(usize, usize)>, String> {
         if i >= n || j >= n {
             return Err(format!(
                 "{}: pair ({i}, {j}) out of range ({n} frames)",
+                at()
+            ));
+        }
+        if ordered && j >= i {
+            return Err(format!(
+                "{}: pair {i},{j}: the reference must come before the current frame",
                 at()
             ));
         }

@@ -356,6 +356,49 @@ pub struct Teacher {
     max_dist_m: f64,
 }
 
+/// What the teacher needs of a sequence's depth: one image size (the intrinsics are of that
+/// camera), the principal point on it, and some valid reading somewhere. Each refusal names the
+/// file.
+fn check_depth(
+    seq: &Sequence,
+    intr: &Intrinsics,
+    loaded: &[((u32, u32), DepthView)],
+) -> Result<(), TeacherError> {
+    let depth_path = |i: usize| {
+        seq.frames[i]
+            .depth
+            .as_deref()
+            .map(|p| p.display().to_string())
+            .unwrap_or_default()
+    };
+    let Some(&((w, h), _)) = loaded.first() else {
+        return Ok(());
+    };
+    if let Some(i) = loaded.iter().position(|(d, _)| *d != (w, h)) {
+        let (wi, hi) = loaded[i].0;
+        return Err(TeacherError::BadDepth(format!(
+            "`{}` (frame {i}) is {wi}x{hi}, the first depth image is {w}x{h}",
+            depth_path(i)
+        )));
+    }
+    let (cx, cy) = (intr.cx, intr.cy);
+    if !(0.0..=w as f64).contains(&cx) || !(0.0..=h as f64).contains(&cy) {
+        return Err(TeacherError::BadDepth(format!(
+            "`{}`: the principal point ({cx}, {cy}) lies outside the {w}x{h} depth images",
+            seq.root.join("intrinsics.txt").display()
+        )));
+    }
+    if loaded.iter().all(|(_, v)| v.valid_count == 0) {
+        return Err(TeacherError::BadDepth(format!(
+            "no depth image of `{}` has a valid reading (all 0 or {}), e.g. `{}`",
+            seq.root.display(),
+            crate::dataset::NO_READING_MAX,
+            depth_path(0)
+        )));
+    }
+    Ok(())
+}
+
 impl Teacher {
     /// Loads every depth frame of `seq` (in parallel) at the working resolution.
     pub fn from_sequence(seq: &Sequence, cfg: &TeacherConfig) -> Result<Teacher, TeacherError> {
@@ -382,13 +425,15 @@ impl Teacher {
                 ))
             })?);
         }
-        let views = (0..seq.len())
+        let loaded = (0..seq.len())
             .into_par_iter()
             .map(|i| {
                 let d = seq.load_depth_m(i)?;
-                DepthView::new(&d, &intr, cfg)
+                Ok(((d.width, d.height), DepthView::new(&d, &intr, cfg)?))
             })
             .collect::<Result<Vec<_>, TeacherError>>()?;
+        check_depth(seq, &intr, &loaded)?;
+        let views = loaded.into_iter().map(|(_, v)| v).collect();
         Ok(Teacher {
             views,
             poses,

@@ -671,6 +671,189 @@ fn eval_fails_fast_on_inputs_it_cannot_read() {
     eval_fails_naming(&listed, &listed.join("rgb/gone.png"));
 }
 
+/// Sequences that read but are wrong (a hostile probe's finds): each refused within 30 s (the
+/// frame feeder used to panic on the first and leave the eval waiting forever), naming the file.
+#[test]
+fn eval_refuses_hostile_sequences_naming_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 6, "pan", 2);
+    let frame = |i: usize| seq.join(format!("rgb/{i:06}.png"));
+
+    // Timestamps in nanoseconds read as seconds: beyond what a stream time holds.
+    let ns = dir.path().join("nanoseconds");
+    std::fs::create_dir(&ns).unwrap();
+    let list: String = (0..3)
+        .map(|i| {
+            format!(
+                "{} {}\n",
+                1_403_715_273_262_142_976u64 + i * 50_000_000_000_000_000,
+                frame(i as usize).display()
+            )
+        })
+        .collect();
+    std::fs::write(ns.join("rgb.txt"), list).unwrap();
+    let err = eval_fails_naming(&ns, &ns.join("rgb.txt"));
+    assert!(err.contains("seconds"), "{err}");
+
+    // A JPEG cut off halfway: the decoder would fill it with grey and the eval go on.
+    let jpg = dir.path().join("truncated_jpeg");
+    std::fs::create_dir(&jpg).unwrap();
+    for i in 0..3 {
+        let img = image::open(frame(i)).unwrap().into_rgb8();
+        img.save(jpg.join(format!("{i:03}.jpg"))).unwrap();
+    }
+    let whole = std::fs::read(jpg.join("002.jpg")).unwrap();
+    std::fs::write(jpg.join("002.jpg"), &whole[..whole.len() / 2]).unwrap();
+    let err = eval_fails_naming(&jpg, &jpg.join("002.jpg"));
+    assert!(err.contains("truncated"), "{err}");
+
+    // One depth image of another size: the teacher would judge it with the others' intrinsics.
+    let small = dir.path().join("small_depth");
+    sequence_copy(&seq, &small, |name, text| match name {
+        "depth.txt" => text.replacen("depth/000003.png", "small.png", 1),
+        _ => text,
+    });
+    image::ImageBuffer::<image::Luma<u16>, _>::from_pixel(8, 6, image::Luma([1000u16]))
+        .save(small.join("small.png"))
+        .unwrap();
+    let err = eval_fails_naming(&small, &small.join("small.png"));
+    assert!(err.contains("8x6") && err.contains("160x120"), "{err}");
+
+    // Two frames at one time would share a depth image and a pose: refused, naming the lines.
+    let dup = dir.path().join("duplicate_time");
+    sequence_copy(&seq, &dup, |name, text| match name {
+        "rgb.txt" => text.replacen("0.066667 rgb", "0.033333 rgb", 1),
+        _ => text,
+    });
+    let err = eval_fails_naming(&dup, &dup.join("rgb.txt"));
+    assert!(err.contains("is also on line"), "{err}");
+
+    // A byte-order mark before the first line is not part of it.
+    let bom = dir.path().join("bom");
+    sequence_copy(&seq, &bom, |name, text| match name {
+        "rgb.txt" | "depth.txt" | "groundtruth.txt" => format!("\u{feff}{text}"),
+        _ => text,
+    });
+    let plain = eval_json(&seq, &["--model", &fixture("mad.onnx")]);
+    let marked = eval_json(&bom, &["--model", &fixture("mad.onnx")]);
+    assert_eq!(marked["frames"], plain["frames"]);
+    assert_eq!(marked["policies"]["oracle"], plain["policies"]["oracle"]);
+}
+
+/// Where the files go is checked before the work, and a standard output that fails (a full
+/// disk) ends in an error after the JSON is written, not a panic that loses it.
+#[test]
+fn eval_checks_its_outputs_first_and_a_failing_stdout_loses_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 6, "pan", 3);
+    let run = |extra: &[&str], stdout: std::process::Stdio| {
+        leangate()
+            .args(["eval", "--model", &fixture("mad.onnx"), "--sequence"])
+            .arg(&seq)
+            .args(extra)
+            .stdout(stdout)
+            .output()
+            .unwrap()
+    };
+    let nowhere = dir.path().join("nodir/x.json");
+    let out = run(
+        &["--json", nowhere.to_str().unwrap()],
+        std::process::Stdio::piped(),
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("--json") && err.contains("nodir"), "{err}");
+    assert!(
+        out.stdout.is_empty(),
+        "refused before running: {}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+    let out = run(
+        &["--plot", dir.path().to_str().unwrap()],
+        std::process::Stdio::piped(),
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("--plot") && err.contains("is a directory"),
+        "{err}"
+    );
+
+    let json = dir.path().join("report.json");
+    let full = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .unwrap();
+    let out = run(&["--json", json.to_str().unwrap()], full.into());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "an error, not a panic: {err}");
+    assert!(
+        err.contains("standard output") && !err.contains("panicked"),
+        "{err}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(report["frames"], 6);
+}
+
+/// `label` and `geometry` refuse a bad pairs file naming its line, before `--out` is touched.
+#[test]
+fn bad_pairs_are_refused_by_line_and_leave_the_output_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 4, "pan", 4);
+    let pairs = dir.path().join("pairs.csv");
+    let out = dir.path().join("labels.csv");
+    std::fs::write(&out, "precious\n").unwrap();
+    std::fs::write(&pairs, "1,0\n99,0\n").unwrap();
+    let r = leangate()
+        .args(["label", "--sequence"])
+        .arg(&seq)
+        .arg("--pairs")
+        .arg(&pairs)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("line 2") && err.contains("out of range"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), "precious\n");
+
+    std::fs::write(&pairs, "i,j\n2,1\n1,2\n").unwrap();
+    let r = leangate()
+        .args(["geometry", "--sequence"])
+        .arg(&seq)
+        .arg("--pairs")
+        .arg(&pairs)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("line 3") && err.contains("must come before"),
+        "{err}"
+    );
+
+    let one = dir.path().join("one");
+    synth(&one, 1, "pan", 4);
+    let r = leangate()
+        .args(["label", "--random", "5", "--sequence"])
+        .arg(&one)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--random") && err.contains("a pair needs 2"),
+        "{err}"
+    );
+}
+
 #[test]
 fn gstreamer_errors_show_the_message_without_debug_detail() {
     let dir = tempfile::tempdir().unwrap();
@@ -956,8 +1139,9 @@ fn plot_errors_name_the_path() {
             .unwrap();
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(1), "{err}");
+        // Found before the run (the directory is checked first), naming the flag and the path.
         assert!(
-            err.contains(&format!("`{}`: ", bad.display())) && err.contains("No such file"),
+            err.contains(&format!("{flag} `{}`: ", bad.display())) && err.contains("no directory"),
             "{flag}: the path and the cause: {err}"
         );
         assert!(!err.contains("IOError") && !err.contains("Os {"), "{err}");

@@ -132,6 +132,14 @@ impl LockStep {
     }
 }
 
+/// The stream time of a frame `seconds` after the first (0 for a negative value), or None
+/// beyond what a `ClockTime` holds, about 584 years (e.g. nanosecond timestamps read as seconds).
+fn stream_time(seconds: f64) -> Option<gst::ClockTime> {
+    let ns = seconds.max(0.0) * 1e9;
+    (ns.is_finite() && ns < gst::ClockTime::MAX.nseconds() as f64)
+        .then(|| gst::ClockTime::from_nseconds(ns as u64))
+}
+
 fn grey(rgb: &image::RgbImage) -> Vec<u8> {
     rgb.pixels()
         .map(|p| ((p[0] as u16 + p[1] as u16 + p[2] as u16) / 3) as u8)
@@ -237,6 +245,16 @@ pub fn run_model(
             let seq = seq.clone();
             let lock_step = feedback.is_some().then(|| step.clone());
             feeder = Some(std::thread::spawn(move || -> Result<(), EvalError> {
+                // EOS however the feeding ends (done, an error, even a panic): the sink must
+                // not wait for frames that never come.
+                struct EndOfStream(gst_app::AppSrc);
+                impl Drop for EndOfStream {
+                    fn drop(&mut self) {
+                        let _ = self.0.end_of_stream();
+                    }
+                }
+                let src = EndOfStream(src);
+                let src = &src.0;
                 let t0 = seq.frames.first().map(|f| f.timestamp).unwrap_or(0.0);
                 let feed = || {
                     for i in 0..seq.len() {
@@ -246,15 +264,23 @@ pub fn run_model(
                         let img = seq.load_rgb(i).map_err(err("frame"))?;
                         if img.dimensions() != (w, h) {
                             return Err(EvalError(format!(
-                                "frame {i} is {}x{}, the first frame is {w}x{h}",
+                                "`{}` (frame {i}) is {}x{}, the first frame is {w}x{h}",
+                                seq.frames[i].rgb.display(),
                                 img.width(),
                                 img.height()
                             )));
                         }
+                        let pts = stream_time(seq.frames[i].timestamp - t0).ok_or_else(|| {
+                            EvalError(format!(
+                                "`{}`: frame {i} is {:e} s after the first, beyond what a \
+                                 stream time holds (timestamps must be in seconds)",
+                                seq.root.join("rgb.txt").display(),
+                                seq.frames[i].timestamp - t0
+                            ))
+                        })?;
                         let mut b = gst::Buffer::from_mut_slice(img.into_raw());
-                        let pts = ((seq.frames[i].timestamp - t0).max(0.0) * 1e9) as u64;
                         let bm = b.get_mut().unwrap();
-                        bm.set_pts(gst::ClockTime::from_nseconds(pts));
+                        bm.set_pts(pts);
                         // The rows are packed (3 * width bytes), which is not GStreamer's default
                         // stride (rounded up to 4) when the width is not a multiple of 4: say so.
                         gst_video::VideoMeta::add_full(
@@ -273,10 +299,7 @@ pub fn run_model(
                     }
                     Ok(())
                 };
-                let fed = feed();
-                // EOS after a failure too: the sink must not wait for frames that never come.
-                let _ = src.end_of_stream();
-                fed
+                feed()
             }));
         }
     }
@@ -389,7 +412,7 @@ pub fn run_model(
 /// `leangate-stats`. Read in one pass: `pop_filtered` would discard the messages it does not match.
 struct BusLog {
     /// Names the input in errors from the source part of the pipeline.
-    input: Option<String>,
+    input: String,
     gate: gst::Element,
     error: Option<EvalError>,
     stats: Option<StatsMessage>,
@@ -399,8 +422,8 @@ impl BusLog {
     fn new(source: &Source, gate: &gst::Element) -> BusLog {
         BusLog {
             input: match source {
-                Source::Video(path) => Some(path.display().to_string()),
-                Source::Sequence(_) => None,
+                Source::Video(path) => path.display().to_string(),
+                Source::Sequence(seq) => seq.root.display().to_string(),
             },
             gate: gate.clone(),
             error: None,
@@ -412,13 +435,12 @@ impl BusLog {
         while let Some(msg) = bus.pop() {
             match msg.view() {
                 gst::MessageView::Error(e) if self.error.is_none() => {
-                    // The element's errors name their subject (the model); the source's name
-                    // the input, or the element that failed.
-                    let who = match (&self.input, msg.src()) {
-                        (_, Some(src)) if src == self.gate.upcast_ref::<gst::Object>() => None,
-                        (Some(input), _) => Some(format!("`{input}`")),
-                        (None, src) => src.map(|s| s.name().to_string()),
-                    };
+                    // The element's errors name their subject (the model); the source part's
+                    // name the input (the video file or the sequence directory).
+                    let from_gate = msg
+                        .src()
+                        .is_some_and(|src| src == self.gate.upcast_ref::<gst::Object>());
+                    let who = (!from_gate).then(|| format!("`{}`", self.input));
                     self.error = Some(EvalError(user_error(e, who.as_deref())));
                 }
                 gst::MessageView::Element(_) => {
@@ -445,10 +467,23 @@ fn user_error(e: &gst::message::Error, who: Option<&str>) -> String {
             Some("leangate command-line tools"),
         )
     });
-    let text = match who {
+    let mut text = match who {
         Some(who) => format!("{who}: {}", e.error()),
         None => e.error().to_string(),
     };
+    // GStreamer's "Internal data stream error" says why only in its debug text.
+    let why = e.debug().and_then(|d| {
+        if d.contains("not-negotiated") {
+            Some("the frames' format or size is not one leangate accepts")
+        } else if d.contains("not-linked") {
+            Some("no video stream reached leangate")
+        } else {
+            None
+        }
+    });
+    if let Some(why) = why {
+        text = format!("{text} ({why})");
+    }
     if let Some(d) = e.debug() {
         gst::error!(CAT, "{text} ({d})");
     }
