@@ -24,8 +24,8 @@ import os
 import numpy as np
 
 from .config import DATA_ROOT, MODELS_DIR
-from .feedback import fused, fusion_weights
-from .fuse import replay, sequence_data
+from .feedback import fused, fusion_weights, sequence_table
+from .fuse import replay
 from .seqio import rows
 
 BAND = 0.15
@@ -94,11 +94,7 @@ def main():
     print(f"{'offset':<36}" + "".join(f"{o:+7.3f}" for o in offs))
     common = np.ones(len(offs), bool)
     for seq in a.sequences:
-        if not os.path.isfile(os.path.join(seq, "depth.txt")):
-            raise SystemExit(f"{seq}: not a sequence with depth and poses")
-        name = os.path.basename(os.path.normpath(seq))
-        parent = os.path.basename(os.path.dirname(os.path.normpath(seq)))
-        tab = sequence_data(seq, os.path.join(a.tables, f"{parent}_{name}"), a.models, 120)
+        label, tab = sequence_table(seq, a.tables, a.models)
         r = kept_ratios(fused(tab, w), tab, offs, a.threshold, a.phases)
         inside = np.abs(r - 1.0) <= BAND + 1e-9
         common &= inside
@@ -107,7 +103,7 @@ def main():
         if a.depth:
             med, beyond, holes = depth_stats(seq)
             extra = f" | depth median {med:.2f} m, beyond 3.5 m {beyond:.3f}, no depth {holes:.3f}"
-        print(f"{parent + '/' + name:<36}" + "".join(f"{x:7.2f}" for x in r) + f" | in band: {band}{extra}")
+        print(f"{label:<36}" + "".join(f"{x:7.2f}" for x in r) + f" | in band: {band}{extra}")
     print("offsets in every sequence's band: "
           + (", ".join(f"{o:+.3f}" for o in offs[common]) if common.any() else "none"))
 

@@ -39,6 +39,16 @@ def fusion_weights(models):
     return [float(v) for v in rest.split(",")]
 
 
+def sequence_table(seq, tables, models):
+    """(`parent/name`, `fuse.sequence_data`'s horizon-120 table) of a sequence directory with
+    depth and poses, cached under `tables`; the scripts that replay the element's gate share it."""
+    if not os.path.isfile(os.path.join(seq, "depth.txt")):
+        raise SystemExit(f"{seq}: not a sequence with depth and poses")
+    name = os.path.basename(os.path.normpath(seq))
+    parent = os.path.basename(os.path.dirname(os.path.normpath(seq)))
+    return f"{parent}/{name}", sequence_data(seq, os.path.join(tables, f"{parent}_{name}"), models, 120)
+
+
 def fused(tab, w):
     """The element's utility of every (reference, k) pair: the fusion, or the student alone
     where the prior's chain is lost."""
@@ -92,12 +102,8 @@ def main():
     w = fusion_weights(a.models)
     data = []
     for seq in a.sequences:
-        if not os.path.isfile(os.path.join(seq, "depth.txt")):
-            raise SystemExit(f"{seq}: not a sequence with depth and poses")
-        name = os.path.basename(os.path.normpath(seq))
-        parent = os.path.basename(os.path.dirname(os.path.normpath(seq)))
-        tab = sequence_data(seq, os.path.join(a.tables, f"{parent}_{name}"), a.models, 120)
-        data.append((f"{parent}/{name}", fused(tab, w), tab["tau"]))
+        label, tab = sequence_table(seq, a.tables, a.models)
+        data.append((label, fused(tab, w), tab["tau"]))
 
     def row(label, rule, rate, delay):
         cells, K, O, L = [], 0, 0, 0
