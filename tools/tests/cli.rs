@@ -803,21 +803,35 @@ fn bad_pairs_are_refused_by_line_and_leave_the_output_alone() {
     let dir = tempfile::tempdir().unwrap();
     let seq = dir.path().join("seq");
     synth(&seq, 4, "pan", 4);
-    let pairs = dir.path().join("pairs.csv");
-    let out = dir.path().join("labels.csv");
+    let one = dir.path().join("one");
+    synth(&one, 1, "pan", 4);
+    let (pairs, out) = (dir.path().join("pairs.csv"), dir.path().join("labels.csv"));
+    // `leangate ARGS`: an error (exit 1); its message.
+    let fails = |args: &[&std::ffi::OsStr]| {
+        let r = leangate().args(args).output().unwrap();
+        let err = String::from_utf8_lossy(&r.stderr).into_owned();
+        assert_eq!(r.status.code(), Some(1), "{err}");
+        err
+    };
+    let (seq, one, p, o) = (
+        seq.as_os_str(),
+        one.as_os_str(),
+        pairs.as_os_str(),
+        out.as_os_str(),
+    );
+    let arg = |s: &'static str| std::ffi::OsStr::new(s);
+
     std::fs::write(&out, "precious\n").unwrap();
     std::fs::write(&pairs, "1,0\n99,0\n").unwrap();
-    let r = leangate()
-        .args(["label", "--sequence"])
-        .arg(&seq)
-        .arg("--pairs")
-        .arg(&pairs)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&r.stderr);
-    assert_eq!(r.status.code(), Some(1), "{err}");
+    let err = fails(&[
+        arg("label"),
+        arg("--sequence"),
+        seq,
+        arg("--pairs"),
+        p,
+        arg("--out"),
+        o,
+    ]);
     assert!(
         err.contains("line 2") && err.contains("out of range"),
         "{err}"
@@ -825,29 +839,19 @@ fn bad_pairs_are_refused_by_line_and_leave_the_output_alone() {
     assert_eq!(std::fs::read_to_string(&out).unwrap(), "precious\n");
 
     std::fs::write(&pairs, "i,j\n2,1\n1,2\n").unwrap();
-    let r = leangate()
-        .args(["geometry", "--sequence"])
-        .arg(&seq)
-        .arg("--pairs")
-        .arg(&pairs)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&r.stderr);
-    assert_eq!(r.status.code(), Some(1), "{err}");
+    let err = fails(&[arg("geometry"), arg("--sequence"), seq, arg("--pairs"), p]);
     assert!(
         err.contains("line 3") && err.contains("must come before"),
         "{err}"
     );
 
-    let one = dir.path().join("one");
-    synth(&one, 1, "pan", 4);
-    let r = leangate()
-        .args(["label", "--random", "5", "--sequence"])
-        .arg(&one)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&r.stderr);
-    assert_eq!(r.status.code(), Some(1), "{err}");
+    let err = fails(&[
+        arg("label"),
+        arg("--random"),
+        arg("5"),
+        arg("--sequence"),
+        one,
+    ]);
     assert!(
         err.contains("--random") && err.contains("a pair needs 2"),
         "{err}"
