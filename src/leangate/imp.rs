@@ -425,6 +425,8 @@ impl LeanGate {
         if self.force_pending.swap(false, Ordering::SeqCst) {
             state.gate.force_keyframe();
         }
+        // The threshold in force for this frame: the reports are measured against it, and the
+        // frame is screened and gated by it below.
         let threshold = state.gate.config().threshold;
         for report in feedback {
             match report.and_then(|(tau, rate)| state.utility.feedback(tau, threshold, rate)) {
@@ -446,7 +448,6 @@ impl LeanGate {
         let spec = &state.scorer.info().spec;
         let frame = frame_readable.then_some((&state.current[..], spec));
         state.utility.observe(frame, has_reference, fs.geometry);
-        let threshold = state.gate.config().threshold;
         let mut screened = false;
         let (score, utility) = match pre {
             Err(e) => {

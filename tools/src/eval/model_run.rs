@@ -253,8 +253,8 @@ pub fn run_model(
                         let _ = self.0.end_of_stream();
                     }
                 }
-                let src = EndOfStream(src);
-                let src = &src.0;
+                let eos = EndOfStream(src);
+                let src = &eos.0;
                 let t0 = seq.frames.first().map(|f| f.timestamp).unwrap_or(0.0);
                 let feed = || {
                     for i in 0..seq.len() {
