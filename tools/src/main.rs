@@ -373,12 +373,7 @@ fn run(cli: Cli) -> Res {
                 random.map(|n| random_pairs(teacher.len(), n, max_gap, seed))
             };
             // Created once the input is known to be good: a bad pairs file leaves `--out` as it was.
-            let mut sink: Box<dyn Write> = match &out {
-                Some(p) => Box::new(std::io::BufWriter::new(
-                    std::fs::File::create(p).map_err(|e| format!("`{}`: {e}", p.display()))?,
-                )),
-                None => Box::new(std::io::BufWriter::new(std::io::stdout().lock())),
-            };
+            let mut sink = csv_sink(out.as_deref())?;
             match list {
                 Some(list) => teacher::label_pairs_csv(&teacher, &list, &mut sink)?,
                 None => {
@@ -425,12 +420,7 @@ fn run(cli: Cli) -> Res {
             let seq = Sequence::open(&sequence)?;
             let list = read_pairs(&pairs, seq.len(), true)?;
             let rows = leangate_tools::geometry::pair_geometry(&seq, &list, w, h, resize)?;
-            let mut sink: Box<dyn Write> = match &out {
-                Some(p) => Box::new(std::io::BufWriter::new(
-                    std::fs::File::create(p).map_err(|e| format!("`{}`: {e}", p.display()))?,
-                )),
-                None => Box::new(std::io::BufWriter::new(std::io::stdout().lock())),
-            };
+            let mut sink = csv_sink(out.as_deref())?;
             writeln!(sink, "i,j,tau_geo,f_m,f_u")?;
             for ((i, j), r) in list.iter().zip(&rows) {
                 match r {
@@ -785,6 +775,16 @@ fn eval_cmd(
         std::fs::write(p, &text).map_err(|e| format!("`{}`: {e}", p.display()))?;
     }
     stdout_result()
+}
+
+/// Where `label` and `geometry` write their CSV: `--out`, created now, or standard output.
+fn csv_sink(out: Option<&Path>) -> Result<Box<dyn Write>, String> {
+    Ok(match out {
+        Some(p) => Box::new(std::io::BufWriter::new(
+            std::fs::File::create(p).map_err(|e| format!("`{}`: {e}", p.display()))?,
+        )),
+        None => Box::new(std::io::BufWriter::new(std::io::stdout().lock())),
+    })
 }
 
 /// An output file `path` can be written: not a directory, in a directory that exists.
