@@ -260,6 +260,17 @@ impl PixelFormat {
         }
     }
 
+    /// What one step of a stored sample is worth in 8-bit code values. A full-range 16-bit grey
+    /// sample spans 0..=65535 for 0..=255 (`videoconvert` writes GRAY8's `v` as `v * 257`), so
+    /// 65535 reads as full scale, 1.0, like 255 in every 8-bit format; the others scale by their
+    /// extra bits (`shift`), as `videoconvert` does.
+    fn unit(self) -> f32 {
+        match self {
+            PixelFormat::Gray16Le => 1.0 / 257.0,
+            _ => 1.0 / (1u32 << self.desc().shift) as f32,
+        }
+    }
+
     /// Number of planes.
     pub fn n_planes(self) -> usize {
         self.desc().planes.len()
@@ -731,7 +742,7 @@ fn plane_pass(desc: &PassDesc, x_taps: &[Taps], y_taps: Vec<Taps>, sums: bool) -
 /// and are never summed in u16.
 fn make_passes(format: PixelFormat, x_taps: &[Taps], y_taps: &[Taps]) -> Vec<PlanePass> {
     let d = format.desc();
-    let unit = 1.0 / (1u32 << d.shift) as f32;
+    let unit = format.unit();
     let taps = |taps: &[Taps], sub: usize| {
         if sub == 2 {
             halve_taps(taps)
@@ -1042,7 +1053,7 @@ impl Preprocessor {
         }
         let yuv = self.yuv;
         let d = self.format.desc();
-        let unit = 1.0 / (1u32 << d.shift) as f32;
+        let unit = self.format.unit();
         // Per output slot (R, G, B or Y, U, V): plane, samples per unit, unit size, sample.
         let mut slots = [(0usize, 1usize, FULL, 0usize); 3];
         for p in d.passes {
@@ -1691,6 +1702,37 @@ mod tests {
             let want = (v - s.mean[c]) / s.std[c];
             assert!(chunk.iter().all(|x| (x - want).abs() < 1e-5), "channel {c}");
         }
+    }
+
+    /// Full scale reads as 1.0 in every format that has one: 65535 in GRAY16_LE as 255 in GRAY8
+    /// and RGB (it read 65535 / 256 / 255 = 1.0039).
+    #[test]
+    fn full_scale_grey16_reads_as_one() {
+        let (w, h) = (20u32, 10u32);
+        let s = spec(8, 8, ResizeMode::Stretch);
+        let run = |format: PixelFormat, bytes: Vec<u8>| {
+            let stride = bytes.len() / h as usize;
+            let planes = [bytes];
+            let frame = raw_frame(format, w, h, &planes, &[stride]);
+            let p = Preprocessor::new(format, w, h, YuvMatrix::BT601, s.clone()).unwrap();
+            let mut out = vec![0.0; s.len()];
+            p.run(&frame, &mut out).unwrap();
+            out
+        };
+        let n = (w * h) as usize;
+        let white16 = run(PixelFormat::Gray16Le, vec![0xff; 2 * n]);
+        let white8 = run(PixelFormat::Gray8, vec![255; n]);
+        assert!(
+            white16.iter().all(|&v| (v - 1.0).abs() < 1e-6),
+            "{white16:?}"
+        );
+        assert!(white8.iter().all(|&v| (v - 1.0).abs() < 1e-6), "{white8:?}");
+        // Mid-grey as videoconvert writes it (v * 257) reads as v / 255.
+        let mid16 = run(
+            PixelFormat::Gray16Le,
+            (0..n).flat_map(|_| (128u16 * 257).to_le_bytes()).collect(),
+        );
+        assert!(mid16.iter().all(|&v| (v - 128.0 / 255.0).abs() < 1e-6));
     }
 
     #[test]

@@ -96,6 +96,23 @@ pub fn module_path() -> Option<PathBuf> {
     std::fs::canonicalize(&path).ok().or(Some(path))
 }
 
+/// Microsoft's builds of ONNX Runtime (the PyPI wheels LeanGate loads) start a telemetry system
+/// with the first environment: a persistent device id and a queue of usage events under
+/// `~/.cache/Microsoft/DeveloperTools/.onnxruntime/`, to be sent to Microsoft. The API's
+/// `DisableTelemetryEvents` (ort's `with_telemetry(false)`, also set) comes too late to stop
+/// those files; the library's own switch, `ORT_DISABLE_TELEMETRY=1` in the environment before
+/// the library is loaded, stops all of it. It is set here, once, before the library is loaded,
+/// unless the process already has a value of its own (a user's explicit choice is kept).
+fn no_telemetry() {
+    if std::env::var_os(NO_TELEMETRY_VAR).is_none() {
+        // Once per process, before ONNX Runtime exists; GStreamer reads no such variable.
+        std::env::set_var(NO_TELEMETRY_VAR, "1");
+    }
+}
+
+/// ONNX Runtime's telemetry switch (see [`no_telemetry`]).
+pub const NO_TELEMETRY_VAR: &str = "ORT_DISABLE_TELEMETRY";
+
 /// The process-wide ort environment, loading the library on first use. Returns the environment and
 /// the path it was loaded from. A failure is not cached: a later call tries again.
 pub fn environment() -> Result<(ort::environment::Environment, String), RuntimeError> {
@@ -107,13 +124,20 @@ pub fn environment() -> Result<(ort::environment::Environment, String), RuntimeE
     if std::env::var_os("ORT_DYLIB_PATH").is_none_or(|v| v.is_empty()) {
         attempts.push(("ORT_DYLIB_PATH".to_string(), "not set".to_string()));
     }
+    no_telemetry();
     for (what, path) in candidates() {
         if path.is_absolute() && !path.exists() {
             attempts.push((what, "no such file".to_string()));
             continue;
         }
         match ort::init_from(&path) {
-            Ok(builder) => match builder.with_name("leangate").build() {
+            Ok(builder) => match builder
+                .with_name("leangate")
+                // Microsoft's builds of ONNX Runtime record usage events (and a persistent device
+                // id under ~/.cache/Microsoft) unless told not to; LeanGate sends nothing home.
+                .with_telemetry(false)
+                .build()
+            {
                 Ok(env) => {
                     let loaded = (env, path.display().to_string());
                     *guard = Some(loaded.clone());

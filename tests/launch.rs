@@ -164,3 +164,48 @@ fn gst_launch_writes_one_jpeg_per_kept_frame() {
         assert_eq!(common::jpeg_size(&bytes), Some((854, 480)), "{n}");
     }
 }
+
+/// A run leaves nothing of the user's machine behind it: in a fresh HOME (and no XDG_CACHE_HOME),
+/// `videotestsrc ! leangate ! fakesink` with the embedded default on the CPU writes no file at
+/// all. ONNX Runtime's own telemetry (a persistent device id and queued usage events under
+/// `~/.cache/Microsoft/DeveloperTools/.onnxruntime`) is off, and the TensorRT engine cache
+/// (`~/.cache/leangate/tensorrt`) is created only when TensorRT runs.
+#[test]
+fn gst_launch_in_a_fresh_home_writes_nothing_there() {
+    let home = tempfile::tempdir().unwrap();
+    let text = succeeds(
+        gst_cmd("gst-launch-1.0")
+            .env("HOME", home.path())
+            .env_remove("XDG_CACHE_HOME")
+            .env_remove("ORT_DISABLE_TELEMETRY")
+            .env_remove("XDG_DATA_HOME")
+            .env_remove("XDG_CONFIG_HOME")
+            .args([
+                "-m",
+                "videotestsrc",
+                "num-buffers=30",
+                "pattern=ball",
+                "!",
+                "video/x-raw,width=320,height=240",
+                "!",
+                "leangate",
+                "!",
+                "fakesink",
+            ]),
+    );
+    assert!(text.contains("frames-in=(guint64)30"), "{text}");
+    let left: Vec<_> = walk(home.path());
+    assert!(left.is_empty(), "left in HOME: {left:?}");
+}
+
+/// Every file and folder below `dir`.
+fn walk(dir: &std::path::Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        out.push(e.path());
+        if e.file_type().unwrap().is_dir() {
+            out.extend(walk(&e.path()));
+        }
+    }
+    out
+}

@@ -84,6 +84,15 @@ pub(super) fn build_session(
                 .error_on_failure(),
         ),
         ExecutionProvider::TensorRt => {
+            // Asked first, so that a CPU-only ONNX Runtime (where `auto` tries TensorRT and
+            // moves on) never creates the engine cache folder in the user's HOME.
+            use ort::ep::ExecutionProvider as _;
+            if !ep::TensorRT::is_available().unwrap_or(false) {
+                return Err(BuildError::Provider(
+                    "this ONNX Runtime library was built without the TensorRT execution provider"
+                        .into(),
+                ));
+            }
             let cache = std::env::var_os("XDG_CACHE_HOME")
                 .map(PathBuf::from)
                 .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))

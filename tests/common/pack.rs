@@ -8,7 +8,8 @@ use super::{PixelFormat, RawFrame, YuvMatrix};
 /// row padding, using the BT.601 limited-range matrix for YUV. Returns the planes and strides.
 ///
 /// Samples wider than 8 bits hold the 8-bit code value `v` as `v * 4` (10-bit), `v * 16`
-/// (12-bit), `v * 256` (16-bit) in the low bits of a little-endian word, or MSB-aligned (P010,
+/// (12-bit), `v * 256` (P016; `v * 257` for GRAY16_LE, full scale 65535, as videoconvert
+/// writes it) in the low bits of a little-endian word, or MSB-aligned (P010,
 /// P012: `v * 4 << 6`, `v * 16 << 4`); chroma is the average of the RGB under each subsampled
 /// block.
 pub fn pack_rgb(
@@ -41,7 +42,8 @@ pub fn pack_rgb(
         F::I42012le | F::I42212le | F::Y44412le => (2, 4095.0, 16.0, 0),
         F::P01010le => (2, 1023.0, 4.0, 6),
         F::P012Le => (2, 4095.0, 16.0, 4),
-        F::P016Le | F::Gray16Le => (2, 65535.0, 256.0, 0),
+        F::P016Le => (2, 65535.0, 256.0, 0),
+        F::Gray16Le => (2, 65535.0, 257.0, 0),
         _ => (1, 255.0, 1.0, 0),
     };
     let enc = |v: f32| ((v * scale).round().clamp(0.0, max) as u16) << lsh;

@@ -39,6 +39,15 @@ use std::sync::Mutex;
 use image::{ImageBuffer, Luma, RgbImage};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
+/// The list files a sequence directory may hold (see the module documentation).
+pub const LIST_FILES: [&str; 5] = [
+    "rgb.txt",
+    "depth.txt",
+    "groundtruth.txt",
+    "groundtruth_tum.txt",
+    "intrinsics.txt",
+];
+
 /// Pinhole intrinsics of the depth (and, in synthetic data, colour) camera, plus the depth scale.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Intrinsics {
@@ -236,7 +245,16 @@ fn parse_numbers(
 }
 
 /// Parses a `timestamp path` list (`rgb.txt`, `depth.txt`); paths are made absolute.
-fn read_file_list(path: &Path, root: &Path) -> Result<Vec<(f64, PathBuf)>, DatasetError> {
+///
+/// `shared`: whether a row may repeat. In a one-row-per-frame `depth.txt` two colour frames may
+/// share their nearest depth image, so an identical row (same timestamp, same file) is read once;
+/// two *different* files at one timestamp are refused there too. In `rgb.txt` every row is a
+/// frame, and two frames at one time are refused.
+fn read_file_list(
+    path: &Path,
+    root: &Path,
+    shared: bool,
+) -> Result<Vec<(f64, PathBuf)>, DatasetError> {
     let mut out = Vec::new();
     for (no, line) in read_lines(path)? {
         let mut it = line.splitn(2, char::is_whitespace);
@@ -260,15 +278,28 @@ fn read_file_list(path: &Path, root: &Path) -> Result<Vec<(f64, PathBuf)>, Datas
             })?;
         out.push((t, root.join(file), no));
     }
-    out.sort_by(|a, b| a.0.total_cmp(&b.0));
+    out.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.2.cmp(&b.2)));
+    if shared {
+        out.dedup_by(|b, a| a.0 == b.0 && a.1 == b.1);
+    }
     // Two rows at one time would be associated with the same depth and pose, and their order
     // would be the file's, not time's: refused, naming both lines.
     if let Some(w) = out.windows(2).find(|w| w[0].0 == w[1].0) {
         let (a, b) = (w[0].2.min(w[1].2), w[0].2.max(w[1].2));
+        let message = if shared {
+            format!(
+                "timestamp {} names another file on line {a} (`{}` and `{}`)",
+                w[0].0,
+                w[0].1.display(),
+                w[1].1.display()
+            )
+        } else {
+            format!("timestamp {} is also on line {a}", w[0].0)
+        };
         return Err(DatasetError::Parse {
             path: path.to_path_buf(),
             line: b,
-            message: format!("timestamp {} is also on line {a}", w[0].0),
+            message,
         });
     }
     Ok(out.into_iter().map(|(t, p, _)| (t, p)).collect())
@@ -384,7 +415,7 @@ impl Sequence {
         }
         let rgb_txt = root.join("rgb.txt");
         let rgb_list: Vec<(f64, PathBuf)> = if rgb_txt.is_file() {
-            read_file_list(&rgb_txt, &root)?
+            read_file_list(&rgb_txt, &root, false)?
         } else {
             let sub = root.join("rgb");
             let dir = if sub.is_dir() { sub } else { root.clone() };
@@ -410,7 +441,7 @@ impl Sequence {
 
         let depth_txt = root.join("depth.txt");
         let depth_list = if depth_txt.is_file() {
-            Some(read_file_list(&depth_txt, &root)?)
+            Some(read_file_list(&depth_txt, &root, true)?)
         } else {
             None
         };
@@ -484,6 +515,18 @@ impl Sequence {
                 .frames
                 .iter()
                 .all(|f| f.depth.is_some() && f.pose.is_some())
+    }
+
+    /// Frames the teacher can judge: with a depth image and a pose, when intrinsics exist.
+    pub fn judged_frames(&self) -> usize {
+        match self.intrinsics {
+            Some(_) => self
+                .frames
+                .iter()
+                .filter(|f| f.depth.is_some() && f.pose.is_some())
+                .count(),
+            None => 0,
+        }
     }
 
     /// Timestamps of all frames.

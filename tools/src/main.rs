@@ -582,6 +582,53 @@ fn eval_cmd(
             eval::check_feedback(s)?;
         }
     }
+    // Nothing the eval reads may be what it writes: `--json SEQ/rgb.txt` would replace the list,
+    // `--trajectory-dir SEQ` its groundtruth.txt, before anything is judged.
+    let inputs = eval::input_files(sequences, model.path)?;
+    for (flag, path) in outputs {
+        if let Some(p) = path {
+            if refuse_input(flag, p, &inputs, false).is_err() {
+                return Err(format!(
+                    "{flag} `{}`: is an input of this eval (it would be overwritten); choose \
+                     another path",
+                    p.display()
+                )
+                .into());
+            }
+        }
+    }
+    if let Some(sfm) = &reconstruct {
+        for (k, s) in sequences.iter().enumerate() {
+            let one = match sequences.len() > 1 || phases > 1 {
+                true => sfm.in_subdirectory(&format!("{}-{}", k + 1, sequence_name(s))),
+                false => sfm.clone(),
+            };
+            // What a reconstruction writes there: a TUM trajectory per run and the ground
+            // truth; a COLMAP folder per run.
+            let runs = eval::POLICIES.iter().chain(&["dense"]);
+            if let Some(d) = &one.trajectory_dir {
+                refuse_input(
+                    "--trajectory-dir",
+                    &d.join("groundtruth.txt"),
+                    &inputs,
+                    false,
+                )?;
+                for p in runs.clone() {
+                    refuse_input(
+                        "--trajectory-dir",
+                        &d.join(format!("{p}.txt")),
+                        &inputs,
+                        false,
+                    )?;
+                }
+            }
+            if let Some(d) = &one.work_dir {
+                for p in runs {
+                    refuse_input("--sfm-dir", &d.join(p), &inputs, true)?;
+                }
+            }
+        }
+    }
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
         indicatif::ProgressStyle::with_template("{msg:>8} [{bar:40}] {pos}/{len} frames")
@@ -803,6 +850,34 @@ fn check_output(flag: &str, path: &Path) -> Res {
     }
 }
 
+/// Refuses an output that would overwrite an input of the eval: a file that is one of `inputs`
+/// (canonical paths), or, for a folder the eval writes into (`dir`), one that holds an input
+/// file anywhere below it.
+fn refuse_input(
+    flag: &str,
+    path: &Path,
+    inputs: &std::collections::BTreeSet<PathBuf>,
+    dir: bool,
+) -> Res {
+    let Ok(real) = path.canonicalize() else {
+        return Ok(()); // not there yet: it cannot be an input
+    };
+    let hit = match dir {
+        false => inputs.get(&real),
+        true => inputs.iter().find(|i| i.starts_with(&real)),
+    };
+    match hit {
+        Some(i) => Err(format!(
+            "{flag}: the eval would write `{}`, which holds or is `{}`, an input of this eval; \
+             choose a folder of its own",
+            path.display(),
+            i.display()
+        )
+        .into()),
+        None => Ok(()),
+    }
+}
+
 /// One line per run of `--phases`: where it started, what the model and the oracle kept.
 fn print_run_line(report: &eval::EvalReport, phase: usize) {
     let kept = |p: &str| {
@@ -881,8 +956,12 @@ fn print_summary(r: &eval::EvalReport) {
     let feedback = r.feedback_offset.map_or(String::new(), |o| {
         format!(", with feedback (offset {o:+.3} at the end)")
     });
+    let unjudged = match r.frames_without_ground_truth {
+        Some(k) if k > 0 => format!(" ({k} without ground truth: gated, not judged)"),
+        _ => String::new(),
+    };
     say!(
-        "{}: {} frames, model {} ({}, {}), threshold {:.3}{feedback}",
+        "{}: {} frames{unjudged}, model {} ({}, {}), threshold {:.3}{feedback}",
         r.sequence,
         r.frames,
         r.model,

@@ -356,6 +356,9 @@ pub struct Teacher {
     max_dist_m: f64,
 }
 
+/// The median depth (metres) a sequence may have: beyond it `depth_scale` is wrong, not the scene.
+pub const MEDIAN_DEPTH_M: (f64, f64) = (0.02, 500.0);
+
 /// What the teacher needs of a sequence's depth: one image size (the intrinsics are of that
 /// camera), the principal point on it, and some valid reading somewhere. Each refusal names the
 /// file.
@@ -387,6 +390,26 @@ fn check_depth(
             "`{}`: the principal point ({cx}, {cy}) lies outside the {w}x{h} depth images",
             seq.root.join("intrinsics.txt").display()
         )));
+    }
+    // Metres that no camera sequence has: a depth_scale off by orders of magnitude (1 on TUM's
+    // 5000 units per metre reads kilometres), which would judge every pair as a break.
+    let mut sample: Vec<f32> = loaded
+        .iter()
+        .step_by(loaded.len().div_ceil(16).max(1))
+        .flat_map(|(_, v)| v.depth.iter().copied().filter(|&d| d > 0.0))
+        .collect();
+    if !sample.is_empty() {
+        let mid = sample.len() / 2;
+        let median = *sample.select_nth_unstable_by(mid, f32::total_cmp).1 as f64;
+        if !(MEDIAN_DEPTH_M.0..=MEDIAN_DEPTH_M.1).contains(&median) {
+            return Err(TeacherError::BadDepth(format!(
+                "`{}`: with depth_scale {} the median depth is {median:.3e} m, outside the                  {}..{} m of any camera sequence; depth_scale is depth units per metre (1000 for                  millimetres as in 7-Scenes, 5000 for TUM RGB-D)",
+                seq.root.join("intrinsics.txt").display(),
+                intr.depth_scale,
+                MEDIAN_DEPTH_M.0,
+                MEDIAN_DEPTH_M.1
+            )));
+        }
     }
     if loaded.iter().all(|(_, v)| v.valid_count == 0) {
         return Err(TeacherError::BadDepth(format!(

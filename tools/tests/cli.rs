@@ -729,6 +729,39 @@ fn eval_refuses_hostile_sequences_naming_the_file() {
     let err = eval_fails_naming(&dup, &dup.join("rgb.txt"));
     assert!(err.contains("is also on line"), "{err}");
 
+    // A depth_scale of 1 on millimetre depth reads kilometres: the oracle would keep every frame
+    // as a break. Refused, naming intrinsics.txt and what depth_scale means.
+    let km = dir.path().join("depth_in_km");
+    sequence_copy(&seq, &km, |name, text| match name {
+        "intrinsics.txt" => text
+            .lines()
+            .map(|l| match l.starts_with('#') {
+                true => l.to_string(),
+                false => {
+                    let mut v: Vec<&str> = l.split_whitespace().collect();
+                    *v.last_mut().unwrap() = "1";
+                    v.join(" ")
+                }
+            })
+            .collect::<Vec<_>>()
+            .join("\n"),
+        _ => text,
+    });
+    let err = eval_fails_naming(&km, &km.join("intrinsics.txt"));
+    assert!(
+        err.contains("median depth") && err.contains("units per metre"),
+        "{err}"
+    );
+
+    // In depth.txt two different images at one time are ambiguous: refused, naming the file.
+    let two_depths = dir.path().join("two_depths_one_time");
+    sequence_copy(&seq, &two_depths, |name, text| match name {
+        "depth.txt" => text.replacen("0.066667 depth", "0.033333 depth", 1),
+        _ => text,
+    });
+    let err = eval_fails_naming(&two_depths, &two_depths.join("depth.txt"));
+    assert!(err.contains("names another file"), "{err}");
+
     // A byte-order mark before the first line is not part of it.
     let bom = dir.path().join("bom");
     sequence_copy(&seq, &bom, |name, text| match name {
@@ -739,6 +772,20 @@ fn eval_refuses_hostile_sequences_naming_the_file() {
     let marked = eval_json(&bom, &["--model", &fixture("mad.onnx")]);
     assert_eq!(marked["frames"], plain["frames"]);
     assert_eq!(marked["policies"]["oracle"], plain["policies"]["oracle"]);
+
+    // A one-row-per-frame depth.txt repeats a row when two colour frames share their nearest
+    // depth image (TUM fr1_rpy does, 44 times): read once, every frame kept, the same verdicts.
+    let shared = dir.path().join("shared_depth_row");
+    sequence_copy(&seq, &shared, |name, text| match name {
+        "depth.txt" => {
+            let row = text.lines().find(|l| l.starts_with("0.033333")).unwrap();
+            text.replacen(row, &format!("{row}\n{row}"), 1)
+        }
+        _ => text,
+    });
+    let again = eval_json(&shared, &["--model", &fixture("mad.onnx")]);
+    assert_eq!(again["frames"], plain["frames"]);
+    assert_eq!(again["policies"]["oracle"], plain["policies"]["oracle"]);
 }
 
 /// Where the files go is checked before the work, and a standard output that fails (a full
@@ -1947,4 +1994,157 @@ fn eval_phases_start_each_run_a_frame_later_and_sum_them() {
         assert!(err.contains(needle), "{args:?}: `{needle}` not in {err}");
         assert!(!png.exists());
     }
+}
+
+/// The eval never writes over what it reads: `--json SEQ/rgb.txt` used to replace the list with
+/// the report, `--reconstruct --trajectory-dir SEQ` the sequence's groundtruth.txt (before COLMAP
+/// even started), both exiting 0. Each is refused before any work, naming the flag, and the
+/// sequence is byte for byte as it was; a new file inside the sequence folder is fine.
+#[test]
+fn eval_never_overwrites_its_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 6, "pan", 4);
+    let snapshot = |p: &Path| -> Vec<(String, Vec<u8>)> {
+        let mut v: Vec<_> = std::fs::read_dir(p)
+            .unwrap()
+            .flatten()
+            .filter(|e| e.path().is_file())
+            .map(|e| {
+                (
+                    e.file_name().to_string_lossy().into_owned(),
+                    std::fs::read(e.path()).unwrap(),
+                )
+            })
+            .collect();
+        v.sort();
+        v
+    };
+    let before = snapshot(&seq);
+    let run = |extra: &[&str]| {
+        let mut cmd = leangate();
+        cmd.args(["eval", "--model", &fixture("mad.onnx"), "--sequence"])
+            .arg(&seq)
+            .args(extra);
+        output_within(cmd, std::time::Duration::from_secs(60))
+    };
+    let rgb = seq.join("rgb.txt");
+    let gt = seq.join("groundtruth.txt");
+    let frame0 = seq.join("rgb/000000.png");
+    for (flag, target) in [
+        ("--json", &rgb),
+        ("--plot", &gt),
+        ("--contact-sheet", &frame0),
+    ] {
+        let out = run(&[flag, target.to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{flag}: {err}");
+        assert!(err.contains(flag) && err.contains("is an input"), "{err}");
+    }
+    // The same file by another spelling of its path.
+    let other = seq.join("rgb/../rgb.txt");
+    let out = run(&["--json", other.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    let out = run(&["--reconstruct", "--trajectory-dir", seq.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    if err.contains("pycolmap") {
+        eprintln!("SKIPPED the --trajectory-dir half: no pycolmap here ({err})");
+    } else {
+        assert!(
+            err.contains("--trajectory-dir") && err.contains("groundtruth.txt"),
+            "{err}"
+        );
+    }
+    assert_eq!(snapshot(&seq), before, "the sequence was changed");
+    // A report of its own inside the sequence folder is not an input: written.
+    let own = seq.join("eval.json");
+    let out = run(&["--json", own.to_str().unwrap()]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(own.is_file());
+}
+
+/// Frames without ground truth are gated like every other and not judged: with the poses of
+/// frames 10-29 of 40 removed, the gate still sees 40 frames (it used to see 20, a stream that
+/// jumped from frame 9 to 30), keeps exactly what it keeps with every pose there, and the report
+/// says how many frames were not judged.
+#[test]
+fn eval_gates_frames_without_ground_truth_and_says_how_many() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 40, "pan", 5);
+    let holes = dir.path().join("holes");
+    sequence_copy(&seq, &holes, |name, text| match name {
+        "groundtruth.txt" => {
+            let mut rows = 0;
+            text.lines()
+                .filter(|l| {
+                    if l.starts_with('#') {
+                        return true;
+                    }
+                    rows += 1;
+                    !(11..=30).contains(&rows)
+                })
+                .map(|l| format!("{l}\n"))
+                .collect()
+        }
+        _ => text,
+    });
+    let args = ["--model", &fixture("mad.onnx"), "--threshold", "0.05"];
+    let whole = eval_json(&seq, &args);
+    let holed = eval_json(&holes, &args);
+    assert_eq!(holed["frames"], 40, "{holed}");
+    assert_eq!(holed["frames_without_ground_truth"], 20, "{holed}");
+    assert_eq!(whole["frames_without_ground_truth"], 0, "{whole}");
+    assert_eq!(
+        holed["policies"]["model"]["kept"], whole["policies"]["model"]["kept"],
+        "the gate saw another stream"
+    );
+    // Judged on the frames that have ground truth: the oracle keeps none of the others.
+    let oracle = holed["policies"]["oracle"]["kept"].as_u64().unwrap();
+    assert!((1..=20).contains(&oracle), "{holed}");
+    assert!(holed["policies"]["model"]["late_keeps"].is_u64(), "{holed}");
+    // The table says it too.
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&holes)
+        .args(args)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("40 frames (20 without ground truth: gated, not judged)"),
+        "{text}"
+    );
+}
+
+/// `leangate eval` in a fresh HOME leaves nothing there: ONNX Runtime's telemetry files (a
+/// device id and queued usage events under ~/.cache/Microsoft) are never written. (GStreamer's
+/// own plugin registry goes where GST_REGISTRY says, as for every GStreamer program.)
+#[test]
+fn eval_in_a_fresh_home_writes_nothing_there() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 6, "pan", 6);
+    let home = tempfile::tempdir().unwrap();
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&seq)
+        .env("HOME", home.path())
+        .env("GST_REGISTRY", dir.path().join("registry.bin"))
+        .env_remove("XDG_CACHE_HOME")
+        .env_remove("ORT_DISABLE_TELEMETRY")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let left: Vec<_> = std::fs::read_dir(home.path()).unwrap().flatten().collect();
+    assert!(left.is_empty(), "left in HOME: {left:?}");
 }

@@ -4,8 +4,9 @@ use std::collections::HashMap;
 
 use serde::Serialize;
 
+use super::GroundTruth;
 use super::{Trace, BREAK_S, KEYFRAME_S};
-use crate::teacher::{PairScore, Teacher};
+use crate::teacher::PairScore;
 
 /// Judgement of one policy. Field names are the JSON keys.
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -28,14 +29,15 @@ pub struct PolicyReport {
     pub fps: Option<f64>,
 }
 
-/// Teacher scores, memoised (policies share many pairs).
+/// Teacher scores by stream frame, memoised (policies share many pairs); `None` for a pair with
+/// a frame that has no ground truth.
 pub struct TeacherCache<'a> {
-    teacher: &'a Teacher,
-    memo: HashMap<(usize, usize), PairScore>,
+    teacher: &'a GroundTruth,
+    memo: HashMap<(usize, usize), Option<PairScore>>,
 }
 
 impl<'a> TeacherCache<'a> {
-    pub fn new(teacher: &'a Teacher) -> Self {
+    pub fn new(teacher: &'a GroundTruth) -> Self {
         TeacherCache {
             teacher,
             memo: HashMap::new(),
@@ -55,7 +57,7 @@ impl<'a> TeacherCache<'a> {
         self.memo.extend(todo.into_iter().zip(scores));
     }
 
-    pub fn get(&mut self, cur: usize, key: usize) -> PairScore {
+    pub fn get(&mut self, cur: usize, key: usize) -> Option<PairScore> {
         if let Some(s) = self.memo.get(&(cur, key)) {
             return *s;
         }
@@ -104,7 +106,10 @@ pub fn judge(
             .filter_map(|(i, r)| r.map(|r| (i, r))),
     );
     tc.prefetch(&wanted);
-    let mut s: Vec<f64> = pairs.iter().map(|&(a, b)| tc.get(b, a).s).collect();
+    let mut s: Vec<f64> = pairs
+        .iter()
+        .filter_map(|&(a, b)| tc.get(b, a).map(|p| p.s))
+        .collect();
     r.breaks = Some(s.iter().filter(|&&v| v < BREAK_S).count());
     r.late_keeps = Some(s.iter().filter(|&&v| v < KEYFRAME_S).count());
     s.sort_by(|a, b| a.total_cmp(b));
@@ -122,7 +127,9 @@ pub fn judge(
         let Some(reference) = *reference else {
             continue;
         };
-        let t = tc.get(i, reference).tau;
+        let Some(t) = tc.get(i, reference).map(|p| p.tau) else {
+            continue; // this frame or its reference has no ground truth: not judged
+        };
         if !trace.keep[i] && t >= threshold {
             overdue += 1;
         }

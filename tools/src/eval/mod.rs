@@ -29,7 +29,7 @@ use gstleangate::GateConfig;
 use serde::Serialize;
 
 use crate::dataset::Sequence;
-use crate::teacher::Teacher;
+use crate::teacher::{PairScore, Teacher};
 
 mod baselines;
 mod judge;
@@ -117,11 +117,101 @@ impl Trace {
     }
 }
 
+/// The teacher over the frames of a sequence that have ground truth (a depth image and a pose),
+/// addressed by a frame's index in the stream the gate sees. Frames without it are gated like the
+/// others and not judged: no pair with such a frame is scored, and the oracle runs on the others.
+pub struct GroundTruth {
+    teacher: Teacher,
+    /// Stream frame -> teacher frame.
+    index: Vec<Option<usize>>,
+    /// Teacher frame -> stream frame.
+    frames: Vec<usize>,
+}
+
+impl GroundTruth {
+    /// The teacher of `seq`'s judged frames; `None` when it cannot judge (no intrinsics, or
+    /// fewer than two frames with depth and a pose).
+    pub fn of(
+        seq: &Sequence,
+        cfg: &crate::teacher::TeacherConfig,
+    ) -> Result<Option<GroundTruth>, EvalError> {
+        if seq.judged_frames() < 2 {
+            return Ok(None);
+        }
+        let frames: Vec<usize> = (0..seq.len())
+            .filter(|&i| seq.frames[i].depth.is_some() && seq.frames[i].pose.is_some())
+            .collect();
+        let judged = Sequence {
+            frames: frames.iter().map(|&i| seq.frames[i].clone()).collect(),
+            ..seq.clone()
+        };
+        let teacher = Teacher::from_sequence(&judged, cfg).map_err(|e| EvalError(e.to_string()))?;
+        let mut index = vec![None; seq.len()];
+        for (k, &i) in frames.iter().enumerate() {
+            index[i] = Some(k);
+        }
+        Ok(Some(GroundTruth {
+            teacher,
+            index,
+            frames,
+        }))
+    }
+
+    /// Frames of the stream.
+    pub fn len(&self) -> usize {
+        self.index.len()
+    }
+
+    /// Whether the stream has no frame.
+    pub fn is_empty(&self) -> bool {
+        self.index.is_empty()
+    }
+
+    /// Frames of the stream without ground truth (gated, not judged).
+    pub fn lacking(&self) -> usize {
+        self.index.len() - self.frames.len()
+    }
+
+    /// The teacher's score of stream frame `cur` against stream frame `key`; `None` when either
+    /// lacks ground truth or is past the end.
+    pub fn score(&self, cur: usize, key: usize) -> Option<PairScore> {
+        let at = |i: usize| self.index.get(i).copied().flatten();
+        Some(self.teacher.score(at(cur)?, at(key)?))
+    }
+
+    /// Many [`GroundTruth::score`]s, in parallel.
+    pub fn score_pairs(&self, pairs: &[(usize, usize)]) -> Vec<Option<PairScore>> {
+        let at = |i: usize| self.index.get(i).copied().flatten();
+        let mapped: Vec<(usize, usize)> = pairs
+            .iter()
+            .filter_map(|&(c, k)| Some((at(c)?, at(k)?)))
+            .collect();
+        let mut scores = self.teacher.score_pairs(&mapped).into_iter();
+        pairs
+            .iter()
+            .map(|&(c, k)| at(c).zip(at(k)).and_then(|_| scores.next()))
+            .collect()
+    }
+
+    /// The oracle over the stream: the gate driven by the teacher on the judged frames (a frame
+    /// without ground truth is never kept by it).
+    pub fn oracle(&self, cfg: GateConfig) -> Trace {
+        let (judged, _) = oracle_gate(&self.teacher, cfg);
+        let mut keep = vec![false; self.len()];
+        let mut utility = vec![None; self.len()];
+        for (k, &i) in self.frames.iter().enumerate() {
+            keep[i] = judged.keep[k];
+            utility[i] = judged.utility[k];
+        }
+        Trace { keep, utility }
+    }
+}
+
 /// What the eval runs on.
 #[derive(Debug, Clone)]
 pub enum Source {
-    /// A directory sequence (TUM layout or rgb.txt / images only). Without full ground truth
-    /// every colour frame is used, matched to a pose or not.
+    /// A directory sequence (TUM layout or rgb.txt / images only): every colour frame, matched
+    /// to depth and a pose or not.
     Sequence(Sequence),
     /// A video file, decoded by GStreamer.
     Video(PathBuf),
@@ -130,11 +220,8 @@ pub enum Source {
 impl Source {
     pub fn open(path: &Path) -> Result<Source, EvalError> {
         if path.is_dir() {
-            let seq = Sequence::open(path).map_err(|e| EvalError(e.to_string()))?;
-            if seq.has_ground_truth() {
-                return Ok(Source::Sequence(seq));
-            }
-            // No teacher possible: gate every colour frame, poses or not.
+            // The gate sees every colour frame, with ground truth or not (a frame without it is
+            // gated and not judged: [`GroundTruth`]).
             let all = crate::dataset::OpenOptions {
                 drop_unmatched: false,
                 ..Default::default()
@@ -189,6 +276,10 @@ pub struct EvalReport {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub phase: Option<usize>,
     pub frames: usize,
+    /// Frames the gate saw that have no ground truth (no depth image or pose within the
+    /// association window): gated, not judged. Absent when nothing is judged.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frames_without_ground_truth: Option<usize>,
     pub threshold: f64,
     /// The model the element ran (its `leangate.name`) and the execution provider, from the
     /// element's `leangate-stats` message.
@@ -239,10 +330,8 @@ pub fn evaluate(
         Source::Video(_) => 0,
     };
     let teacher = match &source {
-        Source::Sequence(seq) if seq.has_ground_truth() => {
-            Some(Teacher::from_sequence(seq, teacher_cfg).map_err(|e| EvalError(e.to_string()))?)
-        }
-        _ => None,
+        Source::Sequence(seq) => GroundTruth::of(seq, teacher_cfg)?,
+        Source::Video(_) => None,
     };
     if model.feedback.is_some() {
         judged(&source, path, "--feedback")?;
@@ -253,7 +342,7 @@ pub fn evaluate(
     })?;
     let n = run.metas.len();
     let t = run.threshold;
-    if let (Some(_), Source::Sequence(seq)) = (&teacher, &source) {
+    if let Source::Sequence(seq) = &source {
         if seq.len() != n {
             return Err(EvalError(format!(
                 "the pipeline returned {n} frames for a sequence of {}",
@@ -278,13 +367,10 @@ pub fn evaluate(
     );
     if let Some(teacher) = teacher.as_ref() {
         progress("oracle", 0, n);
-        let (oracle, _) = oracle_gate(
-            teacher,
-            GateConfig {
-                threshold: t,
-                ..Default::default()
-            },
-        );
+        let oracle = teacher.oracle(GateConfig {
+            threshold: t,
+            ..Default::default()
+        });
         progress("oracle", n, n);
         add(
             "oracle",
@@ -318,7 +404,7 @@ pub fn evaluate(
         .iter()
         .enumerate()
         .map(|(i, r)| match (r, cache.as_mut()) {
-            (Some(r), Some(c)) => Some(c.get(i, *r).tau),
+            (Some(r), Some(c)) => c.get(i, *r).map(|s| s.tau),
             _ => None,
         })
         .collect();
@@ -327,6 +413,7 @@ pub fn evaluate(
             sequence: path.display().to_string(),
             phase: None,
             frames: n,
+            frames_without_ground_truth: teacher.as_ref().map(GroundTruth::lacking),
             threshold: t,
             model: run.model_name.clone(),
             model_precision: run.model_precision.clone(),
@@ -344,6 +431,35 @@ pub fn evaluate(
             kept_thumbs: run.kept_thumbs,
         },
     ))
+}
+
+/// Every file an eval of `sequences` with `model` reads, as canonical paths: the video file, or
+/// the sequence's lists (`rgb.txt`, `depth.txt`, ground truth, `intrinsics.txt`) and every image
+/// they name; and the model. What must never be an output.
+pub fn input_files(
+    sequences: &[PathBuf],
+    model: Option<&Path>,
+) -> Result<std::collections::BTreeSet<PathBuf>, EvalError> {
+    let mut files: Vec<PathBuf> = model.into_iter().map(Path::to_path_buf).collect();
+    for s in sequences {
+        if !s.is_dir() {
+            files.push(s.clone());
+            continue;
+        }
+        for name in crate::dataset::LIST_FILES {
+            files.push(s.join(name));
+        }
+        let all = crate::dataset::OpenOptions {
+            drop_unmatched: false,
+            ..Default::default()
+        };
+        let seq = Sequence::open_with(s, &all).map_err(|e| EvalError(e.to_string()))?;
+        for f in &seq.frames {
+            files.push(f.rgb.clone());
+            files.extend(f.depth.clone());
+        }
+    }
+    Ok(files.iter().filter_map(|f| f.canonicalize().ok()).collect())
 }
 
 /// Whether the teacher can judge a sweep on the sequence at `path` (depth, poses and
@@ -364,7 +480,7 @@ fn judged<'a>(source: &'a Source, path: &Path, flag: &str) -> Result<&'a Sequenc
             "{flag} needs a sequence with depth and poses; `{}` is a video",
             path.display()
         ))),
-        Source::Sequence(seq) if !seq.has_ground_truth() => Err(EvalError(format!(
+        Source::Sequence(seq) if seq.judged_frames() < 2 => Err(EvalError(format!(
             "{flag} needs depth, poses and intrinsics; `{}` lacks them",
             path.display()
         ))),
@@ -401,7 +517,12 @@ pub fn sweep(
 ) -> Result<Vec<SweepPoint>, EvalError> {
     let source = Source::open_from(path, start)?;
     let seq = judged(&source, path, "--sweep")?;
-    let teacher = Teacher::from_sequence(seq, teacher_cfg).map_err(|e| EvalError(e.to_string()))?;
+    let teacher = GroundTruth::of(seq, teacher_cfg)?.ok_or_else(|| {
+        EvalError(format!(
+            "--sweep: `{}` has no judged frames",
+            path.display()
+        ))
+    })?;
     let mut cache = TeacherCache::new(&teacher);
     let n = seq.len();
     let mut points = Vec::new();
@@ -437,7 +558,7 @@ pub fn sweep(
             threshold: t,
             ..Default::default()
         };
-        point("oracle", t, &oracle_gate(&teacher, cfg).0, &mut cache);
+        point("oracle", t, &teacher.oracle(cfg), &mut cache);
         point(
             "stride",
             t,

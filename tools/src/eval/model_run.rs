@@ -168,7 +168,7 @@ pub fn run_model(
     source: &Source,
     model: GateModel<'_>,
     threshold: Option<f64>,
-    feedback: Option<&crate::teacher::Teacher>,
+    feedback: Option<&super::GroundTruth>,
     mut progress: impl FnMut(usize),
 ) -> Result<ModelRun, EvalError> {
     let delay = model.feedback.unwrap_or(0);
@@ -349,13 +349,10 @@ pub fn run_model(
         thumbs.push(grey(&rgb));
         let i = metas.len();
         if m.keep {
+            // A consumer measures what it gets; a pair without ground truth is not reported.
             if let (Some(teacher), Some(&(prev, _))) = (feedback, kept_thumbs.last()) {
-                match teacher.try_score(i, prev) {
-                    Ok(p) => reports.push_back((i + delay, p.tau)),
-                    Err(e) => {
-                        failure = Some(EvalError(format!("feedback: {e}")));
-                        break;
-                    }
+                if let Some(p) = teacher.score(i, prev) {
+                    reports.push_back((i + delay, p.tau));
                 }
             }
             kept_thumbs.push((i, rgb));

@@ -180,6 +180,7 @@ mod tests {
             sequence: name.into(),
             phase: None,
             frames,
+            frames_without_ground_truth: None,
             threshold: 0.5,
             model: "m".into(),
             model_precision: "int8".into(),

@@ -27,7 +27,11 @@
 //! sequence's ground truth (`DIR/groundtruth.txt`), for `evo_ape tum DIR/groundtruth.txt
 //! DIR/model.txt --align --correct_scale`.
 //!
-//! The interpreter: `--sfm-python`, else `$LEANGATE_SFM_PYTHON`, else the checkout's
+//! Where the consumer and its interpreter come from ([`consumer_home`], the one lookup): an
+//! installed `leangate` (`$PREFIX/bin/leangate` of `make install`) runs the consumer installed
+//! beside it, `$PREFIX/lib/leangate/python/reconstruct.py` (with the `leangate_client` it
+//! imports); any other build runs its checkout's `pipelines/reconstruct.py`. The interpreter:
+//! `--sfm-python`, else `$LEANGATE_SFM_PYTHON`, else, only when running from the checkout, its
 //! `.venv-sfm/bin/python` (made by `scripts/setup.sh`), else `/usr/bin/python3`; it needs
 //! pycolmap and PyGObject, checked first with an error naming what is missing.
 
@@ -104,8 +108,35 @@ pub fn repo_root() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from("."))
 }
 
-/// `explicit`, else `$LEANGATE_SFM_PYTHON`, else `<repo>/.venv-sfm/bin/python`, else
-/// `/usr/bin/python3`.
+/// Where `--reconstruct` takes its consumer (and, for a checkout, its venv) from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ConsumerHome {
+    /// This binary is `$PREFIX/bin/leangate` of `make install`: the consumer installed beside
+    /// it, `$PREFIX/lib/leangate/python/reconstruct.py`.
+    Installed(PathBuf),
+    /// Any other build: the checkout it was built from, [`repo_root`].
+    Checkout(PathBuf),
+}
+
+/// The one lookup of the consumer: [`ConsumerHome::Installed`] when the running binary has
+/// `../lib/leangate/python/reconstruct.py` beside it (the layout of scripts/install.sh), else
+/// [`ConsumerHome::Checkout`].
+pub fn consumer_home() -> ConsumerHome {
+    let bin = std::env::current_exe()
+        .and_then(|e| e.canonicalize())
+        .ok()
+        .and_then(|e| e.parent().map(Path::to_path_buf));
+    if let Some(prefix) = bin.as_deref().and_then(Path::parent) {
+        let script = prefix.join("lib/leangate/python/reconstruct.py");
+        if script.is_file() {
+            return ConsumerHome::Installed(script);
+        }
+    }
+    ConsumerHome::Checkout(repo_root())
+}
+
+/// `explicit`, else `$LEANGATE_SFM_PYTHON`, else (running from the checkout only)
+/// `<repo>/.venv-sfm/bin/python`, else `/usr/bin/python3`.
 pub fn find_python(explicit: Option<&Path>) -> PathBuf {
     if let Some(p) = explicit {
         return p.to_path_buf();
@@ -113,23 +144,33 @@ pub fn find_python(explicit: Option<&Path>) -> PathBuf {
     if let Some(p) = std::env::var_os("LEANGATE_SFM_PYTHON").filter(|p| !p.is_empty()) {
         return PathBuf::from(p);
     }
-    let venv = repo_root().join(".venv-sfm/bin/python");
-    if venv.exists() {
-        return venv;
+    if let ConsumerHome::Checkout(repo) = consumer_home() {
+        let venv = repo.join(".venv-sfm/bin/python");
+        if venv.exists() {
+            return venv;
+        }
     }
     PathBuf::from("/usr/bin/python3")
 }
 
-/// The consumer script, `pipelines/reconstruct.py` of the checkout.
+/// The consumer script ([`consumer_home`]): the installed one, or the checkout's
+/// `pipelines/reconstruct.py`.
 pub fn consumer_script() -> Result<PathBuf, EvalError> {
-    let p = repo_root().join("pipelines/reconstruct.py");
-    if p.is_file() {
-        Ok(p)
-    } else {
-        Err(EvalError(format!(
-            "--reconstruct: the consumer `{}` is missing (it ships in the repository's pipelines/)",
-            p.display()
-        )))
+    match consumer_home() {
+        ConsumerHome::Installed(script) => Ok(script),
+        ConsumerHome::Checkout(repo) => {
+            let p = repo.join("pipelines/reconstruct.py");
+            if p.is_file() {
+                Ok(p)
+            } else {
+                Err(EvalError(format!(
+                    "--reconstruct: the consumer `{}` is missing: this leangate is not installed \
+                     (`make install` puts the consumer in $PREFIX/lib/leangate/python/) and the \
+                     checkout it was built in is gone",
+                    p.display()
+                )))
+            }
+        }
     }
 }
 
@@ -156,9 +197,11 @@ pub fn check_python(python: &Path) -> Result<String, EvalError> {
     match out.status.code() {
         Some(0) => Ok(String::from_utf8_lossy(&out.stdout).trim().to_string()),
         Some(3) => Err(EvalError(format!(
-            "--reconstruct: pycolmap is not importable by `{}` ({}); run `bash scripts/setup.sh` \
-             (it makes .venv-sfm with pycolmap and the system's PyGObject), or point \
-             LEANGATE_SFM_PYTHON / --sfm-python at a Python that has both",
+            "--reconstruct: pycolmap is not importable by `{}` ({}); in the checkout, run `bash \
+             scripts/setup.sh` (it makes .venv-sfm with pycolmap and the system's PyGObject); \
+             else make one: `/usr/bin/python3 -m venv --system-site-packages ~/.venv-sfm && \
+             ~/.venv-sfm/bin/pip install pycolmap==4.2.1`; and point LEANGATE_SFM_PYTHON / \
+             --sfm-python at it",
             python.display(),
             stderr.trim_start_matches("pycolmap ")
         ))),
