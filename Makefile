@@ -52,7 +52,10 @@ inspect: release
 	GST_PLUGIN_PATH=$(PLUGIN_DIR) gst-inspect-1.0 leangate
 
 # The plugin, ONNX Runtime beside it, the `leangate` CLI and leangate-client, under $(PREFIX).
-install: release
+# Only copies what `make release` built (no cargo, no setup): `make release && sudo make install
+# PREFIX=/usr/local` works although root has no Rust toolchain. Writes a manifest that `make
+# uninstall` follows (scripts/install.sh).
+install:
 	PREFIX='$(PREFIX)' GST_LINK_DIR='$(GST_LINK_DIR)' bash scripts/install.sh
 
 uninstall:
