@@ -47,6 +47,20 @@ fn gst_inspect_documents_every_property() {
         );
     }
     assert!(text.contains("tau_keep") && text.contains("annotate"));
+    // The model card it points at is where a user has it: the source's models/README.md, and
+    // the copy `make install` puts under the prefix (tests/install.rs checks the copy is there).
+    let flat = text.split_whitespace().collect::<Vec<_>>().join(" ");
+    assert!(
+        flat.contains("share/doc/leangate/models/README.md") && flat.contains("models/README.md"),
+        "{flat}"
+    );
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    assert!(root.join("models/README.md").is_file());
+    let installer = std::fs::read_to_string(root.join("scripts/install.sh")).unwrap();
+    assert!(
+        installer.contains("share/doc/leangate"),
+        "install.sh installs the card"
+    );
 }
 
 #[test]

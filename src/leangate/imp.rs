@@ -572,8 +572,9 @@ impl ObjectImpl for LeanGate {
                     .blurb(
                         "Path to a LeanGate model: a pair model (.onnx: inputs `reference`, \
                          `current` [N,3,H,W] float32, output `utility`) or the encoder of a split \
-                         model; unset = the embedded default student leangate-s. See \
-                         models/README.md. Set it before the element starts: a change while it \
+                         model; unset = the embedded default student leangate-s. Its model card: \
+                         share/doc/leangate/models/README.md under the install prefix (make \
+                         install), models/README.md in the source. Set it before the element starts: a change while it \
                          runs is refused with a warning (the property keeps the model in use)",
                     )
                     .mutable_ready()

@@ -582,6 +582,23 @@ fn eval_cmd(
             eval::check_feedback(s)?;
         }
     }
+    // Two outputs at one path: the second would replace the first.
+    let mut seen: Vec<(&str, PathBuf)> = Vec::new();
+    for (flag, path) in outputs {
+        let Some(p) = path else { continue };
+        let dir = p.parent().filter(|d| !d.as_os_str().is_empty());
+        let parent = dir.map_or_else(|| Path::new(".").canonicalize(), Path::canonicalize);
+        let key = parent.map(|d| d.join(p.file_name().unwrap_or_default()));
+        let key = key.unwrap_or_else(|_| p.clone());
+        if let Some((other, _)) = seen.iter().find(|(_, k)| *k == key) {
+            return Err(format!(
+                "{other} and {flag} both write `{}`: the second would replace the first",
+                p.display()
+            )
+            .into());
+        }
+        seen.push((flag, key));
+    }
     // Nothing the eval reads may be what it writes: `--json SEQ/rgb.txt` would replace the list,
     // `--trajectory-dir SEQ` its groundtruth.txt, before anything is judged.
     let inputs = eval::input_files(sequences, model.path)?;

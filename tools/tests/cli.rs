@@ -2057,6 +2057,21 @@ fn eval_never_overwrites_its_inputs() {
         );
     }
     assert_eq!(snapshot(&seq), before, "the sequence was changed");
+    // Two outputs at one path (by two spellings): the second would replace the first.
+    let a = dir.path().join("out.png");
+    let b = dir.path().join("seq/../out.png");
+    let out = run(&[
+        "--plot",
+        a.to_str().unwrap(),
+        "--contact-sheet",
+        b.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--plot and --contact-sheet both write"),
+        "{err}"
+    );
     // A report of its own inside the sequence folder is not an input: written.
     let own = seq.join("eval.json");
     let out = run(&["--json", own.to_str().unwrap()]);
