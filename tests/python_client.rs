@@ -1652,8 +1652,8 @@ fn save_kept_refuses_unusable_directories() {
     assert!(stderr(&out).contains("--overwrite applies to --save-kept"));
 
     // Writing fails half-way (files over 100 KiB fail with EFBIG, as on a full disk; Python
-    // ignores SIGXFSZ): a pipeline error naming the directory and the file, exit 1, the tables
-    // still written for the images that are complete, and no partial image left.
+    // ignores SIGXFSZ): a pipeline error naming the directory and the file, exit 1, and nothing
+    // saved: the directory the run created is gone again, and so is its staging directory.
     if let Some(clip) = paths::shared_data("cotracker_clips/bear.mp4") {
         let full = tmp.path().join("full");
         let mut c = command("bash");
@@ -1675,11 +1675,15 @@ fn save_kept_refuses_unusable_directories() {
                 && err.contains("File too large"),
             "{err}"
         );
-        assert_eq!(
-            check_saved(&full, "jpg").len(),
-            0,
-            "854x480 JPEGs are > 100 KiB"
+        assert!(
+            err.contains(&format!(
+                "error: nothing saved: {} is as it was before this run",
+                full.display()
+            )),
+            "{err}"
         );
+        assert!(!full.exists(), "the failed run's directory is removed");
+        assert_eq!(staging_dirs(tmp.path()), Vec::<String>::new());
         assert!(!err.contains("Traceback"), "{err}");
     }
 
@@ -1698,4 +1702,450 @@ fn save_kept_refuses_unusable_directories() {
         "{}",
         stderr(&out)
     );
+}
+
+/// Every file in `dir` with its bytes (hidden ones too), to compare a directory before and after.
+fn snapshot(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    dir_names(dir)
+        .into_iter()
+        .map(|n| {
+            let bytes = std::fs::read(dir.join(&n)).unwrap_or_else(|e| panic!("{n}: {e}"));
+            (n, bytes)
+        })
+        .collect()
+}
+
+/// The staging directories (`.DIR.leangate-staging-*`, `.leangate-staging-*`) a run of
+/// `--save-kept` left in `dir`.
+fn staging_dirs(dir: &Path) -> Vec<String> {
+    dir_names(dir)
+        .into_iter()
+        .filter(|n| n.contains(".leangate-staging-"))
+        .collect()
+}
+
+/// `--save-kept DIR` is all or nothing: a run that fails (an input that is not a video, a CSV
+/// that cannot be opened), is interrupted with Ctrl-C (SIGINT), or ends in an exception out of
+/// the library's `with` block leaves DIR byte for byte as it was (with --overwrite, the previous
+/// run's keyframes survive; a DIR the run created is removed again), deletes its staging
+/// directory, and says so. DIR's name has a space and a `%` (multifilesink's pattern character).
+#[test]
+fn save_kept_a_failed_or_interrupted_run_leaves_the_directory_as_it_was() {
+    if !python_ok() || !have_elements(&["jpegenc", "multifilesink", "tee"]) {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let kf = tmp.path().join("key frames 100%");
+    let kf_s = kf.to_str().unwrap();
+    let out = client_module(&[
+        "test://ball?num-buffers=12&width=160&height=120",
+        "--threshold",
+        "0.001",
+        "--quiet",
+        "--save-kept",
+        kf_s,
+    ]);
+    assert!(out.status.success());
+    let before = snapshot(&kf);
+    let images = check_saved(&kf, "jpg").len();
+    assert!(images > 3, "{:?}", before.keys());
+    let [noise, _] = paths::not_videos(tmp.path());
+    let others = || {
+        let mut v = dir_names(tmp.path());
+        v.retain(|n| n != "noise.mp4" && n != "empty.mp4");
+        v
+    };
+    let nothing_saved = |o: &Output, dir: &Path| {
+        let err = stderr(o);
+        assert!(
+            err.contains(&format!(
+                "leangate-client: error: nothing saved: {} is as it was before this run",
+                dir.display()
+            )),
+            "{err}"
+        );
+        assert!(!err.contains("Traceback"), "{err}");
+    };
+
+    // Random bytes as the input, --overwrite: exit 1, the keyframes of the earlier run intact.
+    let out = client_module(&[
+        noise.to_str().unwrap(),
+        "--quiet",
+        "--overwrite",
+        "--save-kept",
+        kf_s,
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        stderr(&out).contains("pipeline error: "),
+        "{}",
+        stderr(&out)
+    );
+    nothing_saved(&out, &kf);
+    assert!(snapshot(&kf) == before, "{:?}", dir_names(&kf));
+    assert_eq!(others(), ["key frames 100%"], "no staging directory left");
+
+    // A DIR that does not exist yet (nor its parent): not left behind by a failed run, whether
+    // the pipeline fails or the CSV cannot be opened before it starts.
+    let fresh = tmp.path().join("new/deep dir");
+    let out = client_module(&[
+        noise.to_str().unwrap(),
+        "--quiet",
+        "--save-kept",
+        fresh.to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    nothing_saved(&out, &fresh);
+    let out = client_module(&[
+        "test://ball?num-buffers=12&width=160&height=120",
+        "--csv",
+        "/nonexistent/scores.csv",
+        "--save-kept",
+        fresh.to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    nothing_saved(&out, &fresh);
+    assert_eq!(others(), ["key frames 100%"], "new/ is removed again");
+
+    // Ctrl-C in the middle of a long run with --overwrite: exit 130 once images are being
+    // written (into the staging directory), the earlier run intact.
+    let plugins = paths::plugin_dir();
+    let mut c = command(PYTHON);
+    c.env("PYTHONPATH", pkg_dir())
+        .env("GST_PLUGIN_PATH", plugins.path())
+        .args(["-m", "leangate_client"])
+        .args([
+            "test://ball?num-buffers=1000000&width=160&height=120",
+            "--threshold",
+            "0.001",
+            "--quiet",
+            "--overwrite",
+            "--save-kept",
+            kf_s,
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped());
+    let child = c.spawn().expect("spawn");
+    let start = std::time::Instant::now();
+    let staged = loop {
+        let staged: Vec<PathBuf> = staging_dirs(tmp.path())
+            .iter()
+            .map(|n| tmp.path().join(n))
+            .collect();
+        if let Some(d) = staged.first() {
+            if std::fs::read_dir(d).map(|r| r.count()).unwrap_or(0) >= 20 {
+                break d.clone();
+            }
+        }
+        assert!(
+            start.elapsed().as_secs() < 60,
+            "no staging directory with images beside {kf_s} after 60 s"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    assert!(
+        staged
+            .file_name()
+            .unwrap()
+            .to_str()
+            .unwrap()
+            .starts_with(".key frames 100%.leangate-staging-"),
+        "{}",
+        staged.display()
+    );
+    assert!(
+        snapshot(&kf) == before,
+        "DIR untouched while the run goes on"
+    );
+    let killed = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let out = child.wait_with_output().unwrap();
+    eprintln!("interrupted run: {}\n{}", out.status, stderr(&out));
+    assert_eq!(out.status.code(), Some(130));
+    assert!(stderr(&out).contains("leangate-client: error: interrupted"));
+    nothing_saved(&out, &kf);
+    assert!(snapshot(&kf) == before, "{:?}", dir_names(&kf));
+    assert_eq!(
+        others(),
+        ["key frames 100%"],
+        "the staging directory is deleted"
+    );
+
+    // The library: an exception out of the `with` block (the caller's SLAM failed) saves
+    // nothing; the same run ended by `break` replaces the earlier one.
+    let script = r#"
+import json, sys
+from leangate_client import LeanGateSource
+model, d = sys.argv[1:]
+def run(fail):
+    src = LeanGateSource("test://ball?num-buffers=30&width=160&height=120", model=model,
+                         threshold=0.001, save_kept=d, overwrite=True)
+    try:
+        with src:
+            for i, (f, m) in enumerate(src):
+                if i == 2:
+                    if fail:
+                        raise ValueError("the SLAM failed")
+                    break
+    except ValueError as e:
+        pass
+    return {"committed": src.saver.committed, "discarded": src.saver.discarded,
+            "rows": len(src.saver.rows)}
+print(json.dumps([run(True), run(False)]))
+"#;
+    let out = client_script(script, &[model().as_str(), kf_s]);
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert_eq!(
+        v[0],
+        serde_json::json!({"committed": false, "discarded": true, "rows": 0})
+    );
+    assert_eq!(v[1]["committed"], true, "{v}");
+    let rows = check_saved(&kf, "jpg");
+    assert_eq!(v[1]["rows"], rows.len(), "{v}");
+    assert!(rows.len() >= 3, "every frame handed out is saved: {rows:?}");
+    assert_eq!(others(), ["key frames 100%"]);
+}
+
+/// `--overwrite` replaces only what the client wrote: the tables of the earlier run and the
+/// images they list. A DIR with `kf_*` images no table lists (the plain gst-launch pipeline's,
+/// or one dropped in by hand) is refused before anything runs, naming them, and nothing in it
+/// is touched; a table cannot make it delete anything else (`../victim.txt`, `notes.txt`).
+#[test]
+fn save_kept_overwrite_never_deletes_files_the_client_did_not_write() {
+    if !python_ok() || !have_elements(&["jpegenc", "multifilesink", "tee"]) {
+        return;
+    }
+    let src = "test://ball?num-buffers=12&width=160&height=120";
+    let tmp = tempfile::tempdir().unwrap();
+    let kf = tmp.path().join("kf");
+    let kf_s = kf.to_str().unwrap();
+    let save = |extra: &[&str]| {
+        let mut args = vec![src, "--threshold", "0.001", "--quiet", "--save-kept", kf_s];
+        args.extend(extra);
+        client_module(&args)
+    };
+    assert!(save(&[]).status.success());
+    let n = check_saved(&kf, "jpg").len();
+
+    // A stray image in the client's naming scheme that the tables do not list.
+    let stray = format!("kf_{:06}.jpg", n + 5);
+    std::fs::write(kf.join(&stray), "a photo of mine").unwrap();
+    let before = snapshot(&kf);
+    let out = save(&["--overwrite"]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = stderr(&out);
+    assert!(
+        err.contains(&format!(
+            "leangate-client: error: --overwrite: {kf_s} holds 1 entry"
+        )) && err.contains(&stray)
+            && err.contains("replaces only what it wrote"),
+        "{err}"
+    );
+    assert!(snapshot(&kf) == before, "nothing touched");
+    std::fs::remove_file(kf.join(&stray)).unwrap();
+
+    // Images without tables (the plain pipeline writes these names): refused likewise.
+    let plain = tmp.path().join("plain");
+    std::fs::create_dir(&plain).unwrap();
+    for i in 0..3 {
+        std::fs::copy(
+            kf.join(format!("kf_{i:06}.jpg")),
+            plain.join(format!("kf_{i:06}.jpg")),
+        )
+        .unwrap();
+    }
+    let out = client_module(&[
+        src,
+        "--quiet",
+        "--overwrite",
+        "--save-kept",
+        plain.to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        stderr(&out).contains("holds 3 entries named like the client's output"),
+        "{}",
+        stderr(&out)
+    );
+    assert_eq!(dir_names(&plain).len(), 3);
+
+    // Tables edited to list names the client never writes: they are not deleted.
+    std::fs::write(tmp.path().join("victim.txt"), "keep me").unwrap();
+    std::fs::write(kf.join("notes.txt"), "mine").unwrap();
+    let csv = std::fs::read_to_string(kf.join("keyframes.csv")).unwrap();
+    std::fs::write(
+        kf.join("keyframes.csv"),
+        format!("{csv}../victim.txt,0,0,,first,1,0,1\nnotes.txt,0,0,,first,1,0,1\n"),
+    )
+    .unwrap();
+    let out = save(&["--overwrite", "--max-frames", "2"]);
+    assert!(out.status.success());
+    assert_eq!(
+        dir_names(&kf),
+        [
+            "keyframes.csv",
+            "keyframes.json",
+            "kf_000000.jpg",
+            "kf_000001.jpg",
+            "notes.txt"
+        ]
+    );
+    assert_eq!(
+        std::fs::read_to_string(tmp.path().join("victim.txt")).unwrap(),
+        "keep me"
+    );
+    assert_eq!(staging_dirs(tmp.path()), Vec::<String>::new());
+}
+
+/// `force_keyframe`, `reset` and `feedback` need the running pipeline: before the source starts
+/// and after it closes they raise NotRunningError (a RuntimeError naming the call and the
+/// state) instead of returning False as if the event had been sent; while it runs they return
+/// True (the event reached the gate), with and without the `tee` of `save_kept`. A closed
+/// source does not run again.
+#[test]
+fn control_calls_outside_a_running_source_raise() {
+    if !python_ok() || !have_elements(&["jpegenc", "multifilesink", "tee"]) {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let script = r#"
+import json, sys
+from leangate_client import LeanGateSource, NotRunningError
+model, d = sys.argv[1:]
+calls = {"force_keyframe": lambda s: s.force_keyframe(), "reset": lambda s: s.reset(),
+         "feedback": lambda s: s.feedback(0.5)}
+def outcome(src, name):
+    try:
+        return calls[name](src)
+    except NotRunningError as e:
+        return {"state": e.state, "runtime": isinstance(e, RuntimeError), "msg": str(e)}
+res = []
+for save in (None, d):
+    src = LeanGateSource("test://ball?num-buffers=20&width=160&height=120", model=model,
+                         mode="annotate", save_kept=save)
+    r = {"before": {n: outcome(src, n) for n in calls}}
+    with src:
+        for i, (f, m) in enumerate(src):
+            if i == 3:
+                r["during"] = {n: outcome(src, n) for n in calls}
+    r["after"] = {n: outcome(src, n) for n in calls}
+    r["forced_events"] = src.forced_events
+    for again in ("iterate", "start"):
+        try:
+            list(src) if again == "iterate" else src.start()
+            r[again] = "ran"
+        except NotRunningError as e:
+            r[again] = str(e)
+    res.append(r)
+print(json.dumps(res))
+"#;
+    let d = tmp.path().join("kf");
+    let out = client_script(script, &[model(), d.display().to_string()]);
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    for r in v.as_array().unwrap() {
+        for (when, state) in [("before", "not started"), ("after", "closed")] {
+            for call in ["force_keyframe", "reset", "feedback"] {
+                let o = &r[when][call];
+                assert_eq!(o["state"], state, "{call} {when}: {r}");
+                assert_eq!(o["runtime"], true);
+                let msg = o["msg"].as_str().unwrap();
+                assert!(
+                    msg.starts_with(&format!("{call}(): the source is {state}")),
+                    "{msg}"
+                );
+            }
+        }
+        assert_eq!(
+            r["during"],
+            serde_json::json!({"force_keyframe": true, "reset": true, "feedback": true}),
+            "{r}"
+        );
+        assert_eq!(r["forced_events"], 1);
+        for again in ["iterate", "start"] {
+            assert!(
+                r[again].as_str().unwrap().contains("the source is closed"),
+                "{r}"
+            );
+        }
+    }
+    assert!(d.join("keyframes.csv").is_file(), "the save_kept run saved");
+}
+
+/// The README's `LeanGateMeta` table names every field of the meta on a real buffer (the
+/// GstStructure names) and every key of the dict the Python client yields for it (its own
+/// column), and nothing else, so that neither can drift from the docs; each Python key is its
+/// field's name with underscores, and `leangate_client.META_KEYS` lists the same keys.
+#[test]
+fn readme_metadata_table_documents_every_field_and_python_key() {
+    if !python_ok() {
+        return;
+    }
+    let readme = std::fs::read_to_string(repo().join("README.md")).unwrap();
+    let section = readme
+        .split("### Metadata: `LeanGateMeta`")
+        .nth(1)
+        .expect("README section `### Metadata: `LeanGateMeta``");
+    let section = section.split("\n#").next().unwrap();
+    let mut rows = section.lines().filter(|l| l.starts_with('|')).map(|l| {
+        l.trim_matches('|')
+            .split('|')
+            .map(|c| c.trim().trim_matches('`').to_string())
+            .collect::<Vec<String>>()
+    });
+    let header = rows.next().expect("a table");
+    assert_eq!(header[..2], ["field", "Python key"], "{header:?}");
+    let mut fields = BTreeSet::new();
+    let mut keys = BTreeSet::new();
+    for r in rows.filter(|r| !r[0].starts_with("---")) {
+        let (field, key) = (r[0].as_str(), r[1].as_str());
+        assert!(keys.insert(key.to_string()), "{key} twice");
+        if field != "–" {
+            assert_eq!(key, field.replace('-', "_"), "{r:?}");
+            fields.insert(field.to_string());
+        }
+    }
+
+    let script = r#"
+import json, sys
+from leangate_client import LeanGateSource, META_KEYS, META_NAME
+from leangate_client._gst import Gst
+keys = set()
+with LeanGateSource("test://ball?num-buffers=8&width=160&height=120", model=sys.argv[1],
+                    threshold=0.001, mode="annotate") as src:
+    for f, m in src:
+        keys |= set(m)
+pipe = Gst.parse_launch("videotestsrc num-buffers=3 ! video/x-raw,width=160,height=120 ! "
+                        f"leangate model={sys.argv[1]} mode=annotate ! appsink name=sink")
+pipe.set_state(Gst.State.PLAYING)
+fields = set()
+for _ in range(3):
+    sample = pipe.get_by_name("sink").emit("try-pull-sample", 10 * Gst.SECOND)
+    s = sample.get_buffer().get_custom_meta(META_NAME).get_structure()
+    fields |= {s.nth_field_name(i) for i in range(s.n_fields())}
+pipe.set_state(Gst.State.NULL)
+print(json.dumps({"keys": sorted(keys), "fields": sorted(fields), "META_KEYS": list(META_KEYS)}))
+"#;
+    let out = client_script(script, &[model()]);
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    let set = |k: &str| -> BTreeSet<String> {
+        v[k].as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_str().unwrap().to_string())
+            .collect()
+    };
+    assert_eq!(set("keys"), keys, "README Python keys vs the client's dict");
+    assert_eq!(
+        set("fields"),
+        fields,
+        "README fields vs the buffer's LeanGateMeta"
+    );
+    assert_eq!(set("META_KEYS"), keys, "leangate_client.META_KEYS");
+    assert!(keys.contains("frame") && keys.contains("pts"));
 }

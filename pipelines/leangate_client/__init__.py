@@ -24,7 +24,7 @@ import logging as _logging
 
 __version__ = "0.1.0"
 
-from .errors import PipelineError, SetupError  # noqa: E402
+from .errors import NotRunningError, PipelineError, SetupError  # noqa: E402
 from .meta import (  # noqa: E402
     FEEDBACK_EVENT,
     FORCE_KEYFRAME_EVENT,
@@ -51,6 +51,7 @@ __all__ = [
     "save_kept",
     "PipelineError",
     "SetupError",
+    "NotRunningError",
     "ensure_plugin",
     "meta_dict",
     "meta_from_structure",

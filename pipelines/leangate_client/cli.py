@@ -7,6 +7,8 @@ stdout is the product: one line per received frame (unless --quiet) and a ``summ
 
 With ``--save-kept DIR`` every kept frame is also written to DIR as an image (``--format jpg|png``)
 with ``keyframes.csv`` and ``keyframes.json`` of their meta, and a progress line goes to stderr.
+The run is staged beside DIR and moved into it only when it succeeds: a run that fails or is
+interrupted leaves DIR as it was.
 
 Diagnostics go through ``logging`` to stderr (warnings by default; -v info, -vv debug).
 Exit status: 0 on success, 1 on a pipeline error, 2 on a usage/setup error (missing file,
@@ -141,13 +143,17 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
     ap.add_argument("--save-kept", metavar="DIR",
                     help="write every kept frame to DIR as kf_000000.jpg, ... with "
                     f"{CSV_NAME} and {JSON_NAME} of their meta (frame, pts_ns, utility, reason, "
-                    "...); DIR is created, and must be empty unless --overwrite")
+                    "...); DIR is created, and must be empty unless --overwrite. The run goes to "
+                    "a staging directory beside DIR and replaces DIR's content only when it "
+                    "succeeds: a failed or interrupted run leaves DIR as it was")
     ap.add_argument("--format", choices=tuple(FORMATS), default="jpg",
                     help="image format of --save-kept (jpg: quality 95; png: lossless, "
                     "compression level 1)")
     ap.add_argument("--overwrite", action="store_true",
                     help="let --save-kept use a non-empty DIR: an earlier run's kf_* images and "
-                    "tables there are deleted first, other files are left alone")
+                    "tables there are replaced when this run succeeds; other files are left alone, "
+                    "and kf_* images no table there lists (not written by this client) make it "
+                    "refuse DIR")
     ap.add_argument("--max-frames", type=non_negative_int, default=None,
                     help="stop after receiving this many frames")
     ap.add_argument("--force-every", type=non_negative_int, default=0, metavar="N",
@@ -242,16 +248,16 @@ def main(
         stats = source.stats
     except SetupError as e:
         log.error("%s", e)
-        return 2
+        return _failed(source, 2)
     except PipelineError as e:
         log.error("pipeline error: %s", e)
-        return 1
+        return _failed(source, 1)
     except KeyboardInterrupt:
         log.error("interrupted")
-        return 130
+        return _failed(source, 130)
     except OSError as e:  # the CSV file
         log.error("%s", e)
-        return 2
+        return _failed(source, 2)
     finally:
         if out:
             out.close()
@@ -280,7 +286,23 @@ def main(
 
 def _saving(source: LeanGateSource) -> str:
     s = source.saver
+    if s.discarded:
+        return f"{source.frames_in} frames in, {source.kept_received} kept, none saved"
     return (
         f"{source.frames_in} frames in, {source.kept_received} kept, {s.written} images "
         f"written to {s.directory}"
     )
+
+
+def _failed(source: Optional[LeanGateSource], status: int) -> int:
+    """Exit ``status``, after saying that --save-kept saved nothing (the source closed and
+    discarded the run's staged files; closed here if the failure came before it ran)."""
+    saver = source.saver if source is not None else None
+    if saver is not None:
+        try:
+            source.close()  # a no-op when the `with` block closed it
+        except PipelineError as e:
+            log.debug("while stopping: %s", e)
+        if saver.discarded:
+            log.error("nothing saved: %s is as it was before this run", saver.directory)
+    return status

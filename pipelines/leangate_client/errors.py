@@ -1,4 +1,5 @@
-"""The two ways the client fails."""
+"""How the client fails: two ways for a run (SetupError, PipelineError) and one for a call made
+at the wrong time (NotRunningError)."""
 
 
 class SetupError(Exception):
@@ -8,3 +9,21 @@ class SetupError(Exception):
 class PipelineError(Exception):
     """An ERROR message from the pipeline (element name, message and debug text), or a stream
     the client cannot use."""
+
+
+class NotRunningError(RuntimeError):
+    """A ``LeanGateSource`` call that needs its pipeline (``force_keyframe``, ``reset``,
+    ``feedback``, iterating, ``start``) made before the source was started or after it was
+    closed. ``state`` is ``"not started"`` or ``"closed"``; ``call`` names the method."""
+
+    def __init__(self, call: str, state: str):
+        self.call = call
+        self.state = state
+        if state == "closed":
+            why = "the source is closed (a LeanGateSource runs its input once: make a new one)"
+        else:
+            why = (
+                "the source is not started: there is no pipeline to send it to yet (call it "
+                "while iterating, or after start() / entering the `with` block)"
+            )
+        super().__init__(f"{call}: {why}")

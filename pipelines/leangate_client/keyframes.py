@@ -14,14 +14,17 @@ has closed (``post-messages``), and the tables list exactly those files.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
 import os
 import re
+import shutil
+import signal
 import tempfile
 import threading
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Set, Tuple
 
 from . import _gst
 from ._gst import PathLike
@@ -40,6 +43,10 @@ JSON_NAME = "keyframes.json"
 COLUMNS = ("image",) + tuple(c for c in ROW_COLUMNS if c != "keep")
 _OUTPUT = re.compile(r"^kf_\d{%d,}\.(jpg|png)$" % IMAGE_DIGITS)
 _SINK_MESSAGE = "GstMultiFileSink"
+#: The staging directory of a run: ``.DIRNAME.leangate-staging-XXXXXXXX`` beside DIR (or
+#: ``.leangate-staging-XXXXXXXX`` inside DIR when its parent is on another filesystem or
+#: cannot be written).
+STAGING_TAG = ".leangate-staging-"
 
 
 def image_name(index: int, fmt: str) -> str:
@@ -48,16 +55,67 @@ def image_name(index: int, fmt: str) -> str:
 
 
 def _is_output(name: str) -> bool:
+    """Whether a run of the client may write a file of this name (its images and tables)."""
     return name in (CSV_NAME, JSON_NAME) or _OUTPUT.match(name) is not None
 
 
-def prepare_dir(directory: PathLike, overwrite: bool = False) -> str:
-    """Make ``directory`` ready for a run's output and return its absolute path.
+def _listed_images(d: str) -> Set[str]:
+    """The image names the tables of an earlier run in ``d`` list (keyframes.json and
+    keyframes.csv; an unreadable or malformed table lists nothing). Only names the client
+    writes count, so a table cannot make it delete anything else (``../x``, ``notes.txt``)."""
+    names: Set[str] = set()
+    try:
+        with open(os.path.join(d, JSON_NAME)) as f:
+            doc = json.load(f)
+        for r in doc.get("frames", []) if isinstance(doc, dict) else []:
+            if isinstance(r, dict) and isinstance(r.get("image"), str):
+                names.add(r["image"])
+    except (OSError, ValueError):
+        pass
+    try:
+        with open(os.path.join(d, CSV_NAME), newline="") as f:
+            for r in csv.DictReader(f):
+                if r.get("image"):
+                    names.add(r["image"])
+    except (OSError, ValueError, csv.Error):
+        pass
+    return {n for n in names if _OUTPUT.match(n)}
 
-    Created (with its parents) when missing. An existing directory must be empty, unless
-    ``overwrite``: then an earlier run's output there (``kf_*`` images, ``keyframes.csv``,
-    ``keyframes.json``) is deleted and any other file is left alone. Raises SetupError naming
-    the directory when it is a file, cannot be created, is not empty, or cannot be written.
+
+def earlier_output(d: str, entries: Sequence[str]) -> Tuple[List[str], List[str]]:
+    """Split ``entries`` of ``d`` that a run could write into (the earlier run's output: its
+    tables and the images they list, all regular files; the others: images no table lists,
+    or entries that are not files). Entries named otherwise are in neither list."""
+    listed = _listed_images(d)
+    own: List[str] = []
+    strange: List[str] = []
+    for n in entries:
+        if not _is_output(n):
+            continue
+        p = os.path.join(d, n)
+        is_file = os.path.isfile(p) and not os.path.islink(p)
+        if is_file and (n in (CSV_NAME, JSON_NAME) or n in listed):
+            own.append(n)
+        else:
+            strange.append(n)
+    return own, strange
+
+
+def _shown(names: Sequence[str]) -> str:
+    return ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+
+
+def prepare_dir(directory: PathLike, overwrite: bool = False) -> str:
+    """Check that ``directory`` can take a run's output and return its absolute path.
+
+    Created (with its parents) when missing; nothing in it is deleted here, and only a probe
+    file is written (and removed) to check that it can be: the run goes to a staging directory
+    and replaces the earlier output only when it succeeds (see ``KeptFrameSaver``). An existing directory must be empty, unless ``overwrite``: then it may
+    hold an earlier run's output (``keyframes.csv``, ``keyframes.json`` and the ``kf_*``
+    images they list), which the run will replace, and files of other names, which are left
+    alone (with a warning). Raises SetupError naming the directory when it is a file, cannot
+    be created, listed or written, is not empty (without ``overwrite``), or (with it) holds
+    ``kf_*`` images no table of an earlier run lists: the client deletes only files it wrote.
     """
     d = os.path.abspath(os.fspath(directory))
     if os.path.exists(d) and not os.path.isdir(d):
@@ -71,12 +129,19 @@ def prepare_dir(directory: PathLike, overwrite: bool = False) -> str:
     except OSError as e:
         raise SetupError(f"cannot list {d}: {e.strerror}") from None
     if entries and not overwrite:
-        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
         raise SetupError(
             f"{d} is not empty ({len(entries)} entr{'y' if len(entries) == 1 else 'ies'}: "
-            f"{shown}); choose an empty or new "
+            f"{_shown(entries)}); choose an empty or new "
             "directory, or pass --overwrite (overwrite=True) to replace an earlier run's "
             "kf_* images and keyframes.csv/.json there"
+        )
+    own, strange = earlier_output(d, entries)
+    if strange:
+        raise SetupError(
+            f"--overwrite: {d} holds {len(strange)} entr{'y' if len(strange) == 1 else 'ies'} "
+            f"named like the client's output that no {CSV_NAME}/{JSON_NAME} there lists "
+            f"({_shown(strange)}): the client replaces only what it wrote itself; move "
+            "them away or choose another directory"
         )
     try:
         fd, probe = tempfile.mkstemp(prefix=".leangate-write-test-", dir=d)
@@ -84,23 +149,42 @@ def prepare_dir(directory: PathLike, overwrite: bool = False) -> str:
         os.unlink(probe)
     except OSError as e:
         raise SetupError(f"cannot write to {d}: {e.strerror}") from None
-    old = [n for n in entries if _is_output(n)]
-    for n in old:
-        try:
-            os.unlink(os.path.join(d, n))
-        except OSError as e:
-            raise SetupError(f"--overwrite: cannot delete {os.path.join(d, n)}: {e.strerror}") from None
     others = [n for n in entries if not _is_output(n)]
-    if old:
-        log.info("deleted an earlier run's output in %s (%d files)", d, len(old))
+    if own:
+        log.info("%s holds an earlier run's output (%d files): replaced if this run succeeds",
+                 d, len(own))
     if others:
         log.warning(
             "%s also holds %d file(s) that are not leangate output (left alone): %s",
             d,
             len(others),
-            ", ".join(others[:3]) + (", ..." if len(others) > 3 else ""),
+            _shown(others),
         )
     return d
+
+
+@contextlib.contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C (SIGINT) back until the block is done (the few renames that swap a run's
+    output into place), then deliver it. Only the main thread can do that; elsewhere a no-op."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: List[int] = []
+    try:
+        old = signal.signal(signal.SIGINT, lambda sig, frame: got.append(sig))
+    except (ValueError, OSError):
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+        if got:
+            if callable(old):
+                old(signal.SIGINT, None)
+            elif old == signal.SIG_DFL:
+                os.kill(os.getpid(), signal.SIGINT)
 
 
 class KeptFrameSaver:
@@ -110,25 +194,60 @@ class KeptFrameSaver:
     in the input stream), ``pts_ns``, ``utility`` (empty / null for the `first` frame),
     ``reason``, ``keyframe_index``, ``frames_since_keyframe``, ``inference_us``.
 
+    A run is all or nothing: the images and tables are written into a staging directory beside
+    ``directory`` (same filesystem; inside it when the parent is on another one or cannot be
+    written), and ``finish`` moves them into ``directory`` only after the run succeeded,
+    replacing an earlier run's output there (``overwrite``); ``discard`` (a failed or
+    interrupted run) deletes the staging directory and leaves ``directory`` as it was (one this
+    saver created is removed again).
+
     Made by ``LeanGateSource(..., save_kept=DIR)``, which builds the branch into its pipeline
-    (``attach``), hands it the bus messages (``on_message``) and calls ``finish`` when it
-    closes. After that: ``rows`` (one dict per image written), ``csv_path``, ``json_path``.
+    (``attach``), hands it the bus messages (``on_message``) and calls ``finish`` or ``discard``
+    when it closes. After that: ``committed`` (the run's output is in ``directory``), ``rows``
+    (one dict per image written; empty after ``discard``), ``csv_path``, ``json_path``.
     """
 
     def __init__(self, directory: PathLike, fmt: str = "jpg", overwrite: bool = False):
         if fmt not in FORMATS:
             raise SetupError(f"image format must be one of {', '.join(FORMATS)}, not {fmt!r}")
         self.format = fmt
-        self.directory = prepare_dir(directory, overwrite)
+        target = os.path.abspath(os.fspath(directory))
+        missing: List[str] = []  # the directories prepare_dir creates, deepest first
+        p = target
+        while not os.path.lexists(p) and os.path.dirname(p) != p:
+            missing.append(p)
+            p = os.path.dirname(p)
+        self.directory = prepare_dir(target, overwrite)
+        self._created = missing
         self.csv_path = os.path.join(self.directory, CSV_NAME)
         self.json_path = os.path.join(self.directory, JSON_NAME)
+        self.staging: Optional[str] = None  # made by attach
+        self.committed = False
+        self.discarded = False
         self.limit: Optional[int] = None  # at most this many images (the source's max_frames)
         self.rows: List[Dict[str, Any]] = []  # frames sent to the encoder, in order
         self.written = 0  # files multifilesink has closed (the first `written` rows)
         self._lock = threading.Lock()
         self._sink = None
         self._elements: tuple = ()
-        self._finished = False
+
+    @property
+    def done(self) -> bool:
+        """``finish`` or ``discard`` has run."""
+        return self.committed or self.discarded
+
+    def _make_staging(self) -> str:
+        d = self.directory
+        parent = os.path.dirname(d)
+        try:
+            if os.stat(parent).st_dev == os.stat(d).st_dev:
+                return tempfile.mkdtemp(prefix=f".{os.path.basename(d)}{STAGING_TAG}", dir=parent)
+        except OSError:
+            pass  # the parent cannot be written: stage inside DIR (same filesystem too)
+        try:
+            return tempfile.mkdtemp(prefix=STAGING_TAG, dir=d)
+        except OSError as e:
+            raise SetupError(f"cannot write to {d}: {e.strerror}") from None
 
     @property
     def queued(self) -> int:
@@ -143,6 +262,8 @@ class KeptFrameSaver:
 
         Gst = _gst.Gst
         encoder, props = FORMATS[self.format]
+        if self.staging is None:
+            self.staging = self._make_staging()
         queue = _make("queue", "save-queue")
         convert = _make("videoconvert", "save-convert")
         enc = _make(encoder, "save-encoder")
@@ -150,7 +271,7 @@ class KeptFrameSaver:
             _set(enc, k, v)
         sink = _make("multifilesink", "save-sink")
         pattern = f"{IMAGE_PREFIX}%0{IMAGE_DIGITS}d.{self.format}"
-        _set(sink, "location", os.path.join(self.directory.replace("%", "%%"), pattern))
+        _set(sink, "location", os.path.join(self.staging.replace("%", "%%"), pattern))
         _set(sink, "post-messages", True)
         _set(sink, "sync", False)
         for el in (queue, convert, enc, sink):
@@ -170,7 +291,9 @@ class KeptFrameSaver:
         enc = " ".join([encoder] + [f"{k}={v}" for k, v in props.items()])
         return (
             f"queue ! videoconvert ! {enc} ! multifilesink location="
-            f"{os.path.join(self.directory, IMAGE_PREFIX)}%0{IMAGE_DIGITS}d.{self.format}"
+            f"{os.path.join(self.staging or self.directory, IMAGE_PREFIX)}%0{IMAGE_DIGITS}d."
+            f"{self.format}" + (f" (staged: moved into {self.directory} when the run succeeds)"
+                                if self.staging else "")
         )
 
     def _probe(self, pad, info):
@@ -209,24 +332,21 @@ class KeptFrameSaver:
         return True
 
     def finish(self, source: str, frames_in: int, stats=None) -> None:
-        """Write keyframes.csv and keyframes.json for the images on disk (the first ``written``
-        rows) and delete any image file beyond them (a write cut short by an error or by
-        stopping the pipeline). Call after the pipeline has stopped; raises PipelineError
-        when the tables cannot be written."""
-        if self._finished:
+        """The run succeeded: write keyframes.csv and keyframes.json for the images on disk (the
+        first ``written`` rows; an image cut short by stopping the pipeline is left out) into
+        the staging directory, then move the images and tables into ``directory``, replacing
+        an earlier run's output there. Call after the pipeline has stopped. Raises
+        PipelineError when the tables cannot be written (then ``directory`` is left as it
+        was) or the output cannot be moved into place (then this run's files stay in
+        ``staging``, named in the message)."""
+        if self.done:
             return
-        self._finished = True
         with self._lock:
             rows = self.rows[: self.written]
-            dropped = self.rows[self.written :]
             self.rows = rows
-        for r in dropped:
-            try:
-                os.unlink(os.path.join(self.directory, r["image"]))
-            except FileNotFoundError:
-                pass
-            except OSError as e:
-                log.warning("cannot delete the unfinished image %s: %s", r["image"], e.strerror)
+        if self.staging is None:  # never attached: nothing ran
+            self.discard()
+            return
         doc = {
             "source": source,
             "directory": self.directory,
@@ -239,14 +359,68 @@ class KeptFrameSaver:
             "frames": [{k: json_value(r[k]) for k in COLUMNS} for r in rows],
         }
         try:
-            with open(self.csv_path, "w", newline="") as f:
+            with open(os.path.join(self.staging, CSV_NAME), "w", newline="") as f:
                 w = csv.writer(f)
                 w.writerow(COLUMNS)
                 for r in rows:
                     w.writerow([csv_value(r[k]) for k in COLUMNS])
-            with open(self.json_path, "w") as f:
+            with open(os.path.join(self.staging, JSON_NAME), "w") as f:
                 json.dump(doc, f, indent=1)
                 f.write("\n")
         except OSError as e:
-            raise PipelineError(f"cannot write the kept frames' meta: {e}") from None
-        log.info("wrote %d images, %s and %s", len(rows), CSV_NAME, JSON_NAME)
+            self.discard()
+            raise PipelineError(
+                f"cannot write the kept frames' meta: {e}; {self.directory} is left as it was"
+            ) from None
+        self._commit([r["image"] for r in rows])
+        log.info("wrote %d images, %s and %s to %s", len(rows), CSV_NAME, JSON_NAME,
+                 self.directory)
+
+    def _commit(self, images: List[str]) -> None:
+        """Swap the staged run into ``directory``: the earlier tables go first (so that an
+        interrupted swap leaves no table claiming a complete set), then the images are moved
+        in, the earlier images this run did not replace are deleted, and the tables come last."""
+        d, staging = self.directory, self.staging
+        assert staging is not None
+        try:
+            old, strange = earlier_output(d, sorted(os.listdir(d)))
+            if strange:  # appeared during the run
+                raise OSError(f"{d} now holds files the client did not write: {_shown(strange)}")
+            with _sigint_deferred():
+                for n in (JSON_NAME, CSV_NAME):
+                    if n in old:
+                        os.unlink(os.path.join(d, n))
+                for n in images:
+                    os.replace(os.path.join(staging, n), os.path.join(d, n))
+                new = set(images)
+                for n in old:
+                    if n not in new and n not in (CSV_NAME, JSON_NAME):
+                        os.unlink(os.path.join(d, n))
+                for n in (CSV_NAME, JSON_NAME):
+                    os.replace(os.path.join(staging, n), os.path.join(d, n))
+        except OSError as e:
+            raise PipelineError(
+                f"cannot move the kept frames into {d}: {e}; this run's images and tables are "
+                f"in {staging}"
+            ) from None
+        self.committed = True
+        shutil.rmtree(staging, ignore_errors=True)
+        if old:
+            log.info("replaced an earlier run's output in %s (%d files)", d, len(old))
+
+    def discard(self) -> None:
+        """The run failed or was interrupted: delete the staging directory and leave
+        ``directory`` as it was before (removed again when this saver created it)."""
+        if self.done:
+            return
+        self.discarded = True
+        with self._lock:
+            self.rows = []
+        if self.staging is not None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+        for p in self._created:
+            try:
+                os.rmdir(p)
+            except OSError:
+                break
+        log.info("nothing saved: %s is as it was before this run", self.directory)

@@ -1063,15 +1063,23 @@ def _parse_frames(spec: str) -> List[Any]:
             raise argparse.ArgumentTypeError(f"cannot read {spec[1:]}: {e.strerror}") from None
     else:
         out = [_frame_index(v) for v in spec.replace(" ", "").split(",") if v]
-    idx = [f[0] if isinstance(f, tuple) else f for f in out]
-    seen: set = set()
-    for i in idx:
-        if i in seen:
-            raise argparse.ArgumentTypeError(f"frame {i} is listed twice")
-        seen.add(i)
+    twice = _listed_twice(out)
+    if twice is not None:
+        raise argparse.ArgumentTypeError(f"frame {twice} is listed twice")
     if not out:
         raise argparse.ArgumentTypeError(f"no frame in {spec!r}")
     return out
+
+
+def _listed_twice(frames: Sequence[Any]) -> Optional[int]:
+    """The first frame index that ``frames`` (indices or (index, path) pairs) lists twice."""
+    seen: set = set()
+    for f in frames:
+        i = f[0] if isinstance(f, tuple) else f
+        if i in seen:
+            return i
+        seen.add(i)
+    return None
 
 
 def _integer(lo: int, *, also: Optional[int] = None, meaning: str = "") -> Callable[[str], int]:
@@ -1127,9 +1135,10 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
     ap.add_argument("input", help="video file, TUM-layout directory (rgb.txt), or image folder")
     ap.add_argument("--out", default="out/reconstruct", help="output directory (default %(default)s)")
     which = ap.add_mutually_exclusive_group()
-    which.add_argument("--frames", metavar="LIST", type=_parse_frames,
+    which.add_argument("--frames", metavar="LIST", type=_parse_frames, action="extend",
                        help="reconstruct these frames instead of gating: `0,5,10` (indices into "
-                       "the sequence / decode order) or @FILE (`index [path]` per line)")
+                       "the sequence / decode order) or @FILE (`index [path]` per line); "
+                       "repeatable, the lists add up (`--frames 0,5 --frames @more.txt`)")
     which.add_argument("--every", type=_integer(1), metavar="K",
                        help="reconstruct every K-th frame instead of gating (a dense reference)")
     g = ap.add_argument_group("gate (when neither --frames nor --every)")
@@ -1181,6 +1190,9 @@ def main(
     ap = build_parser(prog)
     args = ap.parse_args(argv)
     configure_logging(ap.prog, args.verbose)
+    twice = _listed_twice(args.frames or [])
+    if twice is not None:  # across repeated --frames (each list is checked as it is parsed)
+        ap.error(f"argument --frames: frame {twice} is listed twice")
     if args.intrinsics and args.camera_model not in (None, "PINHOLE"):
         ap.error(f"--intrinsics are PINHOLE parameters; --camera-model {args.camera_model} "
                  "takes others")

@@ -29,7 +29,7 @@ from .argtypes import (
     threshold_or_model,
     uint32,
 )
-from .errors import PipelineError, SetupError
+from .errors import NotRunningError, PipelineError, SetupError
 from .keyframes import KeptFrameSaver
 from .meta import FEEDBACK_EVENT, FORCE_KEYFRAME_EVENT, META_NAME, RESET_EVENT, meta_dict
 from .stats import LeanGateStats
@@ -173,10 +173,14 @@ class LeanGateSource:
     ``save_kept``: a directory to write every kept frame into as an image (``save_format``
     ``"jpg"`` or ``"png"``), with ``keyframes.csv`` and ``keyframes.json`` of their meta written
     when the source closes (see ``keyframes.KeptFrameSaver``; ``self.saver``). The directory is
-    created when missing and must be empty unless ``overwrite``. Encoding runs in the pipeline,
-    beside the appsink; iterate (``arrays=False`` is enough) to run the stream, or use
-    ``save_kept()``. In annotate mode too only kept frames are saved; ``max_frames`` also caps
-    the images.
+    created when missing and must be empty unless ``overwrite`` (then an earlier run's output
+    there is replaced; files the client did not write are never deleted). The run is written to
+    a staging directory beside it and moved into it only when the run completes (the stream
+    ended, or the caller stopped iterating); after a pipeline error or an exception that leaves
+    the iteration or the ``with`` block (KeyboardInterrupt too), nothing is saved and the
+    directory is as it was. Encoding runs in the pipeline, beside the appsink; iterate
+    (``arrays=False`` is enough) to run the stream, or use ``save_kept()``. In annotate mode
+    too only kept frames are saved; ``max_frames`` also caps the images.
 
     Each ``meta`` is a dict: ``frame`` (index of the frame in the input stream, counted at
     leangate's sink pad; None when the buffer has no PTS), ``pts`` (ns or None), ``utility``
@@ -185,7 +189,12 @@ class LeanGateSource:
 
     After iteration: ``stats`` (the last `leangate-stats` message, a ``LeanGateStats``, or
     None), ``frames_in`` (frames that entered the gate), ``received`` (frames handed out),
-    ``forced_events`` (``force_keyframe`` calls).
+    ``forced_events`` (``force_keyframe`` events that reached the gate).
+
+    ``force_keyframe``, ``reset`` and ``feedback`` need the running pipeline: they raise
+    NotRunningError (a RuntimeError) before ``start`` (or the first iteration, or entering the
+    ``with`` block) and after ``close``. A source runs once: ``start`` or iterating after
+    ``close`` raises it too.
     """
 
     def __init__(
@@ -273,6 +282,10 @@ class LeanGateSource:
         self._sink = None
         self._bus = None
         self._started = False
+        self._closed = False  # close() was called: the source does not run (again)
+        # the run did not complete (an exception left the iteration or the `with` block, or
+        # start failed): close() then discards the saved frames instead of committing them
+        self._aborted = False
         self._eos = False  # the pipeline's EOS message was seen (every sink got EOS)
         self._failed = False  # an ERROR message was seen
 
@@ -434,14 +447,15 @@ class LeanGateSource:
         """Ask the gate to keep the next frame (what a SLAM back end does when it loses
         tracking): a `leangate-force-keyframe` custom event pushed upstream from the appsink.
         Frames already past the gate (queued for the appsink) are not affected; the forced
-        keep lands on the next frame the gate processes. Returns whether an upstream element
-        reported handling the event (often False: leangate acts on it, then forwards it
-        upstream, where sources usually do not handle custom events)."""
-        return self._push_upstream(FORCE_KEYFRAME_EVENT)
+        keep lands on the next frame the gate processes. Returns True when the event reached
+        the gate, False when it did not get there (the pipeline is shutting down).
+        Raises NotRunningError before the source is started and after it is closed."""
+        return self._push_upstream("force_keyframe()", FORCE_KEYFRAME_EVENT)
 
     def reset(self) -> bool:
-        """Ask the gate to drop its reference (the next frame is kept as a new `first`)."""
-        return self._push_upstream(RESET_EVENT)
+        """Ask the gate to drop its reference (the next frame is kept as a new `first`).
+        Returns and raises as ``force_keyframe``."""
+        return self._push_upstream("reset()", RESET_EVENT)
 
     def feedback(self, tau: float) -> bool:
         """Report what the SLAM measured on a kept frame: ``tau`` = 1 - S between it and the
@@ -450,27 +464,49 @@ class LeanGateSource:
         late, one below came early) whose positive part raises the gate's utility from the next
         frame it processes (at most 0.3, never lowering it);
         ``gate.get_property("feedback-offset")`` says where it stands. Raises ValueError for a
-        tau outside [0, 1]. Returns whether an upstream element reported handling the event
-        (often False, as for `force_keyframe`: leangate applies it, then forwards it upstream,
-        where sources usually do not handle custom events)."""
+        tau outside [0, 1]. Returns and raises as ``force_keyframe``: True when the report
+        reached the gate, False when it could not, NotRunningError before start or after
+        close."""
         tau = float(tau)
         if not 0.0 <= tau <= 1.0:
             raise ValueError(f"feedback: tau {tau} is not in [0, 1]")
-        return self._push_upstream(FEEDBACK_EVENT, tau=tau)
+        return self._push_upstream("feedback()", FEEDBACK_EVENT, tau=tau)
 
-    def _push_upstream(self, name: str, **fields) -> bool:
-        if self._pipeline is None:
-            return False
+    def _state_error(self, call: str) -> NotRunningError:
+        return NotRunningError(call, "closed" if self._closed else "not started")
+
+    def _push_upstream(self, call: str, name: str, **fields) -> bool:
+        pipeline, sink = self._pipeline, self._sink  # close() may clear them meanwhile
+        if pipeline is None:
+            raise self._state_error(call)
         Gst = _gst.Gst
         st = Gst.Structure.new_empty(name)
         for k, v in fields.items():
             st.set_value(k, v)
         ev = Gst.Event.new_custom(Gst.EventType.CUSTOM_UPSTREAM, st)
-        # push_event on a *sink* pad sends the event to its upstream peer.
-        ok = self._sink.get_static_pad("sink").push_event(ev)
-        if name == FORCE_KEYFRAME_EVENT:
+        seqnum = ev.get_seqnum()
+        reached: List[bool] = []
+
+        def seen(pad, info):
+            e = info.get_event()
+            if e is not None and e.get_seqnum() == seqnum:
+                reached.append(True)
+            return Gst.PadProbeReturn.OK
+
+        # The event travels upstream in this thread (push_event on a *sink* pad sends it to its
+        # upstream peer): a probe on the gate's source pad sees it arrive. Whether an element
+        # further up handles it is beside the point (leangate acts on it, then forwards it to
+        # the source, which usually ignores custom events).
+        gate_src = pipeline.get_by_name("gate").get_static_pad("src")
+        probe = gate_src.add_probe(Gst.PadProbeType.EVENT_UPSTREAM, seen)
+        try:
+            sink.get_static_pad("sink").push_event(ev)
+        finally:
+            gate_src.remove_probe(probe)
+        ok = bool(reached)
+        if name == FORCE_KEYFRAME_EVENT and ok:
             self.forced_events += 1
-        log.debug("sent %s upstream (handled: %s)", name, ok)
+        log.debug("sent %s upstream (reached the gate: %s)", name, ok)
         return ok
 
     @property
@@ -480,17 +516,29 @@ class LeanGateSource:
 
     # -- life cycle ----------------------------------------------------------------------
     def start(self) -> None:
+        """Build the pipeline and set it playing (iterating or entering a ``with`` block does
+        it). Raises NotRunningError after ``close``: a source runs its input once."""
+        if self._closed:
+            raise self._state_error("start()")
         if self._started:
             return
         Gst = _gst.Gst
-        self._pipeline, gate, self._sink = self._build()
-        self._bus = self._pipeline.get_bus()
-        gate.get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, self._count_input)
-        self._started = True
-        log.info("plugin: %s", self.plugin)
-        log.info("pipeline: %s", self.description)
-        if self._pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
-            self._raise_bus_error(default="the pipeline failed to start")
+        try:
+            self._pipeline, gate, self._sink = self._build()
+            self._bus = self._pipeline.get_bus()
+            gate.get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, self._count_input)
+            self._started = True
+            log.info("plugin: %s", self.plugin)
+            log.info("pipeline: %s", self.description)
+            if self._pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
+                self._raise_bus_error(default="the pipeline failed to start")
+        except BaseException:
+            self._aborted = True
+            try:
+                self.close()
+            except PipelineError as e:  # the exception in flight says more
+                log.debug("while stopping: %s", e)
+            raise
 
     def _count_input(self, pad, info):
         buf = info.get_buffer()
@@ -503,11 +551,21 @@ class LeanGateSource:
         return _gst.Gst.PadProbeReturn.OK
 
     def close(self) -> None:
-        """Stop the pipeline. With ``save_kept``: first let the image branch finish (at EOS,
-        every kept frame; stopped early, at least the kept frames handed out so far), then
-        write the tables; raises PipelineError when that branch failed."""
+        """Stop the pipeline; the source cannot run again. With ``save_kept``, when the run
+        completed (the stream ended, or the caller stopped iterating, or ``max_frames``): first
+        let the image branch finish (at EOS, every kept frame; stopped early, at least the kept
+        frames handed out so far), then write the tables and move the run's output into the
+        directory, replacing an earlier run's there; raises PipelineError when that branch
+        failed. When the run did not complete (a pipeline error, or an exception, such as
+        KeyboardInterrupt, that left the iteration or the ``with`` block), nothing is saved:
+        the directory is left as it was."""
         if self._pipeline is None:
+            if not self._closed:
+                self._closed = True
+                if self.saver is not None:  # never ran: nothing to save
+                    self.saver.discard()
             return
+        self._closed = True
         Gst = _gst.Gst
         error: Optional[PipelineError] = None
         failed = self._failed  # already reported: later errors are its consequences
@@ -519,23 +577,31 @@ class LeanGateSource:
             elif error is None:
                 error = e
 
-        if self.saver is not None and self._started:
-            try:
-                self._settle_saver()
-            except PipelineError as e:
-                note(e)
-            # READY stops the streaming threads but keeps the bus: the last reports are read.
-            self._pipeline.set_state(Gst.State.READY)
-            while True:
-                try:
-                    self._drain_bus()
-                    break
-                except PipelineError as e:
-                    note(e)
-        self._pipeline.set_state(Gst.State.NULL)
-        self._pipeline = None
-        if self.saver is not None and self._started:
-            self.saver.finish(self.source, self.frames_in, self.stats)
+        completed = False
+        try:
+            if self.saver is not None:
+                if not self._aborted and not failed:
+                    try:
+                        self._settle_saver()
+                    except PipelineError as e:
+                        note(e)
+                # READY stops the streaming threads but keeps the bus: the last reports are read.
+                self._pipeline.set_state(Gst.State.READY)
+                while True:
+                    try:
+                        self._drain_bus()
+                        break
+                    except PipelineError as e:
+                        note(e)
+            completed = True
+        finally:
+            self._pipeline.set_state(Gst.State.NULL)
+            self._pipeline = None
+            if self.saver is not None:
+                if completed and not self._aborted and not self._failed and error is None:
+                    self.saver.finish(self.source, self.frames_in, self.stats)
+                else:
+                    self.saver.discard()
         if error is not None:
             raise error
 
@@ -562,9 +628,11 @@ class LeanGateSource:
         return self
 
     def __exit__(self, exc_type, *exc) -> bool:
-        if exc_type is None:
+        # GeneratorExit: a generator around the block was closed early, like a `break`.
+        if exc_type is None or issubclass(exc_type, GeneratorExit):
             self.close()
         else:
+            self._aborted = True  # the run did not complete: nothing is saved
             try:
                 self.close()
             except PipelineError as e:  # the exception in flight says more
@@ -634,6 +702,8 @@ class LeanGateSource:
     # -- iteration -----------------------------------------------------------------------
     def __iter__(self) -> Iterator[Tuple[Any, Dict[str, Any]]]:
         Gst, GstVideo = _gst.Gst, _gst.GstVideo
+        if self._closed:
+            raise self._state_error("iterating")
         self.start()
         info = None
         caps = None
@@ -673,6 +743,11 @@ class LeanGateSource:
                 self.received += 1
                 self.kept_received += meta["keep"]
                 yield frame, meta
+        except GeneratorExit:  # the caller stopped iterating: not a failure
+            raise
+        except BaseException:  # an error, or Ctrl-C while waiting for a frame
+            self._aborted = True
+            raise
         finally:
             self._drain_bus_quietly()
 
@@ -698,7 +773,8 @@ def save_kept(
     nerfstudio or a Gaussian-splatting trainer. ``kwargs``: any ``LeanGateSource`` argument
     (``model``, ``threshold``, ``max_frames``, ...). Returns the saver: ``rows`` (one dict per
     image), ``csv_path``, ``json_path``, ``directory``. Raises SetupError (bad argument, a
-    directory that is not empty without ``overwrite`` or cannot be written) or PipelineError."""
+    directory that is not empty without ``overwrite`` or cannot be written) or PipelineError;
+    a run that fails (or is interrupted) saves nothing and leaves ``directory`` as it was."""
     kwargs.setdefault("arrays", False)
     src = LeanGateSource(
         source, save_kept=directory, save_format=format, overwrite=overwrite, **kwargs

@@ -412,10 +412,11 @@ fn explicit_frames_and_a_python_without_pycolmap() {
     };
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("r.json");
-    // --frames: no gate, these frames (COLMAP sees rgb/000000.jpg, ...).
+    // --frames: no gate, these frames (COLMAP sees rgb/000000.jpg, ...). Repeated, the lists
+    // add up (the last one alone used to win: 36, 48, 59 here).
     let out = consumer(
         &py,
-        &["--frames", "0,12,24,36,48,59", "--out"],
+        &["--frames", "0,12,24", "--frames", "36,48,59", "--out"],
         &[&dir.path().join("rec"), Path::new("--json"), &json, &seq],
     );
     assert!(out.status.success());
@@ -486,7 +487,7 @@ fn consumer_refuses_bad_arguments_and_inputs_with_a_clear_error() {
             "{args:?}: {err}"
         );
     };
-    let cases: [(&[&str], &str); 11] = [
+    let cases: [(&[&str], &str); 12] = [
         (
             &[
                 "--frames",
@@ -504,6 +505,10 @@ fn consumer_refuses_bad_arguments_and_inputs_with_a_clear_error() {
         ),
         (&["--frames", "0,-3"], "frame -3 is negative"),
         (&["--frames", "3,7,3"], "frame 3 is listed twice"),
+        (
+            &["--frames", "3,7", "--frames", "12,7"],
+            "argument --frames: frame 7 is listed twice",
+        ),
         (&["--camera-model", "BOGUS"], "invalid choice: 'BOGUS'"),
         (
             &["--max-features", "0"],
