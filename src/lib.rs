@@ -17,6 +17,7 @@
 //!   (module [`remote`], its HTTP client in [`remote::client`]);
 //! - the geometric prior (chained homographies → the teacher's overlap): module [`geometry`];
 //! - what a frame's utility is made of (the model's score fused with the prior): [`Utility`];
+//! - whether a frame carries a usable picture (junk never becomes a keyframe): module [`quality`];
 //! - the element type [`LeanGate`] and its property enums.
 
 use gst::glib;
@@ -27,6 +28,7 @@ mod leangate;
 mod meta;
 mod policy;
 mod preprocess;
+pub mod quality;
 pub mod remote;
 mod runtime;
 mod scorer;
@@ -43,6 +45,7 @@ pub use policy::{Decision, Gate, GateConfig, Reason, Score};
 pub use preprocess::{
     PixelFormat, PreprocessError, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix,
 };
+pub use quality::Quality;
 pub use remote::{Backend, Interrupt, RemoteError, RemoteOptions, RemoteScorer};
 pub use runtime::RuntimeError;
 pub use scorer::{

@@ -6,14 +6,16 @@
 //! |---|---|---|
 //! | `utility` | double | predicted tau (NaN for a frame with no reference, or when inference failed; for a `screened` frame the largest utility the model could have given, below the threshold) |
 //! | `keep` | boolean | the gate's decision |
-//! | `reason` | string | `first`, `warmup`, `score`, `max-gap`, `forced`, `error` |
+//! | `reason` | string | `first`, `warmup`, `score`, `max-gap`, `forced`, `error`, `junk` (dropped: no usable picture) |
 //! | `keyframe-index` | guint64 | frames kept so far, this one included |
 //! | `reference-pts` | guint64 | PTS (ns) of the reference the frame was scored against (its own PTS for `first`; `GST_CLOCK_TIME_NONE` when unknown) |
 //! | `frames-since-keyframe` | guint | frames since that reference (0 for a kept frame) |
 //! | `inference-us` | guint64 | time spent preprocessing and scoring this frame, microseconds |
+//! | `quality` | string | `usable`, or what [`crate::quality::assess`] found: `dark`, `saturated`, `noise` (junk: never kept), `textureless` (utility 0); `usable` when `reject-junk` is off or the frame could not be read |
 //! | `screened` | boolean | the model did not run: the geometric prior alone bounded the utility below the threshold (the `screen` property); the frame is dropped unless `warmup`, `max-gap` or a forced keyframe keeps it |
 
 use crate::policy::Reason;
+use crate::quality::Quality;
 
 /// The registered name of the custom meta.
 pub const META_NAME: &str = "LeanGateMeta";
@@ -30,6 +32,8 @@ pub struct GateMeta {
     pub inference_us: u64,
     /// The prior alone decided (the model did not run); `utility` is then its bound.
     pub screened: bool,
+    /// Whether the frame carries a usable picture ([`crate::quality`]).
+    pub quality: Quality,
 }
 
 /// Register the custom meta (idempotent). Called from `plugin_init`.
@@ -53,6 +57,7 @@ impl GateMeta {
         s.set("frames-since-keyframe", self.frames_since_keyframe);
         s.set("inference-us", self.inference_us);
         s.set("screened", self.screened);
+        s.set("quality", self.quality.as_str());
     }
 
     /// Attach (or overwrite) the meta on a buffer.
@@ -84,6 +89,11 @@ impl GateMeta {
             frames_since_keyframe: s.get("frames-since-keyframe").ok()?,
             inference_us: s.get("inference-us").ok()?,
             screened: s.get("screened").unwrap_or(false),
+            quality: s
+                .get::<&str>("quality")
+                .ok()
+                .and_then(Quality::parse)
+                .unwrap_or_default(),
         })
     }
 }
@@ -106,6 +116,7 @@ mod tests {
             frames_since_keyframe: 2,
             inference_us: 1234,
             screened: true,
+            quality: Quality::Textureless,
         };
         m.attach(buf.get_mut().unwrap()).unwrap();
         assert_eq!(GateMeta::read(&buf), Some(m.clone()));
@@ -115,6 +126,7 @@ mod tests {
             reason: Reason::First,
             reference_pts: None,
             screened: false,
+            quality: Quality::Dark,
             ..m
         };
         m2.attach(buf.get_mut().unwrap()).unwrap();
@@ -123,6 +135,7 @@ mod tests {
         assert_eq!(back.reason, Reason::First);
         assert_eq!(back.reference_pts, None);
         assert!(!back.screened);
+        assert_eq!(back.quality, Quality::Dark);
         let n = buf.iter_meta::<gst::Meta>().count();
         assert_eq!(n, 1, "overwriting must not stack a second meta");
     }

@@ -4,6 +4,10 @@
 //! `leangate eval` drives it with the teacher's (the `oracle` policy), and the tests drive it by hand.
 //!
 //! Rules, in order of precedence, for each frame:
+//! 0. the frame carries no usable picture ([`Score::Junk`]: dark, saturated, noise; see
+//!    [`crate::quality`]) → drop, `junk`, whatever else holds: it never becomes the reference. A
+//!    pending forced keyframe, the warm-up and `max-gap` wait for the next usable frame (junk
+//!    frames count towards `max-gap`, so after a long run of them the next usable frame is kept);
 //! 1. no reference yet (start, flush, stream-start, caps change, `leangate-reset`) → keep, `first`;
 //! 2. a force-keyframe request is pending → keep, `forced`;
 //! 3. fewer than `warmup` frames seen since the stream (re)started → keep, `warmup`;
@@ -25,16 +29,19 @@ pub enum Reason {
     MaxGap,
     Forced,
     Error,
+    /// Dropped: no usable picture ([`Score::Junk`]).
+    Junk,
 }
 
 impl Reason {
-    pub const ALL: [Reason; 6] = [
+    pub const ALL: [Reason; 7] = [
         Reason::First,
         Reason::Warmup,
         Reason::Score,
         Reason::MaxGap,
         Reason::Forced,
         Reason::Error,
+        Reason::Junk,
     ];
 
     /// The string written into `LeanGateMeta`'s `reason` field.
@@ -46,6 +53,7 @@ impl Reason {
             Reason::MaxGap => "max-gap",
             Reason::Forced => "forced",
             Reason::Error => "error",
+            Reason::Junk => "junk",
         }
     }
 
@@ -69,6 +77,8 @@ pub enum Score {
     Utility(f64),
     /// Inference failed or returned a non-finite value.
     Failed,
+    /// The frame carries no usable picture (black, saturated, noise): never kept.
+    Junk,
 }
 
 /// Gate parameters.
@@ -173,6 +183,18 @@ impl Gate {
 
     /// Decide the fate of the next frame.
     pub fn decide(&mut self, score: Score) -> Decision {
+        if score == Score::Junk {
+            // Not a frame of the stream's pictures: no reference, warm-up or keep changes.
+            if self.has_reference {
+                self.since_keyframe += 1;
+            }
+            return Decision {
+                keep: false,
+                reason: Reason::Junk,
+                keyframe_index: self.kept,
+                frames_since_keyframe: self.since_keyframe,
+            };
+        }
         let reason = if !self.has_reference || score == Score::NoReference {
             Some(Reason::First)
         } else if self.force_next {
@@ -285,6 +307,39 @@ mod tests {
         let kept: Vec<_> = out.iter().map(|o| o.0).collect();
         assert_eq!(kept, vec![true, false, false, true, false, false, true]);
         assert_eq!(out[3].1, Reason::MaxGap);
+    }
+
+    #[test]
+    fn junk_is_never_kept_and_the_keeps_it_blocks_wait_for_a_usable_frame() {
+        let mut g = Gate::new(GateConfig {
+            max_gap: 3,
+            warmup: 2,
+            ..Default::default()
+        });
+        // Junk before any reference: dropped, and the first usable frame is `first`.
+        let d = g.decide(Score::Junk);
+        assert_eq!(
+            (d.keep, d.reason, d.keyframe_index),
+            (false, Reason::Junk, 0)
+        );
+        assert!(!g.has_reference());
+        assert_eq!(g.decide(Score::NoReference).reason, Reason::First);
+        // Warm-up counts usable frames only.
+        assert!(!g.decide(Score::Junk).keep);
+        assert_eq!(g.decide(Score::Utility(0.0)).reason, Reason::Warmup);
+        assert_eq!(g.decide(Score::Utility(0.0)).reason, Reason::Score);
+        // A forced keyframe waits for the next usable frame; junk counts towards max-gap.
+        g.force_keyframe();
+        assert!(!g.decide(Score::Junk).keep);
+        assert_eq!(g.decide(Score::Utility(0.0)).reason, Reason::Forced);
+        for _ in 0..5 {
+            assert_eq!(g.decide(Score::Junk).reason, Reason::Junk);
+        }
+        let d = g.decide(Score::Utility(0.0));
+        assert_eq!((d.keep, d.reason), (true, Reason::MaxGap));
+        // Whatever the utility would have been: a junk frame is not kept.
+        assert!(!g.decide(Score::Junk).keep);
+        assert_eq!(g.kept(), 4);
     }
 
     #[test]

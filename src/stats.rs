@@ -14,6 +14,9 @@ pub struct StatsMessage {
     /// Frames the model did not run on: the geometric prior alone bounded their utility below the
     /// threshold (`screen`; dropped unless warmup, max-gap or a forced keyframe kept them).
     pub frames_screened: u64,
+    /// Frames dropped because they carry no usable picture (dark, saturated, noise;
+    /// `reject-junk`).
+    pub frames_junk: u64,
     /// `frames_kept / frames_in` (0 before the first frame).
     pub keep_ratio: f64,
     /// Mean preprocessing + inference time per scored frame, microseconds.
@@ -76,6 +79,7 @@ impl StatsMessage {
             .field("frames-in", self.frames_in)
             .field("frames-kept", self.frames_kept)
             .field("frames-screened", self.frames_screened)
+            .field("frames-junk", self.frames_junk)
             .field("keep-ratio", self.keep_ratio)
             .field("inference-mean-us", self.inference_mean_us)
             .field("inference-p50-us", self.inference_p50_us)
@@ -130,6 +134,8 @@ impl StatsMessage {
             frames_in: get(s, "frames-in")?,
             frames_kept: get(s, "frames-kept")?,
             frames_screened: get(s, "frames-screened")?,
+            // Absent from the messages of versions before it.
+            frames_junk: s.get("frames-junk").unwrap_or(0),
             keep_ratio: get(s, "keep-ratio")?,
             inference_mean_us: get(s, "inference-mean-us")?,
             inference_p50_us: get(s, "inference-p50-us")?,
@@ -389,6 +395,7 @@ mod tests {
             frames_in: 10,
             frames_kept: 3,
             frames_screened: 5,
+            frames_junk: 3,
             keep_ratio: 0.3,
             inference_mean_us: 812.5,
             inference_p50_us: 800,

@@ -7,6 +7,7 @@
 
 use crate::geometry::{grey_from_tensor, Fusion, Pyramid, Tracker};
 use crate::preprocess::TensorSpec;
+use crate::quality::{assess, Quality};
 
 /// The most the consumer's feedback ([`Utility::feedback`]) raises the utility.
 pub const FEEDBACK_LIMIT: f64 = 0.3;
@@ -23,11 +24,15 @@ pub enum Composed {
         s: f64,
         tau_geo: Option<f64>,
     },
+    /// A textureless view ([`Quality::Textureless`]): nothing to match, so nothing new; utility
+    /// 0 without asking the model.
+    Textureless,
 }
 
 impl Composed {
     pub fn utility(&self) -> f64 {
         match *self {
+            Composed::Textureless => 0.0,
             Composed::Screened(bound) => bound,
             Composed::Scored { utility, .. } => utility,
         }
@@ -44,6 +49,10 @@ pub struct Utility {
     /// The consumer's reports accumulated (`rate * (tau − threshold)` each, within
     /// ±[`FEEDBACK_LIMIT`]); the utility gets its positive part ([`Utility::offset`]).
     feedback: f64,
+    /// Whether frames are checked for a usable picture ([`Utility::set_quality_check`]).
+    no_quality_check: bool,
+    /// The last observed frame's quality ([`crate::quality::assess`]).
+    quality: Quality,
 }
 
 impl Utility {
@@ -54,7 +63,22 @@ impl Utility {
             tracker: Tracker::new(),
             tau: None,
             feedback: 0.0,
+            no_quality_check: false,
+            quality: Quality::Usable,
         }
+    }
+
+    /// Check each observed frame for a usable picture (on by default; the element's
+    /// `reject-junk`). Off, every frame is [`Quality::Usable`].
+    pub fn set_quality_check(&mut self, on: bool) {
+        self.no_quality_check = !on;
+    }
+
+    /// The last observed frame's quality: [`Quality::Usable`] when unchecked or unreadable. A
+    /// junk frame ([`Quality::is_junk`]) is to be dropped unscored; it was not fed to the prior,
+    /// whose chain goes from the frame before it to the frame after it.
+    pub fn quality(&self) -> Quality {
+        self.quality
     }
 
     /// What the consumer's feedback adds to every utility (0 until feedback arrives, never
@@ -121,16 +145,31 @@ impl Utility {
         enabled: bool,
     ) {
         self.tau = None;
-        match frame {
-            Some((tensor, spec)) if self.uses_geometry(enabled) => {
-                if !has_reference {
-                    self.tracker.clear();
-                }
-                let (w, h) = (spec.width as usize, spec.height as usize);
-                let grey = grey_from_tensor(tensor, w, h, spec.mean, spec.std);
-                self.tracker.observe(Pyramid::for_prior(grey, w, h));
+        self.quality = Quality::Usable;
+        let Some((tensor, spec)) = frame else {
+            self.tracker.clear();
+            return;
+        };
+        let geometry = self.uses_geometry(enabled);
+        if !geometry && self.no_quality_check {
+            self.tracker.clear();
+            return;
+        }
+        let (w, h) = (spec.width as usize, spec.height as usize);
+        let grey = grey_from_tensor(tensor, w, h, spec.mean, spec.std);
+        if !self.no_quality_check {
+            self.quality = assess(&grey, w, h);
+            if self.quality.is_junk() {
+                return; // not a picture of the scene: the chain bridges it
             }
-            _ => self.tracker.clear(),
+        }
+        if geometry {
+            if !has_reference {
+                self.tracker.clear();
+            }
+            self.tracker.observe(Pyramid::for_prior(grey, w, h));
+        } else {
+            self.tracker.clear();
         }
     }
 
@@ -171,6 +210,9 @@ impl Utility {
         screen: bool,
         model: impl FnOnce() -> Result<f64, E>,
     ) -> Result<Composed, E> {
+        if self.quality == Quality::Textureless {
+            return Ok(Composed::Textureless);
+        }
         if let Some(bound) = screen.then(|| self.screen(threshold, enabled)).flatten() {
             return Ok(Composed::Screened(bound));
         }

@@ -37,7 +37,12 @@ fn static_picture_keeps_only_the_first_frame() {
 
 #[test]
 fn alternating_pictures_are_all_kept() {
-    let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));
+    // Solid black and white are junk to the picture check (tests/junk.rs); here they are the
+    // fixture's pictures, scored.
+    let mut h = harness(
+        &format!("model={} reject-junk=false", fixture("mad.onnx")),
+        &rgb_caps(W, H),
+    );
     for i in 0..8u64 {
         let c = if i % 2 == 0 { 0 } else { 255 };
         h.push(buffer(solid(W, H, [c, c, c]), i * 33)).unwrap();
@@ -61,7 +66,10 @@ fn alternating_pictures_are_all_kept() {
 fn threshold_boundary() {
     // MAD(black, grey g) = g/255: 127 is just under 0.5, 128 just over.
     let mut h = harness(
-        &format!("model={} threshold=0.5 mode=annotate", fixture("mad.onnx")),
+        &format!(
+            "model={} threshold=0.5 mode=annotate reject-junk=false",
+            fixture("mad.onnx")
+        ),
         &rgb_caps(W, H),
     );
     h.push(buffer(solid(W, H, [0, 0, 0]), 0)).unwrap();
@@ -78,7 +86,7 @@ fn threshold_boundary() {
 fn threshold_comes_from_model_metadata_unless_set() {
     // mad_meta.onnx carries leangate.threshold=0.3; grey 90 vs black: 0.353 >= 0.3.
     let run = |props: String| {
-        let mut h = harness(&props, &rgb_caps(W, H));
+        let mut h = harness(&format!("{props} reject-junk=false"), &rgb_caps(W, H));
         h.push(buffer(solid(W, H, [0, 0, 0]), 0)).unwrap();
         h.push(buffer(solid(W, H, [90, 90, 90]), 33)).unwrap();
         drain(&mut h).len()
@@ -186,7 +194,10 @@ fn reset_event_drops_the_reference() {
 #[test]
 fn annotate_mode_passes_every_buffer_with_meta() {
     let mut h = harness(
-        &format!("model={} mode=annotate threshold=0.3", fixture("mad.onnx")),
+        &format!(
+            "model={} mode=annotate threshold=0.3 reject-junk=false",
+            fixture("mad.onnx")
+        ),
         &rgb_caps(W, H),
     );
     let pics = [
@@ -279,7 +290,10 @@ fn utility_in_format(pic: &[u8], w: u32, h: u32, format: PixelFormat, pad: usize
         .unwrap()
         .to_caps()
         .unwrap();
-    let e = element(&format!("model={} mode=annotate", fixture("mad.onnx")));
+    let e = element(&format!(
+        "model={} mode=annotate reject-junk=false",
+        fixture("mad.onnx")
+    ));
     let mut hs = gst_check::Harness::with_element(&e, Some("sink"), Some("src"));
     hs.set_src_caps(caps);
     hs.play();
@@ -723,7 +737,7 @@ fn real_clip_through_decodebin() {
 fn split_model_in_the_element_matches_the_pair_model() {
     let run = |model: &str| {
         let mut h = harness(
-            &format!("model={} mode=annotate", fixture(model)),
+            &format!("model={} mode=annotate reject-junk=false", fixture(model)),
             &rgb_caps(W, H),
         );
         for (i, g) in [0u8, 40, 40, 200, 90, 90].iter().enumerate() {

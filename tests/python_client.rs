@@ -17,7 +17,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 const PYTHON: &str = "/usr/bin/python3";
-const REASONS: [&str; 6] = ["first", "warmup", "score", "max-gap", "forced", "error"];
+const REASONS: [&str; 7] = [
+    "first", "warmup", "score", "max-gap", "forced", "error", "junk",
+];
 
 fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))

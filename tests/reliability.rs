@@ -227,7 +227,10 @@ fn bottom_up_frames_score_like_top_down_in_the_element() {
     let pic = texture(W, H, 3);
     let (planes, strides) = pack_rgb(&pic, W, H, PixelFormat::Rgb, 0);
     let mut hs = harness(
-        &format!("model={} mode=annotate", fixture("mad.onnx")),
+        &format!(
+            "model={} mode=annotate reject-junk=false",
+            fixture("mad.onnx")
+        ),
         &rgb_caps(W, H),
     );
     hs.push(buffer(solid(W, H, [0, 0, 0]), 0)).unwrap();

@@ -11,7 +11,9 @@ FORCE_KEYFRAME_EVENT = "leangate-force-keyframe"
 RESET_EVENT = "leangate-reset"
 FEEDBACK_EVENT = "leangate-feedback"
 STATS_MESSAGE = "leangate-stats"
-REASONS = ("first", "warmup", "score", "max-gap", "forced", "error")
+REASONS = ("first", "warmup", "score", "max-gap", "forced", "error", "junk")
+#: The meta's ``quality``: ``usable``, junk (never kept), or ``textureless`` (utility 0).
+QUALITIES = ("usable", "dark", "saturated", "noise", "textureless")
 
 #: Keys of the dicts yielded by ``LeanGateSource`` (``frame`` and ``pts`` come from the
 #: stream, the rest from the buffer's LeanGateMeta).
@@ -26,6 +28,7 @@ META_KEYS = (
     "frames_since_keyframe",
     "inference_us",
     "screened",
+    "quality",
 )
 
 
@@ -43,6 +46,8 @@ def meta_from_structure(s) -> Dict[str, Any]:
         # the model did not run: the prior alone bounded the utility (then this bound) below the
         # threshold (the element's `screen`); dropped unless warmup, max-gap or a forced keyframe kept it
         "screened": bool(s.get_value("screened")) if s.has_field("screened") else False,
+        # whether the frame carries a usable picture (the element's `reject-junk`)
+        "quality": s.get_value("quality") if s.has_field("quality") else "usable",
     }
 
 

@@ -13,6 +13,7 @@ _FIELDS = {
     "frames-in": ("frames_in", int, "guint64"),
     "frames-kept": ("frames_kept", int, "guint64"),
     "frames-screened": ("frames_screened", int, "guint64"),
+    "frames-junk": ("frames_junk", int, "guint64"),
     "keep-ratio": ("keep_ratio", float, "gdouble"),
     "inference-mean-us": ("inference_mean_us", float, "gdouble"),
     "inference-p50-us": ("inference_p50_us", int, "guint64"),
@@ -54,6 +55,8 @@ class LeanGateStats(Mapping):
     #: frames the model did not run on: the geometric prior alone bounded their utility below the
     #: threshold (``screen``; dropped unless warmup, max-gap or a forced keyframe kept them)
     frames_screened: Optional[int] = None
+    #: frames dropped because they carry no usable picture (dark, saturated, noise: ``reject-junk``)
+    frames_junk: Optional[int] = None
     keep_ratio: Optional[float] = None
     inference_mean_us: Optional[float] = None
     inference_p50_us: Optional[int] = None

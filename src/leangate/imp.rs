@@ -15,6 +15,7 @@ use super::{
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Score};
 use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
+use crate::quality::Quality;
 use crate::remote::{Backend, Interrupt, RemoteOptions, RemoteScorer};
 use crate::scorer::{ModelSource, Scorer, ScorerError, ScorerOptions};
 use crate::stats::{InferenceStats, StatsMessage};
@@ -50,6 +51,7 @@ const DEFAULT_MAX_SESSIONS: u32 = 0;
 const DEFAULT_STATS_INTERVAL: u64 = 0;
 const DEFAULT_GEOMETRY: bool = true;
 const DEFAULT_SCREEN: bool = true;
+const DEFAULT_REJECT_JUNK: bool = true;
 const DEFAULT_FEEDBACK_RATE: f64 = 0.2;
 const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
 const DEFAULT_SERVER_MAX_IN_FLIGHT: u32 = 16;
@@ -81,6 +83,7 @@ struct Settings {
     stats_interval: u64,
     geometry: bool,
     screen: bool,
+    reject_junk: bool,
     feedback_rate: f64,
     /// Remote scoring (crate::remote): the V2 server's URL; None = local ONNX Runtime.
     server: Option<String>,
@@ -112,6 +115,7 @@ impl Default for Settings {
             stats_interval: DEFAULT_STATS_INTERVAL,
             geometry: DEFAULT_GEOMETRY,
             screen: DEFAULT_SCREEN,
+            reject_junk: DEFAULT_REJECT_JUNK,
             feedback_rate: DEFAULT_FEEDBACK_RATE,
             server: None,
             server_model: None,
@@ -132,6 +136,7 @@ struct FrameSettings {
     stats_interval: u64,
     geometry: bool,
     screen: bool,
+    reject_junk: bool,
 }
 
 impl From<&Settings> for FrameSettings {
@@ -144,6 +149,7 @@ impl From<&Settings> for FrameSettings {
             stats_interval: s.stats_interval,
             geometry: s.geometry,
             screen: s.screen,
+            reject_junk: s.reject_junk,
         }
     }
 }
@@ -235,6 +241,7 @@ pub struct LeanGate {
     frames_in: AtomicU64,
     frames_kept: AtomicU64,
     frames_screened: AtomicU64,
+    frames_junk: AtomicU64,
     force_pending: AtomicBool,
     reset_pending: AtomicBool,
     /// `leangate-feedback` events not yet applied (their `tau` and the `feedback-rate` when they
@@ -311,12 +318,14 @@ impl LeanGate {
         let frames_in = self.frames_in.load(Ordering::Relaxed);
         let frames_kept = self.frames_kept.load(Ordering::Relaxed);
         let frames_screened = self.frames_screened.load(Ordering::Relaxed);
+        let frames_junk = self.frames_junk.load(Ordering::Relaxed);
         let (in0, kept0, screened0) = state.interval_start;
         let interval = state.stats.interval();
         let s = StatsMessage {
             frames_in,
             frames_kept,
             frames_screened,
+            frames_junk,
             keep_ratio: if frames_in > 0 {
                 frames_kept as f64 / frames_in as f64
             } else {
@@ -447,13 +456,17 @@ impl LeanGate {
         let has_reference = state.gate.has_reference();
         let spec = &state.scorer.info().spec;
         let frame = frame_readable.then_some((&state.current[..], spec));
+        state.utility.set_quality_check(fs.reject_junk);
         state.utility.observe(frame, has_reference, fs.geometry);
+        let quality = state.utility.quality();
         let mut screened = false;
         let (score, utility) = match pre {
             Err(e) => {
                 self.warn_rate_limited(state, out, &format!("cannot read frame: {e}"));
                 (Score::Failed, f64::NAN)
             }
+            // No usable picture: never kept, never the reference (crate::quality).
+            Ok(()) if quality.is_junk() => (Score::Junk, f64::NAN),
             Ok(()) if !has_reference => (Score::NoReference, f64::NAN),
             Ok(()) => {
                 let (scorer, reference, current) =
@@ -463,6 +476,7 @@ impl LeanGate {
                     .utility
                     .score_with(threshold, fs.geometry, fs.screen, model)
                 {
+                    Ok(Composed::Textureless) => (Score::Utility(0.0), 0.0),
                     Ok(Composed::Screened(bound)) => {
                         screened = true;
                         gst::trace!(CAT, imp = self, "screened: utility <= {bound:.4}");
@@ -490,7 +504,9 @@ impl LeanGate {
         let inference_us = t0.elapsed().as_micros().min(u64::MAX as u128) as u64;
         if screened {
             self.frames_screened.fetch_add(1, Ordering::Relaxed);
-        } else if matches!(score, Score::Utility(_)) {
+        } else if score == Score::Junk {
+            self.frames_junk.fetch_add(1, Ordering::Relaxed);
+        } else if matches!(score, Score::Utility(_)) && quality == Quality::Usable {
             state.stats.record(inference_us);
         }
         let pts = buf.pts();
@@ -534,11 +550,12 @@ impl LeanGate {
         gst::trace!(
             CAT,
             imp = self,
-            "pts {:?} utility {:.4} keep {} ({})",
+            "pts {:?} utility {:.4} keep {} ({}, {})",
             pts,
             utility,
             decision.keep,
-            decision.reason
+            decision.reason,
+            quality.as_str()
         );
         Ok(Some(Verdict {
             keep: decision.keep,
@@ -551,6 +568,7 @@ impl LeanGate {
                 frames_since_keyframe: decision.frames_since_keyframe.min(u32::MAX as u64) as u32,
                 inference_us,
                 screened,
+                quality,
             },
         }))
     }
@@ -736,6 +754,20 @@ impl ObjectImpl for LeanGate {
                     .default_value(DEFAULT_SCREEN)
                     .mutable_playing()
                     .build(),
+                glib::ParamSpecBoolean::builder("reject-junk")
+                    .nick("Reject junk frames")
+                    .blurb(
+                        "Never keep a frame that carries no usable picture: dark (a lens cap, a \
+                         dropped exposure), saturated (a flash) or noise; it is dropped unscored \
+                         with reason junk and quality dark/saturated/noise in its meta, never \
+                         becomes the reference (the prior's chain bridges it), and is counted in \
+                         frames-junk; a forced keyframe or max-gap waits for the next usable \
+                         frame. A textureless view (a blank wall) gets utility 0: kept only as a \
+                         stream's first frame. Off: every frame is scored",
+                    )
+                    .default_value(DEFAULT_REJECT_JUNK)
+                    .mutable_playing()
+                    .build(),
                 glib::ParamSpecDouble::builder("feedback-rate")
                     .nick("Feedback rate")
                     .blurb(
@@ -824,6 +856,14 @@ impl ObjectImpl for LeanGate {
                         "Frames the model did not run on since start because the geometric \
                          prior alone bounded their utility below the threshold (dropped unless \
                          warmup, max-gap or a forced keyframe kept them; read-only; see screen)",
+                    )
+                    .read_only()
+                    .build(),
+                glib::ParamSpecUInt64::builder("frames-junk")
+                    .nick("Frames of junk")
+                    .blurb(
+                        "Frames dropped since start because they carry no usable picture (dark, \
+                         saturated, noise; read-only; see reject-junk)",
                     )
                     .read_only()
                     .build(),
@@ -936,6 +976,10 @@ impl ObjectImpl for LeanGate {
                     settings.screen = value.get().expect("type checked upstream");
                     None
                 }
+                "reject-junk" => {
+                    settings.reject_junk = value.get().expect("type checked upstream");
+                    None
+                }
                 "feedback-rate" => {
                     settings.feedback_rate = value.get().expect("type checked upstream");
                     None
@@ -996,6 +1040,7 @@ impl LeanGate {
             "stats-interval" => settings.stats_interval.to_value(),
             "geometry" => settings.geometry.to_value(),
             "screen" => settings.screen.to_value(),
+            "reject-junk" => settings.reject_junk.to_value(),
             "feedback-rate" => settings.feedback_rate.to_value(),
             "feedback-offset" => {
                 f64::from_bits(self.feedback_offset.load(Ordering::Relaxed)).to_value()
@@ -1007,6 +1052,7 @@ impl LeanGate {
             "frames-in" => self.frames_in.load(Ordering::Relaxed).to_value(),
             "frames-kept" => self.frames_kept.load(Ordering::Relaxed).to_value(),
             "frames-screened" => self.frames_screened.load(Ordering::Relaxed).to_value(),
+            "frames-junk" => self.frames_junk.load(Ordering::Relaxed).to_value(),
             other => unreachable!("unknown property {other}"),
         }
     }
@@ -1172,6 +1218,7 @@ impl BaseTransformImpl for LeanGate {
         self.frames_in.store(0, Ordering::Relaxed);
         self.frames_kept.store(0, Ordering::Relaxed);
         self.frames_screened.store(0, Ordering::Relaxed);
+        self.frames_junk.store(0, Ordering::Relaxed);
         self.force_pending.store(false, Ordering::SeqCst);
         self.reset_pending.store(false, Ordering::SeqCst);
         lock(&self.feedback).clear();

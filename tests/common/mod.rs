@@ -7,7 +7,7 @@ use std::sync::Once;
 use gst::prelude::*;
 
 /// Every property the issue asks the element to have.
-pub const PROPERTIES: [&str; 13] = [
+pub const PROPERTIES: [&str; 15] = [
     "model",
     "threshold",
     "warmup",
@@ -21,6 +21,8 @@ pub const PROPERTIES: [&str; 13] = [
     "geometry",
     "frames-in",
     "frames-kept",
+    "reject-junk",
+    "frames-junk",
 ];
 
 /// GStreamer (once per test binary) with the leangate plugin registered. A CRITICAL log message

@@ -1,0 +1,224 @@
+//! Whether a frame carries a usable picture: the photometric check that keeps junk out of the
+//! keyframes.
+//!
+//! A black frame (a lens cap, a dropped exposure), a white or saturated one (a flash, the sun), or
+//! a frame of noise (a broken link, an uninitialised buffer) differs from the reference in every
+//! pixel, so the model reads it as all new and the gate used to keep it, make it the reference,
+//! and keep the next real frame again. A textureless view (a blank wall, a grey card) carries a
+//! picture but no geometry to match. [`assess`] tells them apart from the model's input picture,
+//! in one pass over a 2x2-binned grey copy:
+//!
+//! | [`Quality`] | rule (grey 0–255, binned) | what the element does |
+//! |---|---|---|
+//! | `Dark` | nothing bright: 99 % of the pixels below 40 | never kept, never the reference (reason `junk`) |
+//! | `Saturated` | nothing dark: 99 % of the pixels above 215 | never kept, never the reference (reason `junk`) |
+//! | `Textureless` | standard deviation below 3 | utility 0: kept only as a stream's first frame (or by `max-gap`, `warmup`, a forced keyframe) |
+//! | `Noise` | mean neighbour difference at least 0.7 of the standard deviation | never kept, never the reference (reason `junk`) |
+//! | `Usable` | none of these | scored as usual |
+//!
+//! Percentiles rather than fractions: a small bright object on black (a lamp at night,
+//! `videotestsrc pattern=ball`) is a picture. The margins, measured on every third real frame of
+//! `../shared/data` (TUM fr1 rpy and desk, 7-Scenes, EuRoC, a laptop webcam with motion blur and
+//! dark frames, phone frames of an orbit): the 99th percentile at least 125, the 1st at most 103,
+//! a standard deviation of at least 13, a neighbour difference of at most 0.24 of it. White noise
+//! gives about 1.1; sensor noise on a flat picture (sigma 1) a deviation of about 0.5.
+
+/// A frame whose 99th percentile of grey (0–255) is below this is [`Quality::Dark`].
+pub const DARK_P99: f32 = 40.0;
+/// A frame whose 1st percentile of grey (0–255) is above this is [`Quality::Saturated`].
+pub const BRIGHT_P1: f32 = 215.0;
+/// Standard deviation (grey levels) below which a view is [`Quality::Textureless`].
+pub const FLAT_STD: f32 = 3.0;
+/// Mean absolute neighbour difference over the standard deviation at or above which a frame is
+/// [`Quality::Noise`] (no spatial structure).
+pub const NOISE_RATIO: f32 = 0.7;
+
+/// What [`assess`] found in a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum Quality {
+    /// A picture to score.
+    #[default]
+    Usable,
+    /// (Nearly) all black.
+    Dark,
+    /// (Nearly) all white: saturated, a flash.
+    Saturated,
+    /// Structureless noise.
+    Noise,
+    /// A flat view: a picture without texture to match.
+    Textureless,
+}
+
+impl Quality {
+    pub const ALL: [Quality; 5] = [
+        Quality::Usable,
+        Quality::Dark,
+        Quality::Saturated,
+        Quality::Noise,
+        Quality::Textureless,
+    ];
+
+    /// The string written into `LeanGateMeta`'s `quality` field.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Quality::Usable => "usable",
+            Quality::Dark => "dark",
+            Quality::Saturated => "saturated",
+            Quality::Noise => "noise",
+            Quality::Textureless => "textureless",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Quality> {
+        Quality::ALL.into_iter().find(|q| q.as_str() == s)
+    }
+
+    /// No usable picture: never kept, never the reference.
+    pub fn is_junk(self) -> bool {
+        matches!(self, Quality::Dark | Quality::Saturated | Quality::Noise)
+    }
+}
+
+/// The quality of a grey picture (`w` x `h`, levels 0–255, row-major), e.g. the prior's
+/// [`crate::geometry::grey_from_tensor`] of the model's input. A picture smaller than 2x2 is
+/// [`Quality::Usable`] (nothing to tell).
+pub fn assess(grey: &[f32], w: usize, h: usize) -> Quality {
+    let (bw, bh) = (w / 2, h / 2);
+    if bw < 2 || bh < 2 || grey.len() < w * h {
+        return Quality::Usable;
+    }
+    // 2x2 bins: the sensor's per-pixel noise halves, the picture's structure stays.
+    let mut b = vec![0.0f32; bw * bh];
+    for (y, row) in b.chunks_exact_mut(bw).enumerate() {
+        let (r0, r1) = (&grey[2 * y * w..][..w], &grey[(2 * y + 1) * w..][..w]);
+        for (x, o) in row.iter_mut().enumerate() {
+            *o = 0.25 * (r0[2 * x] + r0[2 * x + 1] + r1[2 * x] + r1[2 * x + 1]);
+        }
+    }
+    let n = b.len() as f32;
+    let (mut sum, mut sq) = (0.0f64, 0.0f64);
+    let mut hist = [0u32; 256];
+    for &v in &b {
+        sum += v as f64;
+        sq += (v as f64) * (v as f64);
+        hist[v.clamp(0.0, 255.0) as usize] += 1;
+    }
+    let mean = sum / n as f64;
+    let std = (sq / n as f64 - mean * mean).max(0.0).sqrt() as f32;
+    // The grey level below which a fraction `q` of the pixels lie.
+    let percentile = |q: f32| {
+        let mut acc = 0u32;
+        let want = (q * n).ceil() as u32;
+        hist.iter()
+            .position(|&c| {
+                acc += c;
+                acc >= want.max(1)
+            })
+            .unwrap_or(255) as f32
+    };
+    if percentile(0.99) < DARK_P99 {
+        return Quality::Dark;
+    }
+    if percentile(0.01) > BRIGHT_P1 {
+        return Quality::Saturated;
+    }
+    if std < FLAT_STD {
+        return Quality::Textureless;
+    }
+    let (mut diff, mut pairs) = (0.0f64, 0usize);
+    for (y, row) in b.chunks_exact(bw).enumerate() {
+        for x in 0..bw - 1 {
+            diff += (row[x + 1] - row[x]).abs() as f64;
+        }
+        pairs += bw - 1;
+        if y + 1 < bh {
+            let next = &b[(y + 1) * bw..][..bw];
+            diff += row
+                .iter()
+                .zip(next)
+                .map(|(a, c)| (a - c).abs() as f64)
+                .sum::<f64>();
+            pairs += bw;
+        }
+    }
+    if (diff / pairs as f64) as f32 >= NOISE_RATIO * std {
+        return Quality::Noise;
+    }
+    Quality::Usable
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const W: usize = 96;
+    const H: usize = 64;
+
+    fn picture(f: impl Fn(usize, usize) -> f32) -> Vec<f32> {
+        (0..W * H).map(|i| f(i % W, i / W)).collect()
+    }
+
+    /// A deterministic pseudo-random sequence in [0, 1).
+    fn rng(seed: u32) -> impl FnMut() -> f32 {
+        let mut x = seed.wrapping_mul(2_654_435_761).max(1);
+        move || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            (x >> 8) as f32 / (1u32 << 24) as f32
+        }
+    }
+
+    #[test]
+    fn tells_junk_from_pictures() {
+        let scene = picture(|x, y| {
+            let (u, v) = (x as f32, y as f32);
+            120.0 + 60.0 * (u * 0.11).sin() * (v * 0.07).cos() + 30.0 * ((u + v) * 0.05).sin()
+        });
+        assert_eq!(assess(&scene, W, H), Quality::Usable);
+        assert_eq!(assess(&picture(|_, _| 0.0), W, H), Quality::Dark);
+        assert_eq!(assess(&picture(|_, _| 255.0), W, H), Quality::Saturated);
+        // A lens cap: black with a little sensor noise; a flash: white with a few details.
+        let mut r = rng(1);
+        let cap: Vec<f32> = picture(|_, _| 0.0).iter().map(|_| 6.0 * r()).collect();
+        assert_eq!(assess(&cap, W, H), Quality::Dark);
+        let flash = picture(|x, y| 240.0 + ((x * 7 + y * 3) % 15) as f32);
+        assert_eq!(assess(&flash, W, H), Quality::Saturated);
+        // A small bright object on black (a lamp at night, videotestsrc's ball) is a picture.
+        let ball = picture(|x, y| {
+            let (dx, dy) = (x as f32 - 40.0, y as f32 - 30.0);
+            if dx * dx + dy * dy < 36.0 {
+                255.0
+            } else {
+                0.0
+            }
+        });
+        assert_eq!(assess(&ball, W, H), Quality::Usable);
+        // Mid-grey with sensor noise (sigma about 1): a textureless view, not junk.
+        let mut r = rng(2);
+        let grey: Vec<f32> = (0..W * H).map(|_| 128.0 + 3.4 * (r() - 0.5)).collect();
+        assert_eq!(assess(&grey, W, H), Quality::Textureless);
+        assert!(!Quality::Textureless.is_junk());
+        // A frame of noise (a broken link).
+        let mut r = rng(3);
+        let noise: Vec<f32> = (0..W * H).map(|_| 255.0 * r()).collect();
+        assert_eq!(assess(&noise, W, H), Quality::Noise);
+        // A dark but real scene (a dim room, half in shadow) is a picture.
+        let dim = picture(|x, y| if x < W / 2 { 4.0 } else { 40.0 + (y as f32) });
+        assert_eq!(assess(&dim, W, H), Quality::Usable);
+        // Too small to tell.
+        assert_eq!(assess(&[0.0; 2], 1, 2), Quality::Usable);
+    }
+
+    #[test]
+    fn names_round_trip() {
+        for q in Quality::ALL {
+            assert_eq!(Quality::parse(q.as_str()), Some(q));
+        }
+        assert_eq!(
+            Quality::ALL.iter().filter(|q| q.is_junk()).count(),
+            3,
+            "dark, saturated, noise"
+        );
+    }
+}

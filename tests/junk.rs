@@ -1,0 +1,169 @@
+//! Junk never becomes a keyframe: the embedded default gate on real frames of `tum_fr1_desk`
+//! (a handheld sweep over office desks) with black, white and noise frames spliced in, and on a
+//! static textureless view. Skipped, saying so, when `../shared/data` is absent.
+
+mod common;
+
+use common::*;
+use gst::prelude::*;
+use gstleangate::{Quality, Reason};
+
+const W: u32 = 640;
+const H: u32 = 480;
+
+/// `n` consecutive colour frames of tum_fr1_desk from `start`, as RGB bytes.
+fn desk_frames(start: usize, n: usize) -> Option<Vec<Vec<u8>>> {
+    let dir = shared_data("tum_fr1_desk/rgb")?;
+    let mut files: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .collect();
+    files.sort();
+    Some(
+        files[start..start + n]
+            .iter()
+            .map(|p| image::open(p).unwrap().into_rgb8().into_raw())
+            .collect(),
+    )
+}
+
+/// The default gate (annotate) over `frames`: each frame's (keep, reason, quality), and the
+/// element's `frames-junk`.
+fn gate(frames: &[Vec<u8>], props: &str) -> (Vec<(bool, Reason, Quality)>, u64) {
+    let mut h = harness(&format!("mode=annotate {props}"), &rgb_caps(W, H));
+    let mut out = Vec::new();
+    for (i, f) in frames.iter().enumerate() {
+        h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
+        out.extend(drain(&mut h));
+    }
+    let junk = h.element().unwrap().property::<u64>("frames-junk");
+    let m = out
+        .iter()
+        .map(|b| {
+            let m = meta(b);
+            (m.keep, m.reason, m.quality)
+        })
+        .collect();
+    (m, junk)
+}
+
+fn kept(v: &[(bool, Reason, Quality)]) -> Vec<usize> {
+    (0..v.len()).filter(|&i| v[i].0).collect()
+}
+
+fn black() -> Vec<u8> {
+    solid(W, H, [0, 0, 0])
+}
+
+/// 40 real frames with frame 20 black: the black frame is dropped as junk (it used to score 0.876,
+/// be kept, become the reference, and have frame 21 kept again), and the real frames' keeps are
+/// those of the same 40 frames without it, within one.
+#[test]
+fn a_black_frame_in_real_video_is_never_kept() {
+    let Some(real) = desk_frames(100, 40) else {
+        return;
+    };
+    let (clean, _) = gate(&real, "");
+    let mut spliced = real.clone();
+    spliced[20] = black();
+    let (got, junk) = gate(&spliced, "");
+    assert_eq!(
+        (got[20].0, got[20].1, got[20].2),
+        (false, Reason::Junk, Quality::Dark)
+    );
+    assert_eq!(junk, 1);
+    let (a, b): (Vec<_>, Vec<_>) = (
+        kept(&clean).into_iter().filter(|&i| i != 20).collect(),
+        kept(&got),
+    );
+    assert!(
+        a.len().abs_diff(b.len()) <= 1,
+        "real keeps {b:?}, without the black frame {a:?}"
+    );
+    assert!(!b.contains(&21) || a.contains(&21), "frame 21 kept again");
+    // With the check off, the black frame is what it was: kept as all new.
+    let (off, junk) = gate(&spliced, "reject-junk=false");
+    assert!(off[20].0 && junk == 0, "{:?}", off[20]);
+}
+
+/// Every 5th frame black (a flashing or dropping link): no dark frame kept (8 of the 16 keeps
+/// were black before), and the real frames' keeps are those of the 32 real frames alone, within
+/// one.
+#[test]
+fn a_flashing_stream_keeps_no_dark_frame() {
+    let Some(real) = desk_frames(200, 40) else {
+        return;
+    };
+    let spliced: Vec<Vec<u8>> = (0..40)
+        .map(|i| if i % 5 == 2 { black() } else { real[i].clone() })
+        .collect();
+    let alone: Vec<Vec<u8>> = (0..40)
+        .filter(|i| i % 5 != 2)
+        .map(|i| real[i].clone())
+        .collect();
+    let (got, junk) = gate(&spliced, "");
+    let (want, _) = gate(&alone, "");
+    assert_eq!(junk, 8);
+    for (i, g) in got.iter().enumerate() {
+        if i % 5 == 2 {
+            assert_eq!(*g, (false, Reason::Junk, Quality::Dark), "frame {i}");
+        }
+    }
+    let (g, w) = (kept(&got).len(), kept(&want).len());
+    assert!(
+        g.abs_diff(w) <= 1,
+        "{g} real keeps against {w} without the black frames"
+    );
+    // White (a flash) and noise frames are junk too.
+    let mut x = 12345u32;
+    let noise: Vec<u8> = (0..W * H * 3)
+        .map(|_| {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            (x >> 24) as u8
+        })
+        .collect();
+    let mut other = real[..10].to_vec();
+    other[4] = solid(W, H, [255, 255, 255]);
+    other[7] = noise;
+    let (got, junk) = gate(&other, "");
+    assert_eq!((got[4].0, got[4].2), (false, Quality::Saturated));
+    assert_eq!((got[7].0, got[7].2), (false, Quality::Noise));
+    assert_eq!(junk, 2);
+}
+
+/// A static textureless view (mid-grey with sensor noise, sigma about 1): only its first frame is
+/// kept (5 of 40 were: the prior lost its chain and the student alone read 0.34–0.50). A stream
+/// that starts black keeps its first real frame as `first`.
+#[test]
+fn a_textureless_view_keeps_only_its_first_frame_and_junk_never_starts_a_stream() {
+    common::init();
+    let mut x = 7u32;
+    let grey: Vec<Vec<u8>> = (0..40)
+        .map(|_| {
+            (0..W * H * 3)
+                .map(|_| {
+                    x = x.wrapping_mul(1_103_515_245).wrapping_add(12345);
+                    // about +-2 levels, sigma about 1.2
+                    (128 + ((x >> 16) % 5) as i32 - 2) as u8
+                })
+                .collect()
+        })
+        .collect();
+    let (got, junk) = gate(&grey, "");
+    assert_eq!(kept(&got), vec![0], "{got:?}");
+    assert!(got.iter().all(|g| g.2 == Quality::Textureless));
+    assert_eq!(junk, 0, "textureless is a view, not junk");
+    let Some(real) = desk_frames(300, 6) else {
+        return;
+    };
+    let mut capped = vec![black(), black()];
+    capped.extend(real);
+    let (got, _) = gate(&capped, "");
+    assert_eq!(
+        (got[0].0, got[1].0, got[2].0, got[2].1),
+        (false, false, true, Reason::First)
+    );
+}
