@@ -522,6 +522,7 @@ fn section_scoring(reps: usize) {
     use gstleangate::{
         default_model, Composed, Gate, GateConfig, Score, Scorer, ScorerOptions, Utility,
     };
+    // Every configuration but the last runs the picture check, as the element does by default.
     println!("\n## The element's scoring per frame, one core (preprocessing 640x480 RGB, the embedded student, the prior, the gate): frames/s, median of {reps}, interleaved");
     let Some(frames) = real_frames(300) else {
         println!("SKIPPED: ../shared/data/tum_fr1_desk absent");
@@ -533,10 +534,14 @@ fn section_scoring(reps: usize) {
     let pre =
         Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT709, info.spec.clone()).unwrap();
     let threshold = info.threshold.unwrap_or(0.5);
-    let mut run = |geometry: bool, screen: bool| -> (f64, f64) {
+    // `check`: the picture check (`reject-junk`, and the sharpness `sharpness-wait` uses), as
+    // the element runs it by default.
+    let mut run = |geometry: bool, screen: bool, check: bool| -> (f64, f64) {
         let mut utility = Utility::new(info.geometry);
+        utility.set_quality_check(check);
         let mut gate = Gate::new(GateConfig {
             threshold,
+            sharpness_wait: if check { 2 } else { 0 },
             ..Default::default()
         });
         let (mut reference, mut current) =
@@ -547,6 +552,10 @@ fn section_scoring(reps: usize) {
                 .unwrap();
             let has_reference = gate.has_reference();
             utility.observe(Some((&current[..], &info.spec)), has_reference, geometry);
+            if utility.quality().is_junk() {
+                gate.decide(Score::Junk);
+                continue;
+            }
             let composed = has_reference.then(|| {
                 let model = || scorer.score(&reference, &current).map(f64::from);
                 utility
@@ -554,7 +563,7 @@ fn section_scoring(reps: usize) {
                     .unwrap()
             });
             let score = composed.map_or(Score::NoReference, |c| Score::Utility(c.utility()));
-            if gate.decide(score).keep {
+            if gate.decide_with(score, utility.sharpness()).keep {
                 scorer.on_keep(matches!(composed, Some(Composed::Scored { .. })));
                 std::mem::swap(&mut reference, &mut current);
                 utility.on_keep();
@@ -563,16 +572,23 @@ fn section_scoring(reps: usize) {
         let n = frames.len() as f64;
         (n / t0.elapsed().as_secs_f64(), n / (thread_cpu_s() - c0))
     };
-    let (mut alone, mut fused, mut screened) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut alone, mut fused, mut screened, mut unchecked) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for _ in 0..reps {
-        alone.push(run(false, false));
-        fused.push(run(true, false));
-        screened.push(run(true, true));
+        alone.push(run(false, false, true));
+        fused.push(run(true, false, true));
+        screened.push(run(true, true, true));
+        unchecked.push(run(true, true, false));
     }
     let wall = |v: &[(f64, f64)]| median(&v.iter().map(|x| x.0).collect::<Vec<_>>());
     let cpu = |v: &[(f64, f64)]| median(&v.iter().map(|x| x.1).collect::<Vec<_>>());
-    let (a, b, c) = (wall(&alone), wall(&fused), wall(&screened));
-    let (ac, bc, cc) = (cpu(&alone), cpu(&fused), cpu(&screened));
+    let (a, b, c, d) = (
+        wall(&alone),
+        wall(&fused),
+        wall(&screened),
+        wall(&unchecked),
+    );
+    let (ac, bc, cc, dc) = (cpu(&alone), cpu(&fused), cpu(&screened), cpu(&unchecked));
     println!(
         "model {} ({}), {} frames {w}x{h}, fusion: {}",
         info.name,
@@ -594,6 +610,10 @@ fn section_scoring(reps: usize) {
     println!(
         "| model + prior, the prior screening (the default) | {c:.0} | {:.2} | {cc:.0} |",
         1e3 / c
+    );
+    println!(
+        "| the default without the picture check (`reject-junk=false sharpness-wait=0`) | {d:.0} | {:.2} | {dc:.0} |",
+        1e3 / d
     );
 }
 

@@ -16,6 +16,13 @@
 //! 6. `max_gap > 0` and already `max_gap` consecutive drops → keep, `max-gap`;
 //! 7. otherwise drop (reason `score`).
 //!
+//! Sharper keyframes ([`GateConfig::sharpness_wait`] > 0, with each frame's sharpness given to
+//! [`Gate::decide_with`]): a keep due on score (rule 5) on a frame blurrier than
+//! [`SHARPER_RATIO`] of the sharpest of the [`SHARPNESS_HISTORY`] frames before it waits, the frame
+//! dropped with reason `deferred`, and goes to the first following frame that is not that blurry
+//! (whatever its utility: the keep was due), or to the last one the wait allows. Keeps for any
+//! other reason end a wait. Without sharpness (the oracle, a model failure) nothing waits.
+//!
 //! Every kept frame becomes the new reference.
 
 use std::fmt;
@@ -31,10 +38,12 @@ pub enum Reason {
     Error,
     /// Dropped: no usable picture ([`Score::Junk`]).
     Junk,
+    /// Dropped: a keep is due but waits for a sharper frame ([`GateConfig::sharpness_wait`]).
+    Deferred,
 }
 
 impl Reason {
-    pub const ALL: [Reason; 7] = [
+    pub const ALL: [Reason; 8] = [
         Reason::First,
         Reason::Warmup,
         Reason::Score,
@@ -42,6 +51,7 @@ impl Reason {
         Reason::Forced,
         Reason::Error,
         Reason::Junk,
+        Reason::Deferred,
     ];
 
     /// The string written into `LeanGateMeta`'s `reason` field.
@@ -54,6 +64,7 @@ impl Reason {
             Reason::Forced => "forced",
             Reason::Error => "error",
             Reason::Junk => "junk",
+            Reason::Deferred => "deferred",
         }
     }
 
@@ -90,7 +101,15 @@ pub struct GateConfig {
     pub warmup: u64,
     /// Force a keep after this many consecutive drops; 0 disables.
     pub max_gap: u64,
+    /// Most frames a keep due on a blurred frame waits for a sharper one; 0 = never waits.
+    pub sharpness_wait: u64,
 }
+
+/// A frame is blurred, for [`GateConfig::sharpness_wait`], when its sharpness is below this
+/// fraction of the sharpest of the [`SHARPNESS_HISTORY`] frames before it.
+pub const SHARPER_RATIO: f64 = 0.8;
+/// How many preceding frames a frame's sharpness is compared with.
+pub const SHARPNESS_HISTORY: usize = 3;
 
 impl Default for GateConfig {
     fn default() -> Self {
@@ -98,6 +117,7 @@ impl Default for GateConfig {
             threshold: 0.5,
             warmup: 0,
             max_gap: 0,
+            sharpness_wait: 0,
         }
     }
 }
@@ -122,6 +142,10 @@ pub struct Gate {
     since_keyframe: u64,
     force_next: bool,
     kept: u64,
+    /// Sharpness of the last usable frames, newest last.
+    sharpness: std::collections::VecDeque<f64>,
+    /// Frames a due keep has waited for a sharper frame (0: none waiting).
+    waited: u64,
 }
 
 impl Gate {
@@ -133,6 +157,8 @@ impl Gate {
             since_keyframe: 0,
             force_next: false,
             kept: 0,
+            sharpness: std::collections::VecDeque::with_capacity(SHARPNESS_HISTORY + 1),
+            waited: 0,
         }
     }
 
@@ -167,6 +193,8 @@ impl Gate {
     pub fn drop_reference(&mut self) {
         self.has_reference = false;
         self.since_keyframe = 0;
+        self.sharpness.clear();
+        self.waited = 0;
     }
 
     /// A new stream or a flush: forget the reference and restart the warm-up count.
@@ -183,6 +211,12 @@ impl Gate {
 
     /// Decide the fate of the next frame.
     pub fn decide(&mut self, score: Score) -> Decision {
+        self.decide_with(score, None)
+    }
+
+    /// Decide the fate of the next frame, given its sharpness
+    /// ([`crate::quality::sharpness`]) for [`GateConfig::sharpness_wait`].
+    pub fn decide_with(&mut self, score: Score, sharpness: Option<f64>) -> Decision {
         if score == Score::Junk {
             // Not a frame of the stream's pictures: no reference, warm-up or keep changes.
             if self.has_reference {
@@ -212,10 +246,38 @@ impl Gate {
                 _ => None,
             }
         };
+        // A keep due on score (now, or waiting since an earlier frame) on a blurred frame waits.
+        let mut reason = reason;
+        let mut deferred = false;
+        let due = reason == Some(Reason::Score) || (reason.is_none() && self.waited > 0);
+        if due && self.cfg.sharpness_wait > 0 {
+            let best = self
+                .sharpness
+                .iter()
+                .copied()
+                .fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v))));
+            let blurred = sharpness
+                .zip(best)
+                .is_some_and(|(s, b)| s < SHARPER_RATIO * b);
+            if blurred && self.waited < self.cfg.sharpness_wait {
+                reason = None;
+                deferred = true;
+                self.waited += 1;
+            } else {
+                reason = Some(Reason::Score);
+            }
+        }
+        if let Some(s) = sharpness {
+            if self.sharpness.len() == SHARPNESS_HISTORY {
+                self.sharpness.pop_front();
+            }
+            self.sharpness.push_back(s);
+        }
         self.frames_since_restart = self.frames_since_restart.saturating_add(1);
         match reason {
             Some(reason) => {
                 self.has_reference = true;
+                self.waited = 0;
                 self.force_next = false;
                 self.since_keyframe = 0;
                 self.kept += 1;
@@ -230,7 +292,11 @@ impl Gate {
                 self.since_keyframe += 1;
                 Decision {
                     keep: false,
-                    reason: Reason::Score,
+                    reason: if deferred {
+                        Reason::Deferred
+                    } else {
+                        Reason::Score
+                    },
                     keyframe_index: self.kept,
                     frames_since_keyframe: self.since_keyframe,
                 }
@@ -340,6 +406,43 @@ mod tests {
         // Whatever the utility would have been: a junk frame is not kept.
         assert!(!g.decide(Score::Junk).keep);
         assert_eq!(g.kept(), 4);
+    }
+
+    #[test]
+    fn a_keep_due_on_a_blurred_frame_waits_for_a_sharper_one_within_its_limit() {
+        let mut g = Gate::new(GateConfig {
+            sharpness_wait: 2,
+            ..Default::default()
+        });
+        let mut step = |u: f64, s: f64| {
+            let d = g.decide_with(Score::Utility(u), Some(s));
+            (d.keep, d.reason)
+        };
+        assert_eq!(step(0.0, 100.0), (true, Reason::First));
+        // Sharp history 100; a due keep at sharpness 50 waits, and goes to the next sharp frame,
+        // even though that frame's utility is below the threshold.
+        assert_eq!(step(0.1, 100.0), (false, Reason::Score));
+        assert_eq!(step(0.6, 50.0), (false, Reason::Deferred));
+        assert_eq!(step(0.4, 95.0), (true, Reason::Score));
+        // Two blurred frames in a row: the wait ends at its limit, on a blurred frame.
+        step(0.1, 100.0);
+        assert_eq!(step(0.7, 40.0), (false, Reason::Deferred));
+        assert_eq!(step(0.7, 30.0), (false, Reason::Deferred));
+        assert_eq!(step(0.7, 20.0), (true, Reason::Score));
+        // A sharp enough frame keeps at once; off (0), nothing waits.
+        step(0.1, 100.0);
+        assert_eq!(step(0.6, 85.0), (true, Reason::Score));
+        let mut off = Gate::new(GateConfig::default());
+        off.decide(Score::NoReference);
+        off.decide_with(Score::Utility(0.1), Some(100.0));
+        assert!(off.decide_with(Score::Utility(0.6), Some(10.0)).keep);
+        // Without sharpness (the oracle) nothing waits either.
+        let mut g = Gate::new(GateConfig {
+            sharpness_wait: 2,
+            ..Default::default()
+        });
+        g.decide(Score::NoReference);
+        assert!(g.decide(Score::Utility(0.6)).keep);
     }
 
     #[test]

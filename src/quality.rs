@@ -79,72 +79,144 @@ impl Quality {
     }
 }
 
+/// What [`measure`] finds in one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measured {
+    pub quality: Quality,
+    /// [`sharpness`]'s measure (`None` for junk and pictures too small).
+    pub sharpness: Option<f64>,
+}
+
 /// The quality of a grey picture (`w` x `h`, levels 0–255, row-major), e.g. the prior's
-/// [`crate::geometry::grey_from_tensor`] of the model's input. A picture smaller than 2x2 is
+/// [`crate::geometry::grey_from_tensor`] of the model's input. A picture smaller than 4x4 is
 /// [`Quality::Usable`] (nothing to tell).
 pub fn assess(grey: &[f32], w: usize, h: usize) -> Quality {
+    measure(grey, w, h, &mut Vec::new()).quality
+}
+
+/// [`assess`] and [`sharpness`] in three passes (two over the 2x2-binned picture, one over the
+/// picture for the Laplacian); `bins` is scratch space kept between frames (no allocation once it
+/// has grown).
+pub fn measure(grey: &[f32], w: usize, h: usize, bins: &mut Vec<f32>) -> Measured {
     let (bw, bh) = (w / 2, h / 2);
+    let usable = Measured {
+        quality: Quality::Usable,
+        sharpness: None,
+    };
     if bw < 2 || bh < 2 || grey.len() < w * h {
-        return Quality::Usable;
+        return usable;
     }
-    // 2x2 bins: the sensor's per-pixel noise halves, the picture's structure stays.
-    let mut b = vec![0.0f32; bw * bh];
-    for (y, row) in b.chunks_exact_mut(bw).enumerate() {
-        let (r0, r1) = (&grey[2 * y * w..][..w], &grey[(2 * y + 1) * w..][..w]);
-        for (x, o) in row.iter_mut().enumerate() {
-            *o = 0.25 * (r0[2 * x] + r0[2 * x + 1] + r1[2 * x] + r1[2 * x + 1]);
-        }
-    }
-    let n = b.len() as f32;
-    let (mut sum, mut sq) = (0.0f64, 0.0f64);
+    // Pass 1: 2x2 bins (the sensor's per-pixel noise halves, the picture's structure stays),
+    // their sum, sum of squares and histogram.
+    bins.clear();
+    bins.resize(bw * bh, 0.0);
     let mut hist = [0u32; 256];
-    for &v in &b {
-        sum += v as f64;
-        sq += (v as f64) * (v as f64);
-        hist[v.clamp(0.0, 255.0) as usize] += 1;
+    let (mut sum, mut sq) = (0.0f64, 0.0f64);
+    for (y, row) in bins.chunks_exact_mut(bw).enumerate() {
+        let (r0, r1) = (
+            &grey[2 * y * w..][..2 * bw],
+            &grey[(2 * y + 1) * w..][..2 * bw],
+        );
+        let (mut rs, mut rq) = (0.0f32, 0.0f32);
+        for ((o, a), b) in row
+            .iter_mut()
+            .zip(r0.chunks_exact(2))
+            .zip(r1.chunks_exact(2))
+        {
+            let v = 0.25 * (a[0] + a[1] + b[0] + b[1]);
+            *o = v;
+            rs += v;
+            rq += v * v;
+            hist[v.clamp(0.0, 255.0) as usize] += 1;
+        }
+        sum += rs as f64;
+        sq += rq as f64;
     }
+    let n = bins.len() as f32;
     let mean = sum / n as f64;
     let std = (sq / n as f64 - mean * mean).max(0.0).sqrt() as f32;
     // The grey level below which a fraction `q` of the pixels lie.
     let percentile = |q: f32| {
+        let want = ((q * n).ceil() as u32).max(1);
         let mut acc = 0u32;
-        let want = (q * n).ceil() as u32;
         hist.iter()
             .position(|&c| {
                 acc += c;
-                acc >= want.max(1)
+                acc >= want
             })
             .unwrap_or(255) as f32
     };
+    let junk = |quality| Measured {
+        quality,
+        sharpness: None,
+    };
     if percentile(0.99) < DARK_P99 {
-        return Quality::Dark;
+        return junk(Quality::Dark);
     }
     if percentile(0.01) > BRIGHT_P1 {
-        return Quality::Saturated;
+        return junk(Quality::Saturated);
     }
-    if std < FLAT_STD {
-        return Quality::Textureless;
-    }
-    let (mut diff, mut pairs) = (0.0f64, 0usize);
-    for (y, row) in b.chunks_exact(bw).enumerate() {
+    // Pass 2: neighbour differences of the bins (structure).
+    let b = &bins[..];
+    let mut diff = 0.0f64;
+    for y in 0..bh {
+        let row = &b[y * bw..][..bw];
+        let mut d = 0.0f32;
         for x in 0..bw - 1 {
-            diff += (row[x + 1] - row[x]).abs() as f64;
+            d += (row[x + 1] - row[x]).abs();
         }
-        pairs += bw - 1;
         if y + 1 < bh {
             let next = &b[(y + 1) * bw..][..bw];
-            diff += row
-                .iter()
-                .zip(next)
-                .map(|(a, c)| (a - c).abs() as f64)
-                .sum::<f64>();
-            pairs += bw;
+            for (a, c) in row.iter().zip(next) {
+                d += (a - c).abs();
+            }
         }
+        diff += d as f64;
     }
-    if (diff / pairs as f64) as f32 >= NOISE_RATIO * std {
-        return Quality::Noise;
+    let pairs = (bh * (bw - 1) + (bh - 1) * bw) as f64;
+    let quality = if std < FLAT_STD {
+        Quality::Textureless
+    } else if (diff / pairs) as f32 >= NOISE_RATIO * std {
+        return junk(Quality::Noise);
+    } else {
+        Quality::Usable
+    };
+    Measured {
+        quality,
+        sharpness: Some(laplacian_variance(grey, w, h)),
     }
-    Quality::Usable
+}
+
+/// Pass 3: the variance of the 4-neighbour Laplacian at full resolution (blur of a few pixels
+/// averages away in the bins), rows accumulated in f32 so that the loop vectorises.
+fn laplacian_variance(grey: &[f32], w: usize, h: usize) -> f64 {
+    let (mut sum, mut sq) = (0.0f64, 0.0f64);
+    for y in 1..h - 1 {
+        let (up, row, down) = (
+            &grey[(y - 1) * w..][..w],
+            &grey[y * w..][..w],
+            &grey[(y + 1) * w..][..w],
+        );
+        let (mut rs, mut rq) = (0.0f32, 0.0f32);
+        for x in 1..w - 1 {
+            let l = up[x] + down[x] + row[x - 1] + row[x + 1] - 4.0 * row[x];
+            rs += l;
+            rq += l * l;
+        }
+        sum += rs as f64;
+        sq += rq as f64;
+    }
+    let n = ((w - 2) * (h - 2)) as f64;
+    let mean = sum / n;
+    (sq / n - mean * mean).max(0.0)
+}
+
+/// Sharpness of a grey picture (`w` x `h`, levels 0–255): the variance of its 4-neighbour
+/// Laplacian, a usual focus measure. Motion blur and defocus lower it; it is
+/// compared between neighbouring frames of one stream (the scene changes little between them),
+/// never as an absolute. `None` for junk or a picture smaller than 4x4 ([`measure`]).
+pub fn sharpness(grey: &[f32], w: usize, h: usize) -> Option<f64> {
+    measure(grey, w, h, &mut Vec::new()).sharpness
 }
 
 #[cfg(test)]
@@ -208,6 +280,36 @@ mod tests {
         assert_eq!(assess(&dim, W, H), Quality::Usable);
         // Too small to tell.
         assert_eq!(assess(&[0.0; 2], 1, 2), Quality::Usable);
+    }
+
+    #[test]
+    fn blur_lowers_sharpness() {
+        let sharp = picture(|x, y| {
+            if (x / 12 + y / 12) % 2 == 0 {
+                40.0
+            } else {
+                200.0
+            }
+        });
+        // A horizontal box blur of 5 pixels, as a fast pan leaves it.
+        let blurred: Vec<f32> = (0..W * H)
+            .map(|i| {
+                let (x, y) = (i % W, i / W);
+                (0..5)
+                    .map(|d| sharp[y * W + (x + d).saturating_sub(2).min(W - 1)])
+                    .sum::<f32>()
+                    / 5.0
+            })
+            .collect();
+        let (s, b) = (
+            sharpness(&sharp, W, H).unwrap(),
+            sharpness(&blurred, W, H).unwrap(),
+        );
+        assert!(b < 0.5 * s, "blurred {b} against sharp {s}");
+        // A flat view has none; junk and tiny pictures have no measure.
+        assert_eq!(sharpness(&picture(|_, _| 77.0), W, H), Some(0.0));
+        assert_eq!(sharpness(&picture(|_, _| 0.0), W, H), None);
+        assert_eq!(sharpness(&[1.0; 4], 2, 2), None);
     }
 
     #[test]

@@ -7,7 +7,7 @@
 
 use crate::geometry::{grey_from_tensor, Fusion, Pyramid, Tracker};
 use crate::preprocess::TensorSpec;
-use crate::quality::{assess, Quality};
+use crate::quality::{measure, Quality};
 
 /// The most the consumer's feedback ([`Utility::feedback`]) raises the utility.
 pub const FEEDBACK_LIMIT: f64 = 0.3;
@@ -53,6 +53,10 @@ pub struct Utility {
     no_quality_check: bool,
     /// The last observed frame's quality ([`crate::quality::assess`]).
     quality: Quality,
+    /// The last observed frame's sharpness ([`crate::quality::sharpness`]), when checked.
+    sharpness: Option<f64>,
+    /// Scratch for [`measure`], kept between frames.
+    bins: Vec<f32>,
 }
 
 impl Utility {
@@ -65,6 +69,8 @@ impl Utility {
             feedback: 0.0,
             no_quality_check: false,
             quality: Quality::Usable,
+            sharpness: None,
+            bins: Vec::new(),
         }
     }
 
@@ -79,6 +85,12 @@ impl Utility {
     /// whose chain goes from the frame before it to the frame after it.
     pub fn quality(&self) -> Quality {
         self.quality
+    }
+
+    /// The last observed frame's sharpness ([`crate::quality::sharpness`] of the model's
+    /// picture); `None` when unchecked, unreadable or junk.
+    pub fn sharpness(&self) -> Option<f64> {
+        self.sharpness
     }
 
     /// What the consumer's feedback adds to every utility (0 until feedback arrives, never
@@ -146,6 +158,7 @@ impl Utility {
     ) {
         self.tau = None;
         self.quality = Quality::Usable;
+        self.sharpness = None;
         let Some((tensor, spec)) = frame else {
             self.tracker.clear();
             return;
@@ -158,7 +171,8 @@ impl Utility {
         let (w, h) = (spec.width as usize, spec.height as usize);
         let grey = grey_from_tensor(tensor, w, h, spec.mean, spec.std);
         if !self.no_quality_check {
-            self.quality = assess(&grey, w, h);
+            let m = measure(&grey, w, h, &mut self.bins);
+            (self.quality, self.sharpness) = (m.quality, m.sharpness);
             if self.quality.is_junk() {
                 return; // not a picture of the scene: the chain bridges it
             }

@@ -38,6 +38,7 @@ const FALLBACK_THRESHOLD: f64 = 0.5;
 const DEFAULT_THRESHOLD: f64 = THRESHOLD_FROM_MODEL;
 const DEFAULT_WARMUP: u32 = 0;
 const DEFAULT_MAX_GAP: u32 = 0;
+const DEFAULT_SHARPNESS_WAIT: u32 = 2;
 const DEFAULT_MODE: GateMode = GateMode::Drop;
 const DEFAULT_EXECUTION_PROVIDER: ExecutionProviderChoice = ExecutionProviderChoice::Auto;
 const DEFAULT_PRECISION: PrecisionChoice = PrecisionChoice::Auto;
@@ -70,6 +71,7 @@ struct Settings {
     threshold: f64,
     warmup: u32,
     max_gap: u32,
+    sharpness_wait: u32,
     mode: GateMode,
     execution_provider: ExecutionProviderChoice,
     precision: PrecisionChoice,
@@ -102,6 +104,7 @@ impl Default for Settings {
             threshold: DEFAULT_THRESHOLD,
             warmup: DEFAULT_WARMUP,
             max_gap: DEFAULT_MAX_GAP,
+            sharpness_wait: DEFAULT_SHARPNESS_WAIT,
             mode: DEFAULT_MODE,
             execution_provider: DEFAULT_EXECUTION_PROVIDER,
             precision: DEFAULT_PRECISION,
@@ -132,6 +135,7 @@ struct FrameSettings {
     threshold: f64,
     warmup: u32,
     max_gap: u32,
+    sharpness_wait: u32,
     mode: GateMode,
     stats_interval: u64,
     geometry: bool,
@@ -145,6 +149,7 @@ impl From<&Settings> for FrameSettings {
             threshold: s.threshold,
             warmup: s.warmup,
             max_gap: s.max_gap,
+            sharpness_wait: s.sharpness_wait,
             mode: s.mode,
             stats_interval: s.stats_interval,
             geometry: s.geometry,
@@ -283,6 +288,7 @@ impl LeanGate {
             },
             warmup: settings.warmup as u64,
             max_gap: settings.max_gap as u64,
+            sharpness_wait: settings.sharpness_wait as u64,
         }
     }
 
@@ -510,7 +516,7 @@ impl LeanGate {
             state.stats.record(inference_us);
         }
         let pts = buf.pts();
-        let decision = state.gate.decide(score);
+        let decision = state.gate.decide_with(score, state.utility.sharpness());
         let reference_pts = if decision.keep && score == Score::NoReference {
             pts
         } else {
@@ -619,6 +625,19 @@ impl ObjectImpl for LeanGate {
                     .nick("Maximum gap")
                     .blurb("Force a keep after this many consecutive dropped frames (0 = off)")
                     .default_value(DEFAULT_MAX_GAP)
+                    .mutable_playing()
+                    .build(),
+                glib::ParamSpecUInt::builder("sharpness-wait")
+                    .nick("Wait for a sharper frame")
+                    .blurb(
+                        "When a keep is due on a frame blurrier than 0.8 of the sharpest of the 3 \
+                         frames before it (variance of the Laplacian of the model's picture), \
+                         drop it (reason deferred) and keep the first of the next frames that is \
+                         not, or the last of this many; no buffering, no added latency. 0 = keep \
+                         at once",
+                    )
+                    .maximum(30)
+                    .default_value(DEFAULT_SHARPNESS_WAIT)
                     .mutable_playing()
                     .build(),
                 glib::ParamSpecEnum::builder_with_default("mode", DEFAULT_MODE)
@@ -924,6 +943,10 @@ impl ObjectImpl for LeanGate {
                     settings.max_gap = value.get().expect("type checked upstream");
                     None
                 }
+                "sharpness-wait" => {
+                    settings.sharpness_wait = value.get().expect("type checked upstream");
+                    None
+                }
                 "mode" => {
                     settings.mode = value.get().expect("type checked upstream");
                     None
@@ -1027,6 +1050,7 @@ impl LeanGate {
             "threshold" => settings.threshold.to_value(),
             "warmup" => settings.warmup.to_value(),
             "max-gap" => settings.max_gap.to_value(),
+            "sharpness-wait" => settings.sharpness_wait.to_value(),
             "mode" => settings.mode.to_value(),
             "execution-provider" => settings.execution_provider.to_value(),
             "precision" => settings.precision.to_value(),
