@@ -2151,3 +2151,27 @@ print(json.dumps({"keys": sorted(keys), "fields": sorted(fields), "META_KEYS": l
     assert_eq!(set("META_KEYS"), keys, "leangate_client.META_KEYS");
     assert!(keys.contains("frame") && keys.contains("pts"));
 }
+
+/// `leangate-client --version` and `reconstruct.py --version` say the project's version, the
+/// same as the plugin's and the `leangate` CLI's (one workspace version).
+#[test]
+fn the_python_tools_say_their_version() {
+    if !python_ok() {
+        return;
+    }
+    let want = env!("CARGO_PKG_VERSION");
+    let o = client_module(&["--version"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(stdout(&o).trim(), format!("leangate-client {want}"));
+    let o = run({
+        let mut c = command(PYTHON);
+        c.arg(repo().join("pipelines/reconstruct.py"))
+            .arg("--version");
+        c
+    });
+    assert!(
+        stdout(&o).trim().ends_with(&format!(" {want}")),
+        "{}",
+        stdout(&o)
+    );
+}

@@ -111,6 +111,9 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
         epilog="The plugin is found through GST_PLUGIN_PATH (the directory holding "
         "libgstleangate.so) or --plugin-path.",
     )
+    from . import __version__
+
+    ap.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     ap.add_argument(
         "input",
         nargs="?",

@@ -1132,6 +1132,9 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
         "the models go under OUT/sparse/N, COLMAP's messages into OUT/colmap.log. The plugin is "
         "found through GST_PLUGIN_PATH or --plugin-path.",
     )
+    from . import __version__
+
+    ap.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     ap.add_argument("input", help="video file, TUM-layout directory (rgb.txt), or image folder")
     ap.add_argument("--out", default="out/reconstruct", help="output directory (default %(default)s)")
     which = ap.add_mutually_exclusive_group()

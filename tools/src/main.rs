@@ -1022,7 +1022,22 @@ fn print_summary(r: &eval::EvalReport) {
             f(&g("fps"), 1),
         );
     }
+    // What the columns mean, under the first table of a run (docs: README, "The tools").
+    static LEGEND: std::sync::Once = std::sync::Once::new();
+    LEGEND.call_once(|| say!("{EVAL_LEGEND}"));
 }
+
+/// The legend of the eval table's columns, printed once per run under the first table.
+const EVAL_LEGEND: &str = "columns:
+  kept: frames the policy kept; ratio: kept / frames; x: frames / kept (the downsampling)
+  every judged pair (consecutive keeps a, b) by the teacher's S(b, a):
+    breaks: S < 0.05 (MASt3R-SLAM's tracking fails); late: S < 0.333 (a keyframe was due in
+    between); min S, med S: the smallest and median S
+  overdue: dropped frames whose teacher tau against the policy's reference was already >= the
+    threshold; rmse: the policy's utility against the teacher's tau; fps: frames/s of the model
+    run (the element in a pipeline, with the eval's own decoding)
+  oracle: the same gate driven by the exact teacher (the upper bound); stride, pixel_diff,
+    motion, overlap: cheap gates tuned to the model's kept count (an equal budget)";
 
 /// The last component of a sequence's path (its name in titles and file names).
 fn sequence_name(sequence: &Path) -> String {

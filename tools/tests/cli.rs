@@ -2163,3 +2163,36 @@ fn eval_in_a_fresh_home_writes_nothing_there() {
     let left: Vec<_> = std::fs::read_dir(home.path()).unwrap().flatten().collect();
     assert!(left.is_empty(), "left in HOME: {left:?}");
 }
+
+/// The eval's table explains itself: a legend of every column under the first table, once per
+/// run; `--version` says the workspace's version.
+#[test]
+fn eval_prints_a_legend_of_its_columns_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a");
+    let b = dir.path().join("b");
+    synth(&a, 5, "pan", 7);
+    synth(&b, 5, "pan", 8);
+    let out = leangate()
+        .args(["eval", "--model", &fixture("mad.onnx"), "--sequence"])
+        .arg(&a)
+        .arg("--sequence")
+        .arg(&b)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(text.matches("columns:").count(), 1, "{text}");
+    for col in [
+        "kept:", "ratio:", "x:", "breaks:", "late:", "min S", "overdue:", "rmse:", "fps:",
+    ] {
+        assert!(text.contains(col), "{col} not explained: {text}");
+    }
+    let v = leangate().arg("--version").output().unwrap();
+    let v = String::from_utf8_lossy(&v.stdout);
+    assert_eq!(v.trim(), format!("leangate {}", env!("CARGO_PKG_VERSION")));
+}
