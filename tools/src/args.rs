@@ -161,3 +161,14 @@ mod tests {
         }
     }
 }
+
+/// `PROPERTY=VALUE` for `leangate eval --set`: a property name and its value as text (checked
+/// against the element when the eval starts).
+pub fn property_setting(s: &str) -> Result<(String, String), String> {
+    match s.split_once('=') {
+        Some((k, v)) if !k.trim().is_empty() => Ok((k.trim().to_string(), v.to_string())),
+        _ => Err(format!(
+            "`{s}`: expected PROPERTY=VALUE, e.g. sharpness-wait=0"
+        )),
+    }
+}

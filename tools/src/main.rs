@@ -163,6 +163,11 @@ enum Command {
         #[arg(long, value_name = "DELAY", num_args = 0..=1, default_missing_value = "3",
               value_parser = clap::value_parser!(u16).range(0..=1000))]
         feedback: Option<u16>,
+        /// Set a property of the element the model runs in, as gst-launch would
+        /// (`--set sharpness-wait=0`; repeatable): how to judge the gate with other settings.
+        /// `mode` stays annotate (the eval reads every frame's verdict).
+        #[arg(long = "set", value_name = "PROPERTY=VALUE", value_parser = args::property_setting)]
+        set: Vec<(String, String)>,
         /// Write the JSON report here.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -439,6 +444,7 @@ fn run(cli: Cli) -> Res {
             precision,
             threshold,
             feedback,
+            set,
             json,
             plot,
             contact_sheet,
@@ -481,6 +487,7 @@ fn run(cli: Cli) -> Res {
                         _ => gstleangate::PrecisionChoice::Auto,
                     }),
                     feedback: feedback.map(usize::from),
+                    properties: &set,
                 },
                 threshold,
                 EvalOutputs {

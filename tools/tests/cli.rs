@@ -2196,3 +2196,45 @@ fn eval_prints_a_legend_of_its_columns_once() {
     let v = String::from_utf8_lossy(&v.stdout);
     assert_eq!(v.trim(), format!("leangate {}", env!("CARGO_PKG_VERSION")));
 }
+
+/// `leangate eval --set PROPERTY=VALUE` judges the element with other settings: `max-gap=1`
+/// keeps at least every other frame; an unknown, read-only, out-of-range or `mode` setting is
+/// refused naming it, not a panic.
+#[test]
+fn eval_set_runs_the_element_with_other_properties_and_refuses_bad_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 8, "pan", 9);
+    let kept = |extra: &[&str]| {
+        let j = eval_json(
+            &seq,
+            &[
+                &["--model", &fixture("mad.onnx"), "--threshold", "1"],
+                extra,
+            ]
+            .concat(),
+        );
+        j["policies"]["model"]["kept"].as_u64().unwrap()
+    };
+    assert_eq!(kept(&[]), 1, "threshold 1: only the first frame");
+    assert!(kept(&["--set", "max-gap=1"]) >= 4);
+    for (bad, says) in [
+        ("nosuch=1", "no such property"),
+        ("frames-in=3", "read-only"),
+        ("sharpness-wait=99", "not a valid value"),
+        ("mode=drop", "annotate"),
+    ] {
+        let out = leangate()
+            .args(["eval", "--model", &fixture("mad.onnx"), "--sequence"])
+            .arg(&seq)
+            .args(["--set", bad])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{bad}: {err}");
+        assert!(
+            err.contains(says) && !err.contains("panicked"),
+            "{bad}: {err}"
+        );
+    }
+}

@@ -156,6 +156,56 @@ pub struct GateModel<'a> {
     /// previous kept frame (`leangate-feedback`; what MASt3R-SLAM measures on the frames it gets),
     /// this many frames after the keep (its latency).
     pub feedback: Option<usize>,
+    /// Element properties set after the eval's own (`leangate eval --set`), as text.
+    pub properties: &'a [(String, String)],
+}
+
+/// Sets `name` to `value` (as gst-launch reads it) on the eval's element, or says why not.
+fn set_from_text(gate: &gst::Element, name: &str, value: &str) -> Result<(), EvalError> {
+    use gst::glib;
+    use gst::prelude::*;
+    if name == "mode" {
+        return Err(EvalError(
+            "--set mode: the eval runs the element in annotate mode (it reads every frame's verdict)"
+                .into(),
+        ));
+    }
+    let pspec = gate.find_property(name).ok_or_else(|| {
+        EvalError(format!(
+            "--set {name}: leangate has no such property (gst-inspect-1.0 leangate lists them)"
+        ))
+    })?;
+    if !pspec.flags().contains(glib::ParamFlags::WRITABLE) {
+        return Err(EvalError(format!(
+            "--set {name}: the property is read-only"
+        )));
+    }
+    let v = glib::Value::deserialize_with_pspec(value, &pspec)
+        .ok()
+        .filter(|v| in_range(&pspec, v))
+        .ok_or_else(|| {
+            EvalError(format!(
+                "--set {name}={value}: not a valid value of {} `{name}`",
+                pspec.value_type().name()
+            ))
+        })?;
+    gate.set_property(name, v);
+    Ok(())
+}
+
+/// Whether `v` is within `pspec`'s range (GLib would refuse it with a warning otherwise).
+fn in_range(pspec: &gst::glib::ParamSpec, v: &gst::glib::Value) -> bool {
+    use gst::glib::translate::{ToGlibPtr, ToGlibPtrMut};
+    let mut copy = v.clone();
+    // SAFETY: both pointers are valid for the call; validation changes only `copy`, which holds
+    // a value of the pspec's type (deserialized with it).
+    let changed = unsafe {
+        gst::glib::gobject_ffi::g_param_value_validate(
+            pspec.to_glib_none().0,
+            copy.to_glib_none_mut().0,
+        )
+    };
+    changed == 0
 }
 
 /// Run the real element in annotate mode over the source, with `model`. `progress(done)` is
@@ -189,6 +239,9 @@ pub fn run_model(
     gate.set_property("screen", false);
     if let Some(t) = threshold {
         gate.set_property("threshold", t);
+    }
+    for (name, value) in model.properties {
+        set_from_text(&gate, name, value)?;
     }
     let sink = gst_app::AppSink::builder().sync(false).build();
     let pipeline = gst::Pipeline::new();
