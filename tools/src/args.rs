@@ -103,6 +103,17 @@ pub fn picture_size(s: &str) -> Result<(u32, u32), String> {
     Ok((side(w)?, side(h)?))
 }
 
+/// `PROPERTY=VALUE` for `leangate eval --set`: a property name and its value as text (checked
+/// against the element when the eval starts).
+pub fn property_setting(s: &str) -> Result<(String, String), String> {
+    match s.split_once('=') {
+        Some((k, v)) if !k.trim().is_empty() => Ok((k.trim().to_string(), v.to_string())),
+        _ => Err(format!(
+            "`{s}`: expected PROPERTY=VALUE, e.g. sharpness-wait=0"
+        )),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -159,16 +170,5 @@ mod tests {
             let e = picture_size(bad).unwrap_err();
             assert!(e.contains("expected WxH"), "{e}");
         }
-    }
-}
-
-/// `PROPERTY=VALUE` for `leangate eval --set`: a property name and its value as text (checked
-/// against the element when the eval starts).
-pub fn property_setting(s: &str) -> Result<(String, String), String> {
-    match s.split_once('=') {
-        Some((k, v)) if !k.trim().is_empty() => Ok((k.trim().to_string(), v.to_string())),
-        _ => Err(format!(
-            "`{s}`: expected PROPERTY=VALUE, e.g. sharpness-wait=0"
-        )),
     }
 }
