@@ -230,7 +230,9 @@ fn a_keep_due_on_a_blurred_frame_goes_to_a_sharper_one() {
     assert!(!deferred.is_empty(), "nothing waited on a fast sweep");
     for &i in &deferred {
         assert!(
-            waiting[i + 1..(i + 3).min(waiting.len())].iter().any(|g| g.0),
+            waiting[i + 1..(i + 3).min(waiting.len())]
+                .iter()
+                .any(|g| g.0),
             "the keep deferred at frame {i} never came"
         );
     }
