@@ -2087,11 +2087,11 @@ fn readme_metadata_table_documents_every_field_and_python_key() {
     if !python_ok() {
         return;
     }
-    let readme = std::fs::read_to_string(repo().join("README.md")).unwrap();
+    let readme = std::fs::read_to_string(repo().join("docs/element.md")).unwrap();
     let section = readme
-        .split("### Metadata: `LeanGateMeta`")
+        .split("## Metadata: `LeanGateMeta`")
         .nth(1)
-        .expect("README section `### Metadata: `LeanGateMeta``");
+        .expect("docs/element.md section `## Metadata: `LeanGateMeta``");
     let section = section.split("\n#").next().unwrap();
     let mut rows = section.lines().filter(|l| l.starts_with('|')).map(|l| {
         l.trim_matches('|')

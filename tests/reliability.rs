@@ -547,7 +547,7 @@ fn drop_mode_sends_gap_events_for_dropped_spans() {
 
 /// Issue 22, item 14: a dropped buffer without PTS is announced at its DTS (as GstBaseSink
 /// times such a buffer); one with neither timestamp has no span to announce, so it sends no GAP
-/// (README, Gating), and is still counted (`frames-in` - `frames-kept`).
+/// (docs/element.md, Gating), and is still counted (`frames-in` - `frames-kept`).
 #[test]
 fn dropped_buffers_without_pts_gap_at_their_dts_or_not_at_all() {
     let mut h = harness(&format!("model={}", fixture("mad.onnx")), &rgb_caps(W, H));

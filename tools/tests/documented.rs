@@ -27,7 +27,16 @@ fn repo() -> PathBuf {
 }
 
 /// The documents a reader runs commands from.
-const DOCS: [&str; 3] = ["README.md", "models/README.md", "training/README.md"];
+const DOCS: [&str; 8] = [
+    "README.md",
+    "docs/element.md",
+    "docs/python.md",
+    "docs/tools.md",
+    "docs/reconstruction.md",
+    "docs/results.md",
+    "models/README.md",
+    "training/README.md",
+];
 
 /// Paragraphs (blank-line separated) of a document.
 fn paragraphs(text: &str) -> Vec<String> {
