@@ -616,6 +616,75 @@ fn section_scoring(reps: usize) {
     );
 }
 
+/// Where the default's time goes per frame on real 640x480 frames, one core: preprocessing, the
+/// picture check + the prior (`Utility::observe`: grey, quality, sharpness, pyramid, LK,
+/// homography), the composition with the student (`score_with`: the prior's raster overlap,
+/// screening, the student's encoder and head when it runs) and the gate.
+fn section_stages(reps: usize) {
+    use gstleangate::{default_model, Gate, GateConfig, Score, Scorer, ScorerOptions, Utility};
+    println!("\n## Where the default's time goes per frame (640x480 RGB, one core): microseconds per frame, median of {reps}");
+    let Some(frames) = real_frames(300) else {
+        println!("SKIPPED: ../shared/data/tum_fr1_desk absent");
+        return;
+    };
+    let (w, h) = frames[0].dimensions();
+    let mut scorer = Scorer::load(&default_model(), &ScorerOptions::default()).unwrap();
+    let info = scorer.info().clone();
+    let pre =
+        Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT709, info.spec.clone()).unwrap();
+    let threshold = info.threshold.unwrap_or(0.5);
+    let mut runs: Vec<[f64; 4]> = Vec::new();
+    for _ in 0..reps {
+        let mut utility = Utility::new(info.geometry);
+        let mut gate = Gate::new(GateConfig {
+            threshold,
+            ..Default::default()
+        });
+        let (mut reference, mut current) =
+            (vec![0f32; info.spec.len()], vec![0f32; info.spec.len()]);
+        let mut t = [0f64; 4];
+        for f in &frames {
+            let t0 = Instant::now();
+            pre.run(&RawFrame::rgb(f.as_raw(), w, h), &mut current)
+                .unwrap();
+            let t1 = Instant::now();
+            let has_reference = gate.has_reference();
+            utility.observe(Some((&current[..], &info.spec)), has_reference, true);
+            let t2 = Instant::now();
+            let composed = has_reference.then(|| {
+                let model = || scorer.score(&reference, &current).map(f64::from);
+                utility.score_with(threshold, true, true, model).unwrap()
+            });
+            let t3 = Instant::now();
+            let score = composed.map_or(Score::NoReference, |c| Score::Utility(c.utility()));
+            if gate.decide_with(score, utility.sharpness()).keep {
+                scorer.on_keep(matches!(composed, Some(gstleangate::Composed::Scored { .. })));
+                std::mem::swap(&mut reference, &mut current);
+                utility.on_keep();
+            }
+            let t4 = Instant::now();
+            for (k, (a, b)) in [(t0, t1), (t1, t2), (t2, t3), (t3, t4)].iter().enumerate() {
+                t[k] += (*b - *a).as_secs_f64();
+            }
+        }
+        runs.push(t.map(|x| x * 1e6 / frames.len() as f64));
+    }
+    let m = |k: usize| median(&runs.iter().map(|r| r[k]).collect::<Vec<_>>());
+    println!("| stage | µs per frame |");
+    println!("|---|---|");
+    for (k, name) in [
+        "preprocessing (640x480 RGB -> the 256x256 tensor)",
+        "picture check + prior tracking (grey, quality, sharpness, pyramid, LK, homography)",
+        "composition (the prior's raster overlap, screening, the student when it runs)",
+        "gate, keep bookkeeping",
+    ]
+    .iter()
+    .enumerate()
+    {
+        println!("| {name} | {:.0} |", m(k));
+    }
+}
+
 fn main() {
     if let Some(arg) =
         std::env::args().find_map(|a| a.strip_prefix(streams::CHILD_FLAG).map(str::to_string))
@@ -656,6 +725,9 @@ fn main() {
     }
     if wanted("geometry") {
         section_geometry(reps);
+    }
+    if wanted("stages") {
+        section_stages(reps);
     }
     if wanted("scoring") {
         section_scoring(reps);
