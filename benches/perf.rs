@@ -658,7 +658,10 @@ fn section_stages(reps: usize) {
             let t3 = Instant::now();
             let score = composed.map_or(Score::NoReference, |c| Score::Utility(c.utility()));
             if gate.decide_with(score, utility.sharpness()).keep {
-                scorer.on_keep(matches!(composed, Some(gstleangate::Composed::Scored { .. })));
+                scorer.on_keep(matches!(
+                    composed,
+                    Some(gstleangate::Composed::Scored { .. })
+                ));
                 std::mem::swap(&mut reference, &mut current);
                 utility.on_keep();
             }
