@@ -536,7 +536,10 @@ fn section_scoring(reps: usize) {
     let threshold = info.threshold.unwrap_or(0.5);
     // `check`: the picture check (`reject-junk`, and the sharpness measure `sharpness-wait`
     // uses), as the element runs it by default.
-    let mut run = |geometry: bool, screen: bool, check: bool| -> (f64, f64) {
+    // Also where the time goes, stage by stage (seconds): preprocessing, the picture check + the
+    // prior's tracking (`observe`), the composition (raster overlap, screening, the student when
+    // it runs), the gate.
+    let mut run = |geometry: bool, screen: bool, check: bool| -> (f64, f64, [f64; 4]) {
         let mut utility = Utility::new(info.geometry);
         utility.set_quality_check(check);
         let mut gate = Gate::new(GateConfig {
@@ -546,30 +549,43 @@ fn section_scoring(reps: usize) {
         let (mut reference, mut current) =
             (vec![0f32; info.spec.len()], vec![0f32; info.spec.len()]);
         let (t0, c0) = (Instant::now(), thread_cpu_s());
+        let mut stages = [0f64; 4];
         for f in &frames {
+            let s0 = Instant::now();
             pre.run(&RawFrame::rgb(f.as_raw(), w, h), &mut current)
                 .unwrap();
+            let s1 = Instant::now();
             let has_reference = gate.has_reference();
             utility.observe(Some((&current[..], &info.spec)), has_reference, geometry);
             if utility.quality().is_junk() {
                 gate.decide(Score::Junk);
                 continue;
             }
+            let s2 = Instant::now();
             let composed = has_reference.then(|| {
                 let model = || scorer.score(&reference, &current).map(f64::from);
                 utility
                     .score_with(threshold, geometry, screen, model)
                     .unwrap()
             });
+            let s3 = Instant::now();
             let score = composed.map_or(Score::NoReference, |c| Score::Utility(c.utility()));
             if gate.decide_with(score, utility.sharpness()).keep {
                 scorer.on_keep(matches!(composed, Some(Composed::Scored { .. })));
                 std::mem::swap(&mut reference, &mut current);
                 utility.on_keep();
             }
+            let s4 = Instant::now();
+            for (k, (a, b)) in [(s0, s1), (s1, s2), (s2, s3), (s3, s4)].iter().enumerate() {
+                stages[k] += (*b - *a).as_secs_f64();
+            }
         }
         let n = frames.len() as f64;
-        (n / t0.elapsed().as_secs_f64(), n / (thread_cpu_s() - c0))
+        (
+            n / t0.elapsed().as_secs_f64(),
+            n / (thread_cpu_s() - c0),
+            stages.map(|t| t * 1e6 / n),
+        )
     };
     let (mut alone, mut fused, mut screened, mut unchecked) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -579,8 +595,9 @@ fn section_scoring(reps: usize) {
         screened.push(run(true, true, true));
         unchecked.push(run(true, true, false));
     }
-    let wall = |v: &[(f64, f64)]| median(&v.iter().map(|x| x.0).collect::<Vec<_>>());
-    let cpu = |v: &[(f64, f64)]| median(&v.iter().map(|x| x.1).collect::<Vec<_>>());
+    type Run = (f64, f64, [f64; 4]);
+    let wall = |v: &[Run]| median(&v.iter().map(|x| x.0).collect::<Vec<_>>());
+    let cpu = |v: &[Run]| median(&v.iter().map(|x| x.1).collect::<Vec<_>>());
     let (a, b, c, d) = (
         wall(&alone),
         wall(&fused),
@@ -614,69 +631,11 @@ fn section_scoring(reps: usize) {
         "| the default without the picture check (`reject-junk=false`) | {d:.0} | {:.2} | {dc:.0} |",
         1e3 / d
     );
-}
-
-/// Where the default's time goes per frame on real 640x480 frames, one core: preprocessing, the
-/// picture check + the prior (`Utility::observe`: grey, quality, sharpness, pyramid, LK,
-/// homography), the composition with the student (`score_with`: the prior's raster overlap,
-/// screening, the student's encoder and head when it runs) and the gate.
-fn section_stages(reps: usize) {
-    use gstleangate::{default_model, Gate, GateConfig, Score, Scorer, ScorerOptions, Utility};
-    println!("\n## Where the default's time goes per frame (640x480 RGB, one core): microseconds per frame, median of {reps}");
-    let Some(frames) = real_frames(300) else {
-        println!("SKIPPED: ../shared/data/tum_fr1_desk absent");
-        return;
-    };
-    let (w, h) = frames[0].dimensions();
-    let mut scorer = Scorer::load(&default_model(), &ScorerOptions::default()).unwrap();
-    let info = scorer.info().clone();
-    let pre =
-        Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT709, info.spec.clone()).unwrap();
-    let threshold = info.threshold.unwrap_or(0.5);
-    let mut runs: Vec<[f64; 4]> = Vec::new();
-    for _ in 0..reps {
-        let mut utility = Utility::new(info.geometry);
-        let mut gate = Gate::new(GateConfig {
-            threshold,
-            ..Default::default()
-        });
-        let (mut reference, mut current) =
-            (vec![0f32; info.spec.len()], vec![0f32; info.spec.len()]);
-        let mut t = [0f64; 4];
-        for f in &frames {
-            let t0 = Instant::now();
-            pre.run(&RawFrame::rgb(f.as_raw(), w, h), &mut current)
-                .unwrap();
-            let t1 = Instant::now();
-            let has_reference = gate.has_reference();
-            utility.observe(Some((&current[..], &info.spec)), has_reference, true);
-            let t2 = Instant::now();
-            let composed = has_reference.then(|| {
-                let model = || scorer.score(&reference, &current).map(f64::from);
-                utility.score_with(threshold, true, true, model).unwrap()
-            });
-            let t3 = Instant::now();
-            let score = composed.map_or(Score::NoReference, |c| Score::Utility(c.utility()));
-            if gate.decide_with(score, utility.sharpness()).keep {
-                scorer.on_keep(matches!(
-                    composed,
-                    Some(gstleangate::Composed::Scored { .. })
-                ));
-                std::mem::swap(&mut reference, &mut current);
-                utility.on_keep();
-            }
-            let t4 = Instant::now();
-            for (k, (a, b)) in [(t0, t1), (t1, t2), (t2, t3), (t3, t4)].iter().enumerate() {
-                t[k] += (*b - *a).as_secs_f64();
-            }
-        }
-        runs.push(t.map(|x| x * 1e6 / frames.len() as f64));
-    }
-    let m = |k: usize| median(&runs.iter().map(|r| r[k]).collect::<Vec<_>>());
+    println!("\n### Where the default's time goes per frame: microseconds, median of {reps}");
     println!("| stage | µs per frame |");
     println!("|---|---|");
     for (k, name) in [
-        "preprocessing (640x480 RGB -> the 256x256 tensor)",
+        "preprocessing (640x480 RGB -> the model's tensor)",
         "picture check + prior tracking (grey, quality, sharpness, pyramid, LK, homography)",
         "composition (the prior's raster overlap, screening, the student when it runs)",
         "gate, keep bookkeeping",
@@ -684,7 +643,8 @@ fn section_stages(reps: usize) {
     .iter()
     .enumerate()
     {
-        println!("| {name} | {:.0} |", m(k));
+        let us = median(&screened.iter().map(|r| r.2[k]).collect::<Vec<_>>());
+        println!("| {name} | {us:.0} |");
     }
 }
 
@@ -729,10 +689,7 @@ fn main() {
     if wanted("geometry") {
         section_geometry(reps);
     }
-    if wanted("stages") {
-        section_stages(reps);
-    }
-    if wanted("scoring") {
+    if wanted("scoring") || wanted("stages") {
         section_scoring(reps);
     }
     let _ = Duration::ZERO;

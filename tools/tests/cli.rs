@@ -3,9 +3,8 @@
 use std::path::Path;
 use std::process::Command;
 
-fn leangate() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_leangate"))
-}
+mod common;
+use common::{eval_json, leangate};
 
 /// `python3 -m <module>` from the repository root, with the Debian python (the training tools
 /// these tests run need only the standard library).
@@ -35,26 +34,6 @@ fn label_pairs(seq: &Path, pairs: &Path) -> std::process::Output {
         .output()
         .unwrap()
 }
-/// Run `leangate eval --sequence SEQ EXTRA... --json OUT` and return the parsed report.
-fn eval_json(seq: &Path, extra: &[&str]) -> serde_json::Value {
-    let dir = tempfile::tempdir().unwrap();
-    let json = dir.path().join("eval.json");
-    let out = leangate()
-        .args(["eval", "--sequence"])
-        .arg(seq)
-        .args(extra)
-        .arg("--json")
-        .arg(&json)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap()
-}
-
 fn synth(dir: &Path, frames: usize, motion: &str, seed: u64) {
     synth_sized(dir, frames, motion, seed, (160, 120));
 }

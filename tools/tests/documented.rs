@@ -5,18 +5,15 @@
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
-use std::process::Command;
+
+#[allow(dead_code)]
+mod common;
+use common::eval_json;
 
 #[path = "../../tests/common/paths.rs"]
 #[allow(dead_code)]
 mod paths;
 use paths::shared_data;
-
-fn leangate() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_leangate"));
-    c.env_remove("LEANGATE_MODEL");
-    c
-}
 
 /// The repository root (the tools crate is one level down).
 fn repo() -> PathBuf {
@@ -106,27 +103,6 @@ fn documented_eval_commands_name_data_that_exists_or_say_how_to_get_it() {
     );
 }
 
-/// `leangate eval --sequence S --json J` (the default model, default settings, as documented) on
-/// a real sequence: the JSON report.
-fn eval(seq: &Path) -> serde_json::Value {
-    let dir = tempfile::tempdir().unwrap();
-    let json = dir.path().join("eval.json");
-    let out = leangate()
-        .args(["eval", "--sequence"])
-        .arg(seq)
-        .arg("--json")
-        .arg(&json)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "leangate eval --sequence {}: {}",
-        seq.display(),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap()
-}
-
 /// The row of the model card's table "Every real sequence of `../shared/data` in one run" for
 /// `name`: `| name | frames | oracle | kept / late / min S | ...`, as (frames, oracle, kept, late).
 fn card_row(name: &str) -> Option<(u64, Option<u64>, u64, Option<u64>)> {
@@ -178,7 +154,7 @@ fn eval_runs_on_every_real_sequence_and_reproduces_the_documented_figures() {
             .lines()
             .filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
             .count() as u64;
-        let r = eval(seq);
+        let r = eval_json(seq, &[]);
         eprintln!(
             "{name}: {} frames, model kept {}, oracle {}, late {}",
             r["frames"],
