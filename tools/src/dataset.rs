@@ -280,7 +280,11 @@ fn read_file_list(
     }
     out.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.2.cmp(&b.2)));
     if shared {
-        out.dedup_by(|b, a| a.0 == b.0 && a.1 == b.1);
+        // The same file however its path is spelled (`depth/../depth/x.png`, absolute).
+        let same = |a: &Path, b: &Path| {
+            a == b || matches!((fs::canonicalize(a), fs::canonicalize(b)), (Ok(x), Ok(y)) if x == y)
+        };
+        out.dedup_by(|b, a| a.0 == b.0 && same(&a.1, &b.1));
     }
     // Two rows at one time would be associated with the same depth and pose, and their order
     // would be the file's, not time's: refused, naming both lines.

@@ -875,22 +875,10 @@ fn check_output(flag: &str, path: &Path) -> Res {
 }
 
 /// Refuses an output that would overwrite an input of the eval: a file that is one of `inputs`
-/// (canonical paths), or, for a folder the eval writes into (`dir`), one that holds an input
-/// file anywhere below it.
-fn refuse_input(
-    flag: &str,
-    path: &Path,
-    inputs: &std::collections::BTreeSet<PathBuf>,
-    dir: bool,
-) -> Res {
-    let Ok(real) = path.canonicalize() else {
-        return Ok(()); // not there yet: it cannot be an input
-    };
-    let hit = match dir {
-        false => inputs.get(&real),
-        true => inputs.iter().find(|i| i.starts_with(&real)),
-    };
-    match hit {
+/// (by its canonical path, or the same file by a hard link), or, for a folder the eval writes
+/// into (`dir`), one that holds an input file anywhere below it.
+fn refuse_input(flag: &str, path: &Path, inputs: &eval::Inputs, dir: bool) -> Res {
+    match inputs.hit(path, dir) {
         Some(i) => Err(format!(
             "{flag}: the eval would write `{}`, which holds or is `{}`, an input of this eval; \
              choose a folder of its own",

@@ -403,7 +403,9 @@ fn check_depth(
         let median = *sample.select_nth_unstable_by(mid, f32::total_cmp).1 as f64;
         if !(MEDIAN_DEPTH_M.0..=MEDIAN_DEPTH_M.1).contains(&median) {
             return Err(TeacherError::BadDepth(format!(
-                "`{}`: with depth_scale {} the median depth is {median:.3e} m, outside the                  {}..{} m of any camera sequence; depth_scale is depth units per metre (1000 for                  millimetres as in 7-Scenes, 5000 for TUM RGB-D)",
+                "`{}`: with depth_scale {} the median depth is {median:.3e} m, outside the \
+                 {}..{} m of any camera sequence; depth_scale is depth units per metre (1000 for \
+                 millimetres as in 7-Scenes, 5000 for TUM RGB-D)",
                 seq.root.join("intrinsics.txt").display(),
                 intr.depth_scale,
                 MEDIAN_DEPTH_M.0,

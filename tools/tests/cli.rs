@@ -764,6 +764,19 @@ fn eval_refuses_hostile_sequences_naming_the_file() {
     });
     let again = eval_json(&shared, &["--model", &fixture("mad.onnx")]);
     assert_eq!(again["frames"], plain["frames"]);
+    // The same image by another spelling of its path is the same row.
+    let spelled = dir.path().join("shared_depth_row_spelled");
+    sequence_copy(&seq, &spelled, |name, text| match name {
+        "depth.txt" => {
+            let row = text.lines().find(|l| l.starts_with("0.033333")).unwrap();
+            let other = row.replace(" depth/", " depth/../depth/");
+            text.replacen(row, &format!("{row}\n{other}"), 1)
+        }
+        _ => text,
+    });
+    let spelled = eval_json(&spelled, &["--model", &fixture("mad.onnx")]);
+    assert_eq!(spelled["frames"], plain["frames"]);
+    assert_eq!(again["frames"], plain["frames"]);
     assert_eq!(again["policies"]["oracle"], plain["policies"]["oracle"]);
 }
 
@@ -2020,10 +2033,20 @@ fn eval_never_overwrites_its_inputs() {
         assert_eq!(out.status.code(), Some(1), "{flag}: {err}");
         assert!(err.contains(flag) && err.contains("is an input"), "{err}");
     }
-    // The same file by another spelling of its path.
+    // The same file by another spelling of its path, or by a hard link elsewhere.
     let other = seq.join("rgb/../rgb.txt");
     let out = run(&["--json", other.to_str().unwrap()]);
     assert_eq!(out.status.code(), Some(1));
+    let linked = dir.path().join("linked.json");
+    std::fs::hard_link(&gt, &linked).unwrap();
+    let out = run(&["--json", linked.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "a hard link to groundtruth.txt: {err}"
+    );
+    std::fs::remove_file(&linked).unwrap();
     let out = run(&["--reconstruct", "--trajectory-dir", seq.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{err}");
@@ -2216,4 +2239,73 @@ fn eval_set_runs_the_element_with_other_properties_and_refuses_bad_ones() {
             "{bad}: {err}"
         );
     }
+}
+
+/// A policy whose kept pairs all lack ground truth is not "0 late keeps": its late keeps and
+/// breaks are null, and `judged_pairs` / `judged_kept` say what was judged; the sums compare the
+/// oracle with the kept frames that have ground truth. (Threshold 1 with `max-gap=1` keeps frames
+/// 0, 2, 4, ...; the poses of every even frame but 0 are removed.)
+#[test]
+fn eval_does_not_call_unjudged_keeps_on_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 12, "pan", 10);
+    let odd = dir.path().join("odd");
+    sequence_copy(&seq, &odd, |name, text| match name {
+        "groundtruth.txt" => {
+            let mut row = 0;
+            text.lines()
+                .filter(|l| {
+                    if l.starts_with('#') {
+                        return true;
+                    }
+                    row += 1;
+                    row == 1 || row % 2 == 0
+                })
+                .map(|l| format!("{l}\n"))
+                .collect()
+        }
+        _ => text,
+    });
+    let args = [
+        "--model",
+        &fixture("mad.onnx"),
+        "--threshold",
+        "1",
+        "--set",
+        "max-gap=1",
+    ];
+    let j = eval_json(&odd, &args);
+    let m = &j["policies"]["model"];
+    assert_eq!(j["frames_without_ground_truth"], 5, "{j}");
+    assert_eq!(m["kept"], 6, "{m}");
+    assert_eq!(
+        (m["judged_pairs"].as_u64(), m["judged_kept"].as_u64()),
+        (Some(0), Some(1)),
+        "{m}"
+    );
+    assert!(m["late_keeps"].is_null() && m["breaks"].is_null(), "{m}");
+    let p = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&odd)
+        .args(args)
+        .args(["--phases", "2"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&p.stdout);
+    assert!(p.status.success(), "{}", String::from_utf8_lossy(&p.stderr));
+    // From frame 0 every pair is unjudged; from frame 1 every kept frame has ground truth.
+    let first = text
+        .lines()
+        .find(|l| l.contains("started 0 frames in"))
+        .unwrap();
+    assert!(
+        !first.contains("late"),
+        "unjudged keeps called on time: {text}"
+    );
+    let second = text
+        .lines()
+        .find(|l| l.contains("started 1 frames in"))
+        .unwrap();
+    assert!(second.contains("late 0"), "{text}");
 }

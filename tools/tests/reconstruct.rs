@@ -323,7 +323,7 @@ fn eval_reconstruct_reports_every_policy_and_a_dense_reference() {
         .as_str()
         .unwrap_or_else(|| panic!("{stride}"));
     assert!(
-        err.contains("images") && err.contains("File exists"),
+        err.contains("images") && err.contains("is not a folder"),
         "{err}"
     );
     assert!(
@@ -667,4 +667,149 @@ fn a_colmap_abort_is_an_error_for_the_caller_not_a_crash() {
     assert!(stdout.contains("still running"));
     let log = std::fs::read_to_string(dir.path().join("colmap.log")).unwrap();
     assert!(log.contains("constraint failed"), "{log}");
+}
+
+/// Every regular file under `dir` (relative path, contents), links not followed.
+fn tree(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            let m = std::fs::symlink_metadata(&p).unwrap();
+            if m.is_dir() {
+                stack.push(p);
+            } else if m.is_file() {
+                let rel = p.strip_prefix(dir).unwrap().display().to_string();
+                out.insert(rel, std::fs::read(&p).unwrap());
+            }
+        }
+    }
+    out
+}
+
+/// `--out` never deletes the input or folders the consumer did not make. It used to empty
+/// OUT/images (and OUT/sparse) whatever they held: `--out SEQ` on a sequence whose images are
+/// in SEQ/images deleted the input; a user's OUT/images/holiday.jpg, a COLMAP project's
+/// sparse/, or the target of a symlinked images/ went the same way. Now OUT/images and
+/// OUT/sparse are replaced only when they hold the marker a run writes into them; otherwise
+/// the run stops with exit status 2 and a message naming the folder, and nothing is deleted.
+#[test]
+fn consumer_never_deletes_the_input_or_folders_it_did_not_make() {
+    let (Some(seq), Some(py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let run = |input: &Path, out: &Path, args: &[&str]| {
+        consumer(&py, args, &[Path::new("--out"), out, input])
+    };
+    let refused = |o: &Output, expect: &str| {
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{err}");
+        assert!(err.contains(expect), "expected {expect:?} in {err}");
+        assert!(!err.contains("Traceback"), "{err}");
+    };
+    let marker = ".leangate-reconstruct";
+
+    // A TUM-layout sequence with its images in SEQ/images, reconstructed into SEQ itself.
+    let iseq = root.join("iseq");
+    std::fs::create_dir_all(iseq.join("images")).unwrap();
+    let mut rows = String::new();
+    for (k, n) in ["000000", "000012", "000024", "000036"].iter().enumerate() {
+        std::fs::copy(
+            seq.join(format!("rgb/{n}.jpg")),
+            iseq.join(format!("images/{n}.jpg")),
+        )
+        .unwrap();
+        rows.push_str(&format!("{k}.0 images/{n}.jpg\n"));
+    }
+    std::fs::write(iseq.join("rgb.txt"), rows).unwrap();
+    let pristine = tree(&iseq);
+    let before = pristine.clone();
+    let o = run(&iseq, &iseq, &["--every", "2"]);
+    refused(&o, "lies in");
+    assert_eq!(tree(&iseq), before, "the input is untouched");
+    // Even when that folder carries the marker of an earlier run.
+    std::fs::write(iseq.join("images").join(marker), "").unwrap();
+    let before = tree(&iseq);
+    refused(
+        &run(&iseq, &iseq, &["--every", "2"]),
+        "the input would be deleted",
+    );
+    assert_eq!(tree(&iseq), before);
+    std::fs::remove_file(iseq.join("images").join(marker)).unwrap();
+
+    // A hard link to an input file in a (marked) OUT/images.
+    let hard = root.join("hard");
+    std::fs::create_dir_all(hard.join("images")).unwrap();
+    std::fs::write(hard.join("images").join(marker), "").unwrap();
+    std::fs::hard_link(
+        iseq.join("images/000000.jpg"),
+        hard.join("images/frame_000000.jpg"),
+    )
+    .unwrap();
+    refused(&run(&iseq, &hard, &["--every", "2"]), "a hard link");
+    assert!(hard.join("images/frame_000000.jpg").is_file());
+
+    // A video inside OUT/images.
+    if let Some(clip) = shared_data("cotracker_clips/cat.mp4") {
+        let v = root.join("v");
+        std::fs::create_dir_all(v.join("images")).unwrap();
+        std::fs::write(v.join("images").join(marker), "").unwrap();
+        std::fs::copy(&clip, v.join("images/cat.mp4")).unwrap();
+        refused(
+            &run(&v.join("images/cat.mp4"), &v, &["--frames", "0,5"]),
+            "is (or holds) the input",
+        );
+        assert!(v.join("images/cat.mp4").is_file());
+    }
+
+    // Folders the consumer did not make: a user's images, a COLMAP project's sparse model.
+    for (sub, file) in [("images", "holiday.jpg"), ("sparse", "0/cameras.bin")] {
+        let out = root.join(format!("user_{sub}"));
+        let p = out.join(sub).join(file);
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::write(&p, "mine").unwrap();
+        refused(
+            &run(&iseq, &out, &["--every", "2"]),
+            &format!("{sub} is not empty and was not made by reconstruct.py"),
+        );
+        assert_eq!(std::fs::read(&p).unwrap(), b"mine");
+    }
+    // A symlinked images/ (or sparse/) is refused, never followed.
+    for sub in ["images", "sparse"] {
+        let out = root.join(format!("link_{sub}"));
+        std::fs::create_dir_all(out.join("elsewhere")).unwrap();
+        std::fs::write(out.join("elsewhere").join(marker), "").unwrap();
+        std::fs::write(out.join("elsewhere/keep.txt"), "keep").unwrap();
+        std::os::unix::fs::symlink("elsewhere", out.join(sub)).unwrap();
+        refused(
+            &run(&iseq, &out, &["--every", "2"]),
+            &format!("{sub} is a symbolic link"),
+        );
+        assert!(out.join("elsewhere/keep.txt").is_file());
+    }
+
+    // What a run makes carries the marker, and a second run into the same --out replaces it;
+    // an empty images/ without the marker is taken too.
+    let ok = root.join("ok");
+    std::fs::create_dir_all(ok.join("images")).unwrap();
+    for _ in 0..2 {
+        let o = run(&iseq, &ok, &["--every", "1"]);
+        assert!(o.status.success());
+        assert!(ok.join("images").join(marker).is_file());
+        assert!(ok.join("sparse").join(marker).is_file());
+        assert!(ok.join("images/frame_000003.jpg").exists());
+    }
+    assert_eq!(tree(&iseq), pristine, "the input is untouched");
+    // --help says so.
+    let help = consumer(&py, &["--help"], &[]);
+    let text: String = String::from_utf8_lossy(&help.stdout)
+        .split_whitespace()
+        .collect();
+    assert!(
+        text.contains("onlywhenitmadethemitself(eachholdsa.leangate-reconstructfile)"),
+        "{text}"
+    );
 }

@@ -21,6 +21,12 @@ pub struct PolicyReport {
     #[serde(rename = "median_pair_S")]
     pub median_pair_s: Option<f64>,
     pub overdue_drops: Option<usize>,
+    /// With frames lacking ground truth: the kept frames that have it (what `oracle`'s count is
+    /// compared with) and the consecutive kept pairs the teacher could judge.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub judged_kept: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub judged_pairs: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub utility_mae: Option<Option<f64>>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -57,6 +63,11 @@ impl<'a> TeacherCache<'a> {
         self.memo.extend(todo.into_iter().zip(scores));
     }
 
+    /// Whether stream frame `i` has ground truth.
+    pub fn judges(&self, i: usize) -> bool {
+        self.teacher.judges(i)
+    }
+
     pub fn get(&mut self, cur: usize, key: usize) -> Option<PairScore> {
         if let Some(s) = self.memo.get(&(cur, key)) {
             return *s;
@@ -90,6 +101,8 @@ pub fn judge(
         min_pair_s: None,
         median_pair_s: None,
         overdue_drops: None,
+        judged_kept: None,
+        judged_pairs: None,
         utility_mae: scored.then_some(None),
         utility_rmse: scored.then_some(None),
         fps,
@@ -110,8 +123,21 @@ pub fn judge(
         .iter()
         .filter_map(|&(a, b)| tc.get(b, a).map(|p| p.s))
         .collect();
-    r.breaks = Some(s.iter().filter(|&&v| v < BREAK_S).count());
-    r.late_keeps = Some(s.iter().filter(|&&v| v < KEYFRAME_S).count());
+    // Counts only where something was judged: pairs the teacher could not score (a frame
+    // without ground truth) are not "no late keep".
+    let judged_all = s.len() == pairs.len();
+    if s.is_empty() && !pairs.is_empty() {
+        r.breaks = None;
+        r.late_keeps = None;
+    } else {
+        r.breaks = Some(s.iter().filter(|&&v| v < BREAK_S).count());
+        r.late_keeps = Some(s.iter().filter(|&&v| v < KEYFRAME_S).count());
+    }
+    let lacking = (0..n).any(|i| !tc.judges(i));
+    if lacking || !judged_all {
+        r.judged_kept = Some((0..n).filter(|&i| trace.keep[i] && tc.judges(i)).count());
+        r.judged_pairs = Some(s.len());
+    }
     s.sort_by(|a, b| a.total_cmp(b));
     r.min_pair_s = s.first().copied();
     r.median_pair_s = if s.is_empty() {
@@ -121,7 +147,7 @@ pub fn judge(
     } else {
         Some(0.5 * (s[s.len() / 2 - 1] + s[s.len() / 2]))
     };
-    let mut overdue = 0;
+    let (mut overdue, mut judged_frames) = (0, 0);
     let (mut abs_sum, mut sq_sum, mut count) = (0.0, 0.0, 0usize);
     for (i, reference) in refs.iter().enumerate() {
         let Some(reference) = *reference else {
@@ -130,6 +156,7 @@ pub fn judge(
         let Some(t) = tc.get(i, reference).map(|p| p.tau) else {
             continue; // this frame or its reference has no ground truth: not judged
         };
+        judged_frames += 1;
         if !trace.keep[i] && t >= threshold {
             overdue += 1;
         }
@@ -139,7 +166,7 @@ pub fn judge(
             count += 1;
         }
     }
-    r.overdue_drops = Some(overdue);
+    r.overdue_drops = (judged_frames > 0 || refs.iter().all(Option::is_none)).then_some(overdue);
     if scored && count > 0 {
         r.utility_mae = Some(Some(abs_sum / count as f64));
         r.utility_rmse = Some(Some((sq_sum / count as f64).sqrt()));

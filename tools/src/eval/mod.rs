@@ -172,6 +172,11 @@ impl GroundTruth {
         self.index.len() - self.frames.len()
     }
 
+    /// Whether stream frame `i` has ground truth.
+    pub fn judges(&self, i: usize) -> bool {
+        self.index.get(i).is_some_and(Option::is_some)
+    }
+
     /// The teacher's score of stream frame `cur` against stream frame `key`; `None` when either
     /// lacks ground truth or is past the end.
     pub fn score(&self, cur: usize, key: usize) -> Option<PairScore> {
@@ -436,10 +441,7 @@ pub fn evaluate(
 /// Every file an eval of `sequences` with `model` reads, as canonical paths: the video file, or
 /// the sequence's lists (`rgb.txt`, `depth.txt`, ground truth, `intrinsics.txt`) and every image
 /// they name; and the model. What must never be an output.
-pub fn input_files(
-    sequences: &[PathBuf],
-    model: Option<&Path>,
-) -> Result<std::collections::BTreeSet<PathBuf>, EvalError> {
+pub fn input_files(sequences: &[PathBuf], model: Option<&Path>) -> Result<Inputs, EvalError> {
     let mut files: Vec<PathBuf> = model.into_iter().map(Path::to_path_buf).collect();
     for s in sequences {
         if !s.is_dir() {
@@ -459,7 +461,39 @@ pub fn input_files(
             files.extend(f.depth.clone());
         }
     }
-    Ok(files.iter().filter_map(|f| f.canonicalize().ok()).collect())
+    use std::os::unix::fs::MetadataExt;
+    Ok(Inputs {
+        paths: files.iter().filter_map(|f| f.canonicalize().ok()).collect(),
+        ids: files
+            .iter()
+            .filter_map(|f| std::fs::metadata(f).ok())
+            .map(|m| (m.dev(), m.ino()))
+            .collect(),
+    })
+}
+
+/// What [`input_files`] found: the canonical paths, and the files' (device, inode), so that a
+/// hard link to an input is an input too.
+#[derive(Debug, Clone, Default)]
+pub struct Inputs {
+    pub paths: std::collections::BTreeSet<PathBuf>,
+    pub ids: std::collections::HashSet<(u64, u64)>,
+}
+
+impl Inputs {
+    /// The input `path` is, or under (`dir`) which an input lies.
+    pub fn hit(&self, path: &Path, dir: bool) -> Option<PathBuf> {
+        use std::os::unix::fs::MetadataExt;
+        let real = path.canonicalize().ok()?; // not there yet: it cannot be an input
+        if dir {
+            return self.paths.iter().find(|i| i.starts_with(&real)).cloned();
+        }
+        if self.paths.contains(&real) {
+            return Some(real);
+        }
+        let m = std::fs::metadata(&real).ok()?;
+        self.ids.contains(&(m.dev(), m.ino())).then_some(real)
+    }
 }
 
 /// Whether the teacher can judge a sweep on the sequence at `path` (depth, poses and

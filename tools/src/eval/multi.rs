@@ -115,7 +115,11 @@ pub fn sum_policies(reports: &[EvalReport]) -> Vec<PolicySum> {
         .filter(|p| reports.iter().any(|r| r.policies.contains_key(**p)))
         .map(|&policy| {
             let kept = |r: &EvalReport| field_u(r, policy, "kept");
-            let judged_kept: usize = judged.iter().filter_map(|r| kept(r)).sum();
+            // On the frames with ground truth only, when some lack it (the oracle's frames).
+            let judged_kept: usize = judged
+                .iter()
+                .filter_map(|r| field_u(r, policy, "judged_kept").or_else(|| kept(r)))
+                .sum();
             // A sequence with fewer than two keeps has no pair, so no min pair S: the others
             // decide it.
             let min_pair_s = judged
