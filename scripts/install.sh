@@ -63,6 +63,15 @@ normal_path() { # NAME VALUE
 
 PREFIX=$(normal_path PREFIX "${PREFIX:-${HOME:-}/.local}")
 [ "$PREFIX" != / ] || { warn "PREFIX=/ is not supported (use /usr/local)"; exit 2; }
+# One install or uninstall at a time per prefix: an exclusive lock on the prefix (or, while it
+# does not exist yet, on its nearest existing parent) held for the whole run. A lock on a
+# directory writes no file.
+lock_dir=$PREFIX
+while [ ! -d "$lock_dir" ]; do lock_dir=$(dirname -- "$lock_dir"); done
+if command -v flock >/dev/null; then
+  exec 9<"$lock_dir"
+  flock -w 600 9 || { warn "another LeanGate install or uninstall holds $lock_dir; try again"; exit 1; }
+fi
 PLUGIN_DIR=$PREFIX/lib/gstreamer-1.0
 LIB_DIR=$PREFIX/lib/leangate
 BIN_DIR=$PREFIX/bin
@@ -220,7 +229,7 @@ install -m 644 models/README.md "$stage/share/doc/leangate/models/README.md"
 # *.egg-info in the checkout); no dependencies (PyGObject and numpy come from the system).
 mkdir "$tmp/src"
 cp -r pipelines/pyproject.toml pipelines/README.md pipelines/leangate_client "$tmp/src/"
-"$PYTHON" -m pip install -q --disable-pip-version-check --root-user-action=ignore --no-deps --no-build-isolation \
+PATH=/usr/local/bin:/usr/bin:/bin "$PYTHON" -m pip install -q --disable-pip-version-check --root-user-action=ignore --no-deps --no-build-isolation \
   --no-compile --target "$stage/lib/leangate/python" "$tmp/src" >/dev/null ||
   die "pip could not install the Python client with $PYTHON (apt install python3-pip)"
 rm -rf "$stage/lib/leangate/python/bin"

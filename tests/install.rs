@@ -709,3 +709,27 @@ fn make_install_only_copies_and_needs_no_toolchain() {
     );
     assert!(!prefix.exists());
 }
+
+/// Installs into one PREFIX at the same time run one after the other (a lock on the prefix, no
+/// file written for it): each succeeds, the manifest matches the disk, and one uninstall leaves
+/// the prefix exactly as it was (four parallel installs used to fail half-way or leave a
+/// manifest that missed directories another run made).
+#[test]
+fn concurrent_installs_into_one_prefix_take_turns() {
+    let (_tmp, home, outside) = dirs();
+    let prefix = outside.join("lg");
+    let before = tree(&outside);
+    let runs: Vec<_> = (0..3)
+        .map(|_| {
+            let (home, prefix) = (home.clone(), prefix.clone());
+            std::thread::spawn(move || install(&home, &prefix, false))
+        })
+        .collect();
+    for r in runs {
+        let o = r.join().unwrap();
+        assert!(o.status.success(), "{}", text(&o));
+    }
+    let o = install(&home, &prefix, true);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(tree(&outside), before, "{}", text(&o));
+}
