@@ -2078,6 +2078,114 @@ print(json.dumps(res))
     assert!(d.join("keyframes.csv").is_file(), "the save_kept run saved");
 }
 
+/// After the `for` loop has run to end-of-stream (before `close()`), no frame will come through
+/// the gate to act on a control call: `force_keyframe`, `reset` and `feedback` raise
+/// NotRunningError with state "ended" (they used to return True and count a forced event),
+/// while the same calls on the last frame, inside the loop, still reach the gate.
+#[test]
+fn control_calls_after_end_of_stream_raise_ended() {
+    if !python_ok() {
+        return;
+    }
+    let script = r#"
+import json, sys
+from leangate_client import LeanGateSource, NotRunningError
+calls = {"force_keyframe": lambda s: s.force_keyframe(), "reset": lambda s: s.reset(),
+         "feedback": lambda s: s.feedback(0.5)}
+def outcome(src, name):
+    try:
+        return calls[name](src)
+    except NotRunningError as e:
+        return {"state": e.state, "runtime": isinstance(e, RuntimeError), "msg": str(e)}
+src = LeanGateSource("test://ball?num-buffers=30", model=sys.argv[1], mode="annotate")
+r = {"frames": 0}
+for f, m in src:
+    r["frames"] += 1
+    if r["frames"] == 30:
+        r["last"] = {n: outcome(src, n) for n in calls}
+r["forced_before"] = src.forced_events
+r["ended"] = src.ended
+r["after_eos"] = {n: outcome(src, n) for n in calls}
+r["forced_after"] = src.forced_events
+src.close()
+r["closed"] = outcome(src, "force_keyframe")
+print(json.dumps(r))
+"#;
+    let out = client_script(script, &[model()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let r: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert_eq!(r["frames"], 30, "{r}");
+    assert_eq!(
+        r["last"],
+        serde_json::json!({"force_keyframe": true, "reset": true, "feedback": true}),
+        "inside the loop, on the last frame: {r}"
+    );
+    assert_eq!(r["ended"], true, "{r}");
+    for call in ["force_keyframe", "reset", "feedback"] {
+        let o = &r["after_eos"][call];
+        assert_eq!(o["state"], "ended", "{call} after EOS: {r}");
+        assert_eq!(o["runtime"], true);
+        let msg = o["msg"].as_str().unwrap();
+        assert!(
+            msg.starts_with(&format!("{call}(): the stream has ended")),
+            "{msg}"
+        );
+    }
+    assert_eq!(r["forced_before"], 1, "{r}");
+    assert_eq!(r["forced_after"], 1, "not counted after EOS: {r}");
+    assert_eq!(r["closed"]["state"], "closed", "{r}");
+}
+
+/// Two runs saving into the same empty DIR at once: the one that finishes second used to take
+/// the first one's files for "an earlier run's output" and replace them without --overwrite,
+/// both reporting success. Now, without overwrite, a run that finds keyframes output in DIR at
+/// commit time (DIR was empty when it started) refuses: PipelineError, its staging directory
+/// removed, the other run's output left as it is. The second run is made to finish inside the
+/// first one's loop, so the order is certain.
+#[test]
+fn save_kept_does_not_replace_a_concurrent_runs_output_without_overwrite() {
+    if !python_ok() || !have_elements(&["jpegenc", "multifilesink", "tee"]) {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path().join("same");
+    let script = r#"
+import json, sys
+from leangate_client import LeanGateSource, PipelineError, save_kept
+model, d = sys.argv[1:]
+first = LeanGateSource("test://ball?num-buffers=20&width=160&height=120", model=model,
+                       mode="annotate", save_kept=d)
+r = {}
+try:
+    with first:
+        for i, _ in enumerate(first):
+            if i == 2:
+                second = save_kept("test://ball?num-buffers=10&width=160&height=120", d,
+                                   model=model)
+                r["second_committed"] = second.committed
+    r["first"] = "committed"
+except PipelineError as e:
+    r["first"] = str(e)
+r["first_committed"] = first.saver.committed
+print(json.dumps(r))
+"#;
+    let out = client_script(script, &[model(), d.display().to_string()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let r: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert_eq!(r["second_committed"], true, "{r}");
+    assert_eq!(r["first_committed"], false, "{r}");
+    let msg = r["first"].as_str().unwrap();
+    assert!(
+        msg.contains("now holds keyframes output that was not there when this run started")
+            && msg.contains("not replaced without --overwrite"),
+        "{msg}"
+    );
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("keyframes.json")).unwrap()).unwrap();
+    assert_eq!(doc["frames_in"], 10, "the second run's output stays: {doc}");
+    assert!(staging_dirs(tmp.path()).is_empty() && staging_dirs(&d).is_empty());
+}
+
 /// The README's `LeanGateMeta` table names every field of the meta on a real buffer (the
 /// GstStructure names) and every key of the dict the Python client yields for it (its own
 /// column), and nothing else, so that neither can drift from the docs; each Python key is its

@@ -199,7 +199,9 @@ class KeptFrameSaver:
     written), and ``finish`` moves them into ``directory`` only after the run succeeded,
     replacing an earlier run's output there (``overwrite``); ``discard`` (a failed or
     interrupted run) deletes the staging directory and leaves ``directory`` as it was (one this
-    saver created is removed again).
+    saver created is removed again). Without ``overwrite``, ``finish`` refuses (PipelineError,
+    staging directory removed) when ``directory``, empty at the start, now holds keyframes
+    output: another run saving into it at the same time; that run's output is left as it is.
 
     Made by ``LeanGateSource(..., save_kept=DIR)``, which builds the branch into its pipeline
     (``attach``), hands it the bus messages (``on_message``) and calls ``finish`` or ``discard``
@@ -218,6 +220,7 @@ class KeptFrameSaver:
             missing.append(p)
             p = os.path.dirname(p)
         self.directory = prepare_dir(target, overwrite)
+        self.overwrite = overwrite
         self._created = missing
         self.csv_path = os.path.join(self.directory, CSV_NAME)
         self.json_path = os.path.join(self.directory, JSON_NAME)
@@ -384,6 +387,23 @@ class KeptFrameSaver:
         assert staging is not None
         try:
             old, strange = earlier_output(d, sorted(os.listdir(d)))
+        except OSError as e:
+            raise PipelineError(
+                f"cannot move the kept frames into {d}: {e}; this run's images and tables are "
+                f"in {staging}"
+            ) from None
+        if not self.overwrite and (old or strange):
+            # DIR was empty when this run started (prepare_dir refuses anything else without
+            # overwrite): another run saving into it wrote its output meanwhile. It is not
+            # replaced; this run's output is dropped.
+            self.discarded = True
+            shutil.rmtree(staging, ignore_errors=True)
+            raise PipelineError(
+                f"{d} now holds keyframes output that was not there when this run started "
+                f"({_shown(old + strange)}; another run saving into it?): not replaced without "
+                "--overwrite (overwrite=True); this run's images and tables are discarded"
+            )
+        try:
             if strange:  # appeared during the run
                 raise OSError(f"{d} now holds files the client did not write: {_shown(strange)}")
             with _sigint_deferred():

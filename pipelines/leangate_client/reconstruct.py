@@ -10,10 +10,11 @@ Two ways to choose the frames:
   ``every=k``; the gate is not run. ``leangate eval --reconstruct`` uses this for each policy.
 
 COLMAP sees the frames as ``OUT/images/frame_<index>.<ext>`` (written for a video, links for a
-sequence; a file listed twice goes in once). Then SIFT features (``pycolmap.extract_features``),
-matching (exhaustive for small sets, sequential otherwise), incremental mapping
-(``pycolmap.incremental_mapping``), in a child process (``run_sfm``: a COLMAP abort becomes a
-PipelineError). The sparse models are written under ``OUT/sparse/N``, COLMAP's messages into
+sequence; a file listed twice goes in once; ``OUT/images`` and ``OUT/sparse`` are replaced only
+when a run of this module made them, see ``check_output_dir``). Then SIFT features
+(``pycolmap.extract_features``), matching (exhaustive for small sets, sequential otherwise),
+incremental mapping (``pycolmap.incremental_mapping``), in a child process (``run_sfm``: a
+COLMAP abort becomes a PipelineError). The sparse models are written under ``OUT/sparse/N``, COLMAP's messages into
 ``OUT/colmap.log``; the largest model is reported: frames registered (with their camera-to-world
 poses), number of models, mean reprojection error, and, when the input has ground truth, the ATE
 of the camera centres after a similarity (Umeyama, with scale) alignment. ``--ply`` exports its
@@ -38,6 +39,7 @@ import os
 import re
 import shutil
 import signal
+import stat as stat_mod
 import subprocess
 import sys
 import tempfile
@@ -627,8 +629,10 @@ def _run_sfm_here(
     if os.path.exists(db):
         os.remove(db)
     sparse = os.path.join(out_dir, "sparse")
-    shutil.rmtree(sparse, ignore_errors=True)
-    os.makedirs(sparse)
+    check_output_subdir(out_dir, "sparse")  # only a folder this module made is replaced
+    if os.path.lexists(sparse):
+        shutil.rmtree(sparse)
+    _make_owned_dir(sparse)
     seconds: Dict[str, float] = {}
     pycolmap.set_random_seed(opts.seed)
     device = pycolmap.Device.cpu
@@ -880,18 +884,110 @@ def image_name(f: FrameRef) -> str:
     return f"images/frame_{f.index:06d}{ext}"
 
 
-def fresh_image_dir(inp: InputSequence, out_dir: str) -> str:
-    """Empty ``OUT/images`` (made anew), refusing an output directory whose images/ holds the
-    input itself."""
-    d = os.path.realpath(os.path.join(out_dir, "images"))
-    src = os.path.realpath(inp.path)
-    if src == d or src.startswith(d + os.sep):
-        raise SetupError(
-            f"--out {out_dir}: its images/ folder is (or holds) the input {inp.path}, which "
-            "would be overwritten; choose another output directory"
-        )
-    shutil.rmtree(d, ignore_errors=True)
+#: Written into ``OUT/images`` and ``OUT/sparse`` when this module makes them: a later run
+#: replaces (deletes and makes anew) only folders that hold it, never a user's or COLMAP's own.
+OUTPUT_MARKER = ".leangate-reconstruct"
+#: The folders under ``--out`` that a run replaces.
+OUTPUT_SUBDIRS = ("images", "sparse")
+
+
+def _make_owned_dir(d: str) -> None:
+    """Make ``d`` (missing or just removed) with the marker that lets a later run replace it."""
     os.makedirs(d)
+    with open(os.path.join(d, OUTPUT_MARKER), "w") as f:
+        f.write("made by leangate_client.reconstruct (pipelines/reconstruct.py); a later run "
+                "with the same --out deletes and remakes this folder\n")
+
+
+def check_output_subdir(out_dir: str, sub: str) -> None:
+    """Raise SetupError unless ``OUT/sub`` may be replaced: it is missing, an empty folder, or a
+    folder this module made (it holds ``OUTPUT_MARKER``). A symbolic link is refused, never
+    followed (deleting it would delete what it points to)."""
+    p = os.path.join(out_dir, sub)
+    if os.path.islink(p):
+        raise SetupError(
+            f"--out {out_dir}: {p} is a symbolic link (to {os.readlink(p)}); reconstruct.py "
+            "does not follow it to replace what it points to; choose another --out or remove it"
+        )
+    if not os.path.lexists(p):
+        return
+    if not os.path.isdir(p):
+        raise SetupError(
+            f"--out {out_dir}: {p} exists and is not a folder; choose another --out or remove it"
+        )
+    marker = os.path.join(p, OUTPUT_MARKER)
+    if os.path.isfile(marker) and not os.path.islink(marker):
+        return
+    if os.listdir(p):
+        raise SetupError(
+            f"--out {out_dir}: {p} is not empty and was not made by reconstruct.py (no "
+            f"{OUTPUT_MARKER} in it), so it is not replaced; choose another --out or remove it"
+        )
+
+
+def _input_under_output(
+    inp: InputSequence, out_dir: str, extra: Sequence[str] = ()
+) -> Optional[Tuple[str, str]]:
+    """The first input file (the video, or a frame's image; ``extra``: more frame files) that
+    lies under ``OUT/images`` or ``OUT/sparse`` (resolved, links followed), or is the same file
+    as one there (a hard link: same st_dev/st_ino), with the folder; else None."""
+    roots = [os.path.realpath(os.path.join(out_dir, s)) for s in OUTPUT_SUBDIRS]
+    inodes: Dict[Tuple[int, int], str] = {}
+    for top in roots:
+        for dirpath, _dirs, files in os.walk(top):  # links not followed
+            for n in files:
+                try:
+                    st = os.lstat(os.path.join(dirpath, n))
+                except OSError:
+                    continue
+                if stat_mod.S_ISREG(st.st_mode):
+                    inodes[(st.st_dev, st.st_ino)] = top
+    paths = [inp.path] if inp.kind == "video" else [f.path for f in inp.frames if f.path]
+    for path in list(paths) + list(extra):
+        real = os.path.realpath(path)
+        for top in roots:
+            if real == top or real.startswith(top + os.sep):
+                return path, top
+        try:
+            st = os.stat(path)
+        except OSError:
+            continue  # a missing file is reported later
+        top = inodes.get((st.st_dev, st.st_ino))  # type: ignore[assignment]
+        if top is not None:
+            return path, f"{top} (a hard link to it)"
+    return None
+
+
+def check_output_dir(inp: InputSequence, out_dir: str, extra: Sequence[str] = ()) -> None:
+    """Raise SetupError (nothing deleted) when a run into ``out_dir`` would delete the input
+    (the input, or a file of it, lies in ``OUT/images`` or ``OUT/sparse``, also through a hard
+    link) or a folder this module did not make (see ``check_output_subdir``)."""
+    src = os.path.realpath(inp.path)
+    for sub in OUTPUT_SUBDIRS:
+        d = os.path.realpath(os.path.join(out_dir, sub))
+        if src == d or src.startswith(d + os.sep):
+            raise SetupError(
+                f"--out {out_dir}: its {sub}/ folder is (or holds) the input {inp.path}, which "
+                "would be deleted; choose another output directory"
+            )
+    hit = _input_under_output(inp, out_dir, extra)
+    if hit is not None:
+        raise SetupError(
+            f"--out {out_dir}: the input file {hit[0]} lies in {hit[1]}, which a run replaces "
+            "(the input would be deleted); choose another output directory"
+        )
+    for sub in OUTPUT_SUBDIRS:
+        check_output_subdir(out_dir, sub)
+
+
+def fresh_image_dir(inp: InputSequence, out_dir: str, extra: Sequence[str] = ()) -> str:
+    """Empty ``OUT/images`` (made anew, with ``OUTPUT_MARKER``), after ``check_output_dir``:
+    nothing is deleted when the input lies there or the folder was not made by this module."""
+    check_output_dir(inp, out_dir, extra)
+    d = os.path.join(out_dir, "images")
+    if os.path.lexists(d):
+        shutil.rmtree(d)
+    _make_owned_dir(d)
     return d
 
 
@@ -989,8 +1085,13 @@ def reconstruct(
             opts = SfmOptions(**{**opts.__dict__, "intrinsics": inp.intrinsics})
         else:
             log.info("camera model %s: the PINHOLE intrinsics.txt is not used", opts.camera_model)
+    extra = []  # files given with --frames @FILE
+    for f in frames or []:
+        if isinstance(f, (tuple, list)) and f[1]:
+            extra.append(f[1] if os.path.isabs(f[1]) else os.path.join(inp.path, f[1]))
+    check_output_dir(inp, out_dir, extra)
     os.makedirs(out_dir, exist_ok=True)
-    fresh_image_dir(inp, out_dir)
+    fresh_image_dir(inp, out_dir, extra)
     gate_result = None
     if frames is not None or every is not None:
         chosen = select_frames(inp, out_dir, frames, every)
@@ -1129,7 +1230,10 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
         "frames with COLMAP (pycolmap): sparse model, frames registered, models, reprojection "
         "error, ATE against ground truth when the input has it.",
         epilog="The frames are written (video) or linked (sequence) as OUT/images/frame_<index>; "
-        "the models go under OUT/sparse/N, COLMAP's messages into OUT/colmap.log. The plugin is "
+        "the models go under OUT/sparse/N, COLMAP's messages into OUT/colmap.log. A run "
+        "replaces OUT/images and OUT/sparse only when it made them itself (each holds a "
+        f"{OUTPUT_MARKER} file): a non-empty images/ or sparse/ without it, a symbolic link "
+        "there, or an input file inside them is refused and nothing is deleted. The plugin is "
         "found through GST_PLUGIN_PATH or --plugin-path.",
     )
     from . import __version__

@@ -178,7 +178,10 @@ class LeanGateSource:
     a staging directory beside it and moved into it only when the run completes (the stream
     ended, or the caller stopped iterating); after a pipeline error or an exception that leaves
     the iteration or the ``with`` block (KeyboardInterrupt too), nothing is saved and the
-    directory is as it was. Encoding runs in the pipeline, beside the appsink; iterate
+    directory is as it was. Without ``overwrite``, a run that finds keyframes output in the
+    directory when it comes to move its own in (another run saving there at the same time)
+    does not replace it: ``close`` raises PipelineError and this run's output is discarded.
+    Encoding runs in the pipeline, beside the appsink; iterate
     (``arrays=False`` is enough) to run the stream, or use ``save_kept()``. In annotate mode
     too only kept frames are saved; ``max_frames`` also caps the images.
 
@@ -193,8 +196,10 @@ class LeanGateSource:
 
     ``force_keyframe``, ``reset`` and ``feedback`` need the running pipeline: they raise
     NotRunningError (a RuntimeError) before ``start`` (or the first iteration, or entering the
-    ``with`` block) and after ``close``. A source runs once: ``start`` or iterating after
-    ``close`` raises it too.
+    ``with`` block), once the stream has ended (``ended``: the ``for`` loop ran to
+    end-of-stream; ``state`` ``"ended"``, and ``forced_events`` is not counted: no frame would
+    act on it) and after ``close``. A source runs once: ``start`` or iterating after ``close``
+    raises it too.
     """
 
     def __init__(
@@ -287,6 +292,7 @@ class LeanGateSource:
         # start failed): close() then discards the saved frames instead of committing them
         self._aborted = False
         self._eos = False  # the pipeline's EOS message was seen (every sink got EOS)
+        self._ended = False  # the iteration ended at EOS
         self._failed = False  # an ERROR message was seen
 
     # -- description and building --------------------------------------------------------
@@ -449,7 +455,8 @@ class LeanGateSource:
         Frames already past the gate (queued for the appsink) are not affected; the forced
         keep lands on the next frame the gate processes. Returns True when the event reached
         the gate, False when it did not get there (the pipeline is shutting down).
-        Raises NotRunningError before the source is started and after it is closed."""
+        Raises NotRunningError before the source is started, once the stream has ended (EOS:
+        no frame would be kept for it) and after it is closed."""
         return self._push_upstream("force_keyframe()", FORCE_KEYFRAME_EVENT)
 
     def reset(self) -> bool:
@@ -465,8 +472,8 @@ class LeanGateSource:
         frame it processes (at most 0.3, never lowering it);
         ``gate.get_property("feedback-offset")`` says where it stands. Raises ValueError for a
         tau outside [0, 1]. Returns and raises as ``force_keyframe``: True when the report
-        reached the gate, False when it could not, NotRunningError before start or after
-        close."""
+        reached the gate, False when it could not, NotRunningError before start, after
+        end-of-stream or after close."""
         tau = float(tau)
         if not 0.0 <= tau <= 1.0:
             raise ValueError(f"feedback: tau {tau} is not in [0, 1]")
@@ -475,10 +482,29 @@ class LeanGateSource:
     def _state_error(self, call: str) -> NotRunningError:
         return NotRunningError(call, "closed" if self._closed else "not started")
 
+    def _ended_error(self, call: str) -> NotRunningError:
+        err = NotRunningError(call, "ended")
+        # errors.NotRunningError words only "not started" and "closed"; say what this is.
+        err.args = (
+            f"{call}: the stream has ended (end-of-stream reached the appsink): no frame will "
+            "come through the gate to act on it",
+        )
+        return err
+
+    @property
+    def ended(self) -> bool:
+        """The iteration ran to end-of-stream (the ``for`` loop ended at EOS; not when the
+        caller stopped early or ``max_frames`` stopped it). ``force_keyframe``, ``reset`` and
+        ``feedback`` then raise NotRunningError (``state`` ``"ended"``); inside the loop, on
+        the last frame too, they still go to the gate."""
+        return self._ended
+
     def _push_upstream(self, call: str, name: str, **fields) -> bool:
         pipeline, sink = self._pipeline, self._sink  # close() may clear them meanwhile
         if pipeline is None:
             raise self._state_error(call)
+        if self.ended:
+            raise self._ended_error(call)
         Gst = _gst.Gst
         st = Gst.Structure.new_empty(name)
         for k, v in fields.items():
@@ -718,6 +744,7 @@ class LeanGateSource:
                 if sample is None:
                     if self._sink.get_property("eos"):
                         # EOS reached the sink; the stats message was posted before it.
+                        self._ended = True
                         self._drain_bus()
                         return
                     idle += 0.1
