@@ -42,6 +42,14 @@ lint: setup
 bench: release
 	$(CARGO) bench --workspace
 
+# The one prepared GPU check (scripts/gpu-check.sh): installs the GPU ONNX Runtime, builds, runs the
+# GPU tests and benchmarks within 470 s, writes one figures file (GPU_FIGURES; default
+# $OUT/gpu-figures.md or out/gpu-figures.md). Exits 2 at once, saying so, without a GPU.
+GPU_FIGURES ?=
+.PHONY: gpu-check
+gpu-check:
+	bash scripts/gpu-check.sh $(GPU_FIGURES)
+
 # The main job: gate a synthetic flythrough (pauses and bursts) with the element in a real
 # pipeline, print frames in/kept, write the eval plot and a contact sheet of the kept frames.
 demo: release
