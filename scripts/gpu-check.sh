@@ -212,6 +212,13 @@ if ! gpu=$(timeout 10 "$SMI" --query-gpu=name,driver_version,memory.total --form
   no_gpu "$SMI failed: $(printf '%s' "$gpu" | one_line)"
 fi
 exec 1>&3 3>&-
+if [ -n "${GPU_CHECK_ACTIVE:-}" ]; then
+  # Run from a test of an outer check (tests/gpu_check.rs points it at no nvidia-smi, so this
+  # only happens when that is overridden): never recurse.
+  echo "gpu-check: already running (pid $GPU_CHECK_ACTIVE); a nested run stops here" >&2
+  exit 1
+fi
+export GPU_CHECK_ACTIVE=$$
 GPU_LINE=$(printf '%s' "$gpu" | head -n 1 | one_line)
 record gpu pass "$(elapsed)" "$GPU_LINE"
 echo "===== nvidia-smi" >>"$LOG"
