@@ -432,8 +432,13 @@ fn explicit_frames_and_a_python_without_pycolmap() {
     assert_eq!(v["registered"], 6, "{v}");
     assert!(v["ate_rmse_cm"].as_f64().unwrap() < 3.0);
 
-    // An out-of-range frame is a usage error (exit 2) naming it.
-    let out = consumer(&py, &["--frames", "0,60"], &[&seq]);
+    // An out-of-range frame is a usage error (exit 2) naming it. (--out in the temporary
+    // directory: the default, out/reconstruct, would be under the working directory.)
+    let out = consumer(
+        &py,
+        &["--frames", "0,60", "--out"],
+        &[&dir.path().join("range"), &seq],
+    );
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("frame 60 out of range"));
 
