@@ -1809,72 +1809,75 @@ fn save_kept_a_failed_or_interrupted_run_leaves_the_directory_as_it_was() {
     nothing_saved(&out, &fresh);
     assert_eq!(others(), ["key frames 100%"], "new/ is removed again");
 
-    // Ctrl-C in the middle of a long run with --overwrite: exit 130 once images are being
-    // written (into the staging directory), the earlier run intact.
+    // Ctrl-C (SIGINT) or a SIGTERM (a service stopped, `timeout`) in the middle of a long run
+    // with --overwrite: exit 130 or 143 once images are being written (into the staging
+    // directory), the earlier run intact and the staging directory gone (SIGTERM left it).
     let plugins = paths::plugin_dir();
-    let mut c = command(PYTHON);
-    c.env("PYTHONPATH", pkg_dir())
-        .env("GST_PLUGIN_PATH", plugins.path())
-        .args(["-m", "leangate_client"])
-        .args([
-            "test://ball?num-buffers=1000000&width=160&height=120",
-            "--threshold",
-            "0.001",
-            "--quiet",
-            "--overwrite",
-            "--save-kept",
-            kf_s,
-        ])
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped());
-    let child = c.spawn().expect("spawn");
-    let start = std::time::Instant::now();
-    let staged = loop {
-        let staged: Vec<PathBuf> = staging_dirs(tmp.path())
-            .iter()
-            .map(|n| tmp.path().join(n))
-            .collect();
-        if let Some(d) = staged.first() {
-            if std::fs::read_dir(d).map(|r| r.count()).unwrap_or(0) >= 20 {
-                break d.clone();
+    for (signal, code, said) in [("-INT", 130, "interrupted"), ("-TERM", 143, "terminated")] {
+        let mut c = command(PYTHON);
+        c.env("PYTHONPATH", pkg_dir())
+            .env("GST_PLUGIN_PATH", plugins.path())
+            .args(["-m", "leangate_client"])
+            .args([
+                "test://ball?num-buffers=1000000&width=160&height=120",
+                "--threshold",
+                "0.001",
+                "--quiet",
+                "--overwrite",
+                "--save-kept",
+                kf_s,
+            ])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped());
+        let child = c.spawn().expect("spawn");
+        let start = std::time::Instant::now();
+        let staged = loop {
+            let staged: Vec<PathBuf> = staging_dirs(tmp.path())
+                .iter()
+                .map(|n| tmp.path().join(n))
+                .collect();
+            if let Some(d) = staged.first() {
+                if std::fs::read_dir(d).map(|r| r.count()).unwrap_or(0) >= 20 {
+                    break d.clone();
+                }
             }
-        }
+            assert!(
+                start.elapsed().as_secs() < 60,
+                "no staging directory with images beside {kf_s} after 60 s"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        };
         assert!(
-            start.elapsed().as_secs() < 60,
-            "no staging directory with images beside {kf_s} after 60 s"
+            staged
+                .file_name()
+                .unwrap()
+                .to_str()
+                .unwrap()
+                .starts_with(".key frames 100%.leangate-staging-"),
+            "{}",
+            staged.display()
         );
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    };
-    assert!(
-        staged
-            .file_name()
-            .unwrap()
-            .to_str()
-            .unwrap()
-            .starts_with(".key frames 100%.leangate-staging-"),
-        "{}",
-        staged.display()
-    );
-    assert!(
-        snapshot(&kf) == before,
-        "DIR untouched while the run goes on"
-    );
-    let killed = Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
-    let out = child.wait_with_output().unwrap();
-    eprintln!("interrupted run: {}\n{}", out.status, stderr(&out));
-    assert_eq!(out.status.code(), Some(130));
-    assert!(stderr(&out).contains("leangate-client: error: interrupted"));
-    nothing_saved(&out, &kf);
-    assert!(snapshot(&kf) == before, "{:?}", dir_names(&kf));
-    assert_eq!(
-        others(),
-        ["key frames 100%"],
-        "the staging directory is deleted"
-    );
+        assert!(
+            snapshot(&kf) == before,
+            "DIR untouched while the run goes on"
+        );
+        let killed = Command::new("kill")
+            .args([signal, &child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+        let out = child.wait_with_output().unwrap();
+        eprintln!("interrupted run: {}\n{}", out.status, stderr(&out));
+        assert_eq!(out.status.code(), Some(code), "{signal}");
+        assert!(stderr(&out).contains(&format!("leangate-client: error: {said}")));
+        nothing_saved(&out, &kf);
+        assert!(snapshot(&kf) == before, "{:?}", dir_names(&kf));
+        assert_eq!(
+            others(),
+            ["key frames 100%"],
+            "the staging directory is deleted"
+        );
+    }
 
     // The library: an exception out of the `with` block (the caller's SLAM failed) saves
     // nothing; the same run ended by `break` replaces the earlier one.

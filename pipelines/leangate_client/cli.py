@@ -22,7 +22,9 @@ import csv
 import logging
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from typing import Iterable, List, Optional, Sequence
 
@@ -181,7 +183,33 @@ def main(
     ap = build_parser(prog)
     args = ap.parse_args(argv)
     configure_logging(ap.prog, args.verbose)
+    args._plugin_fallbacks = plugin_fallbacks
 
+    # SIGTERM and SIGHUP (a service stopped, `timeout`, a closed terminal) end the run the way
+    # Ctrl-C does: the pipeline is stopped and a --save-kept run leaves DIR as it was and its
+    # staging folder removed. (Signals can be handled in the main thread only.)
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            handlers[sig] = signal.signal(sig, _terminate)
+    try:
+        return _run(ap, args)
+    finally:
+        for sig, h in handlers.items():
+            signal.signal(sig, h)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, handled as Ctrl-C is (the signal number in ``args[0]``)."""
+
+
+def _terminate(signum, _frame):
+    raise _Terminated(signum)
+
+
+def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """The run itself (`main`'s body once the arguments are read)."""
+    plugin_fallbacks = args._plugin_fallbacks
     if args.source == "videotestsrc":
         src = args.input if args.input and args.input.startswith("test://") else "test://ball"
     elif args.input:
@@ -255,6 +283,9 @@ def main(
     except PipelineError as e:
         log.error("pipeline error: %s", e)
         return _failed(source, 1)
+    except _Terminated as e:
+        log.error("terminated")
+        return _failed(source, 128 + int(e.args[0]))
     except KeyboardInterrupt:
         log.error("interrupted")
         return _failed(source, 130)
