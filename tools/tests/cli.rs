@@ -2125,6 +2125,20 @@ fn eval_gates_frames_without_ground_truth_and_says_how_many() {
     let oracle = holed["policies"]["oracle"]["kept"].as_u64().unwrap();
     assert!((1..=20).contains(&oracle), "{holed}");
     assert!(holed["policies"]["model"]["late_keeps"].is_u64(), "{holed}");
+    // One frame with ground truth is not enough to judge anything: said, not silent.
+    let one = dir.path().join("one");
+    sequence_copy(&seq, &one, |name, text| match name {
+        "groundtruth.txt" => text
+            .lines()
+            .filter(|l| l.starts_with('#'))
+            .chain(text.lines().filter(|l| !l.starts_with('#')).take(1))
+            .map(|l| format!("{l}\n"))
+            .collect(),
+        _ => text,
+    });
+    let j = eval_json(&one, &args);
+    assert_eq!(j["frames_without_ground_truth"], 39, "{j}");
+    assert!(j["policies"].get("oracle").is_none(), "{j}");
     // The table says it too.
     let out = leangate()
         .args(["eval", "--sequence"])

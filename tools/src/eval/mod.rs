@@ -418,7 +418,15 @@ pub fn evaluate(
             sequence: path.display().to_string(),
             phase: None,
             frames: n,
-            frames_without_ground_truth: teacher.as_ref().map(GroundTruth::lacking),
+            // Also when too few frames have it for the teacher (one): said, not silent.
+            frames_without_ground_truth: teacher.as_ref().map(GroundTruth::lacking).or(
+                match &source {
+                    Source::Sequence(seq) if seq.judged_frames() > 0 => {
+                        Some(n - seq.judged_frames())
+                    }
+                    _ => None,
+                },
+            ),
             threshold: t,
             model: run.model_name.clone(),
             model_precision: run.model_precision.clone(),
