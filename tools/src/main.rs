@@ -198,6 +198,10 @@ enum Command {
         /// not with --plot, --contact-sheet or --reconstruct.
         #[arg(long, default_value_t = 1, value_name = "N", value_parser = args::phases)]
         phases: usize,
+        /// Report progress on standard error also when it is not a terminal (a log, CI): a line
+        /// per stage and every tenth of it. On a terminal a progress bar is always shown.
+        #[arg(long)]
+        progress: bool,
         #[arg(long, default_value_t = 160, value_parser = args::working_width)]
         working_width: u32,
         #[arg(long, default_value_t = 0.1, value_parser = args::finite_positive)]
@@ -452,6 +456,7 @@ fn run(cli: Cli) -> Res {
             sweep_thresholds,
             sweep_plot,
             phases,
+            progress,
             working_width,
             max_dist,
             reconstruct,
@@ -497,6 +502,7 @@ fn run(cli: Cli) -> Res {
                     sweep: (sweep || sweep_plot.is_some()).then_some(thresholds),
                     sweep_plot,
                     phases,
+                    progress,
                     reconstruct: reconstruct.then_some(eval::reconstruct::SfmConfig {
                         python: sfm_python,
                         dense_every,
@@ -525,6 +531,8 @@ struct EvalOutputs {
     sweep_plot: Option<PathBuf>,
     /// `--phases`: runs per sequence, each started a frame later.
     phases: usize,
+    /// `--progress`: progress lines on a standard error that is not a terminal.
+    progress: bool,
     /// `--reconstruct` and its settings.
     reconstruct: Option<eval::reconstruct::SfmConfig>,
 }
@@ -543,6 +551,7 @@ fn eval_cmd(
         sweep,
         sweep_plot,
         phases,
+        progress,
         reconstruct,
     } = out;
     if phases > 1 {
@@ -653,18 +662,33 @@ fn eval_cmd(
             }
         }
     }
-    let bar = indicatif::ProgressBar::new(0);
+    // On a terminal a bar (indicatif draws nothing elsewhere); with --progress elsewhere, lines.
+    let lines = progress && !std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let bar = match lines {
+        true => indicatif::ProgressBar::hidden(),
+        false => indicatif::ProgressBar::new(0),
+    };
     bar.set_style(
-        indicatif::ProgressStyle::with_template("{msg:>8} [{bar:40}] {pos}/{len} frames")
-            .unwrap()
-            .progress_chars("=> "),
+        indicatif::ProgressStyle::with_template(
+            "{msg:>8} [{bar:40}] {pos}/{len} frames, {eta} left",
+        )
+        .unwrap()
+        .progress_chars("=> "),
     );
+    let mut said: Option<(String, usize)> = None;
     let mut show = |stage: &str, done: usize, total: usize| {
         bar.set_message(stage.to_string());
         if total > 0 {
             bar.set_length(total as u64);
         }
         bar.set_position(done as u64);
+        if lines {
+            let tenth = (done * 10).checked_div(total).unwrap_or(0);
+            if said.as_ref() != Some(&(stage.to_string(), tenth)) {
+                eprintln!("leangate eval: {stage} {done}/{total} frames");
+                said = Some((stage.to_string(), tenth));
+            }
+        }
     };
     let several = sequences.len() > 1 || phases > 1;
     // Which sequences the sweep can run on, known before the long part: alone, a sequence the

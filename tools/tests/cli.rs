@@ -2323,3 +2323,36 @@ fn eval_does_not_call_unjudged_keeps_on_time() {
         .unwrap();
     assert!(second.contains("late 0"), "{text}");
 }
+
+/// `--progress` reports on a standard error that is not a terminal (a log, CI): a line per stage
+/// and every tenth; without it the eval stays quiet there.
+#[test]
+fn eval_progress_lines_only_when_asked() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 10, "pan", 11);
+    let run = |extra: &[&str]| {
+        let out = leangate()
+            .args(["eval", "--model", &fixture("mad.onnx"), "--sequence"])
+            .arg(&seq)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let quiet = run(&[]);
+    assert!(!quiet.contains("leangate eval:"), "{quiet}");
+    let said = run(&["--progress"]);
+    for stage in ["model", "oracle", "motion", "overlap"] {
+        assert!(
+            said.contains(&format!("leangate eval: {stage} ")),
+            "{stage}: {said}"
+        );
+    }
+    assert!(said.contains("leangate eval: model 10/10 frames"), "{said}");
+}
