@@ -34,6 +34,21 @@ fn label_pairs(seq: &Path, pairs: &Path) -> std::process::Output {
         .output()
         .unwrap()
 }
+/// A `groundtruth.txt` with only the poses whose row index `keep` accepts (comments kept).
+fn keep_poses(text: &str, keep: impl Fn(usize) -> bool) -> String {
+    let mut row = 0;
+    text.lines()
+        .filter(|l| {
+            if l.starts_with('#') {
+                return true;
+            }
+            row += 1;
+            keep(row - 1)
+        })
+        .map(|l| format!("{l}\n"))
+        .collect()
+}
+
 fn synth(dir: &Path, frames: usize, motion: &str, seed: u64) {
     synth_sized(dir, frames, motion, seed, (160, 120));
 }
@@ -2096,19 +2111,7 @@ fn eval_gates_frames_without_ground_truth_and_says_how_many() {
     synth(&seq, 40, "pan", 5);
     let holes = dir.path().join("holes");
     sequence_copy(&seq, &holes, |name, text| match name {
-        "groundtruth.txt" => {
-            let mut rows = 0;
-            text.lines()
-                .filter(|l| {
-                    if l.starts_with('#') {
-                        return true;
-                    }
-                    rows += 1;
-                    !(11..=30).contains(&rows)
-                })
-                .map(|l| format!("{l}\n"))
-                .collect()
-        }
+        "groundtruth.txt" => keep_poses(&text, |i| !(10..30).contains(&i)),
         _ => text,
     });
     let args = ["--model", &fixture("mad.onnx"), "--threshold", "0.05"];
@@ -2128,12 +2131,7 @@ fn eval_gates_frames_without_ground_truth_and_says_how_many() {
     // One frame with ground truth is not enough to judge anything: said, not silent.
     let one = dir.path().join("one");
     sequence_copy(&seq, &one, |name, text| match name {
-        "groundtruth.txt" => text
-            .lines()
-            .filter(|l| l.starts_with('#'))
-            .chain(text.lines().filter(|l| !l.starts_with('#')).take(1))
-            .map(|l| format!("{l}\n"))
-            .collect(),
+        "groundtruth.txt" => keep_poses(&text, |i| i == 0),
         _ => text,
     });
     let j = eval_json(&one, &args);
@@ -2266,19 +2264,7 @@ fn eval_does_not_call_unjudged_keeps_on_time() {
     synth(&seq, 12, "pan", 10);
     let odd = dir.path().join("odd");
     sequence_copy(&seq, &odd, |name, text| match name {
-        "groundtruth.txt" => {
-            let mut row = 0;
-            text.lines()
-                .filter(|l| {
-                    if l.starts_with('#') {
-                        return true;
-                    }
-                    row += 1;
-                    row == 1 || row % 2 == 0
-                })
-                .map(|l| format!("{l}\n"))
-                .collect()
-        }
+        "groundtruth.txt" => keep_poses(&text, |i| i == 0 || i % 2 == 1),
         _ => text,
     });
     let args = [
