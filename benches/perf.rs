@@ -534,8 +534,8 @@ fn section_scoring(reps: usize) {
     let pre =
         Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT709, info.spec.clone()).unwrap();
     let threshold = info.threshold.unwrap_or(0.5);
-    // `check`: the picture check (`reject-junk`, and the sharpness measure `sharpness-wait`
-    // uses), as the element runs it by default.
+    // `check`: the picture check (`reject-junk`), as the element runs it by default (the
+    // sharpness measure runs only with `sharpness-wait`, off by default).
     // Also where the time goes, stage by stage (seconds): preprocessing, the picture check + the
     // prior's tracking (`observe`), the composition (raster overlap, screening, the student when
     // it runs), the gate.

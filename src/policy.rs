@@ -229,7 +229,7 @@ impl Gate {
                 frames_since_keyframe: self.since_keyframe,
             };
         }
-        let reason = if !self.has_reference || score == Score::NoReference {
+        let mut reason = if !self.has_reference || score == Score::NoReference {
             Some(Reason::First)
         } else if self.force_next {
             Some(Reason::Forced)
@@ -247,7 +247,6 @@ impl Gate {
             }
         };
         // A keep due on score (now, or waiting since an earlier frame) on a blurred frame waits.
-        let mut reason = reason;
         let mut deferred = false;
         let due = reason == Some(Reason::Score) || (reason.is_none() && self.waited > 0);
         if due && self.cfg.sharpness_wait > 0 {

@@ -91,13 +91,19 @@ pub struct Measured {
 /// [`crate::geometry::grey_from_tensor`] of the model's input. A picture smaller than 4x4 is
 /// [`Quality::Usable`] (nothing to tell).
 pub fn assess(grey: &[f32], w: usize, h: usize) -> Quality {
-    measure(grey, w, h, &mut Vec::new()).quality
+    measure(grey, w, h, &mut Vec::new(), false).quality
 }
 
-/// [`assess`] and [`sharpness`] in three passes (two over the 2x2-binned picture, one over the
-/// picture for the Laplacian); `bins` is scratch space kept between frames (no allocation once it
-/// has grown).
-pub fn measure(grey: &[f32], w: usize, h: usize, bins: &mut Vec<f32>) -> Measured {
+/// [`assess`] and, `with_sharpness`, [`sharpness`]: two passes over the 2x2-binned picture and
+/// one over the picture for the Laplacian (only when asked: the gate needs it only to wait for a
+/// sharper frame); `bins` is scratch space kept between frames (no allocation once it has grown).
+pub fn measure(
+    grey: &[f32],
+    w: usize,
+    h: usize,
+    bins: &mut Vec<f32>,
+    with_sharpness: bool,
+) -> Measured {
     let (bw, bh) = (w / 2, h / 2);
     let usable = Measured {
         quality: Quality::Usable,
@@ -183,7 +189,7 @@ pub fn measure(grey: &[f32], w: usize, h: usize, bins: &mut Vec<f32>) -> Measure
     };
     Measured {
         quality,
-        sharpness: Some(laplacian_variance(grey, w, h)),
+        sharpness: with_sharpness.then(|| laplacian_variance(grey, w, h)),
     }
 }
 
@@ -216,7 +222,7 @@ fn laplacian_variance(grey: &[f32], w: usize, h: usize) -> f64 {
 /// compared between neighbouring frames of one stream (the scene changes little between them),
 /// never as an absolute. `None` for junk or a picture smaller than 4x4 ([`measure`]).
 pub fn sharpness(grey: &[f32], w: usize, h: usize) -> Option<f64> {
-    measure(grey, w, h, &mut Vec::new()).sharpness
+    measure(grey, w, h, &mut Vec::new(), true).sharpness
 }
 
 #[cfg(test)]

@@ -53,8 +53,10 @@ pub struct Utility {
     no_quality_check: bool,
     /// The last observed frame's quality ([`crate::quality::assess`]).
     quality: Quality,
-    /// The last observed frame's sharpness ([`crate::quality::sharpness`]), when checked.
+    /// The last observed frame's sharpness ([`crate::quality::sharpness`]), when measured.
     sharpness: Option<f64>,
+    /// Whether to measure it ([`Utility::set_sharpness_measure`]).
+    measure_sharpness: bool,
     /// Scratch for [`measure`], kept between frames.
     bins: Vec<f32>,
 }
@@ -70,6 +72,7 @@ impl Utility {
             no_quality_check: false,
             quality: Quality::Usable,
             sharpness: None,
+            measure_sharpness: false,
             bins: Vec::new(),
         }
     }
@@ -87,8 +90,14 @@ impl Utility {
         self.quality
     }
 
+    /// Measure each checked frame's sharpness too (off by default: a pass over the picture the
+    /// gate needs only with the element's `sharpness-wait`).
+    pub fn set_sharpness_measure(&mut self, on: bool) {
+        self.measure_sharpness = on;
+    }
+
     /// The last observed frame's sharpness ([`crate::quality::sharpness`] of the model's
-    /// picture); `None` when unchecked, unreadable or junk.
+    /// picture); `None` when not measured, unchecked, unreadable or junk.
     pub fn sharpness(&self) -> Option<f64> {
         self.sharpness
     }
@@ -171,7 +180,7 @@ impl Utility {
         let (w, h) = (spec.width as usize, spec.height as usize);
         let grey = grey_from_tensor(tensor, w, h, spec.mean, spec.std);
         if !self.no_quality_check {
-            let m = measure(&grey, w, h, &mut self.bins);
+            let m = measure(&grey, w, h, &mut self.bins, self.measure_sharpness);
             (self.quality, self.sharpness) = (m.quality, m.sharpness);
             if self.quality.is_junk() {
                 return; // not a picture of the scene: the chain bridges it

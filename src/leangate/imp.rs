@@ -463,6 +463,7 @@ impl LeanGate {
         let spec = &state.scorer.info().spec;
         let frame = frame_readable.then_some((&state.current[..], spec));
         state.utility.set_quality_check(fs.reject_junk);
+        state.utility.set_sharpness_measure(fs.sharpness_wait > 0);
         state.utility.observe(frame, has_reference, fs.geometry);
         let quality = state.utility.quality();
         let mut screened = false;
