@@ -620,7 +620,7 @@ fn eval_cmd(
     let inputs = eval::input_files(sequences, model.path)?;
     for (flag, path) in outputs {
         if let Some(p) = path {
-            if refuse_input(flag, p, &inputs, false).is_err() {
+            if inputs.hit(p, false).is_some() {
                 return Err(format!(
                     "{flag} `{}`: is an input of this eval (it would be overwritten); choose \
                      another path",
