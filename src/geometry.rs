@@ -635,6 +635,15 @@ impl Chain {
         self.h
     }
 
+    /// An earlier frame of the chain becomes the reference: `to_frame` is the chain's homography
+    /// reference → that frame (as [`Chain::homography`] read then). Lost when either is.
+    pub fn rebase(&mut self, to_frame: Option<Mat3>) {
+        self.h = match (self.h, to_frame.and_then(|m| mat_inv(&m))) {
+            (Some(h), Some(inv)) => Some(mat_mul(&h, &inv)),
+            _ => None,
+        };
+    }
+
     /// `(tau, f_m, f_u)` of the last frame against the reference on a `w` x `h` picture
     /// ([`raster_tau`] of the chain), or None when the chain is lost or not invertible.
     pub fn score(&mut self, w: usize, h: usize) -> Option<(f64, f64, f64)> {
@@ -680,6 +689,12 @@ impl Tracker {
     /// Homography reference → last observed frame, if the chain holds.
     pub fn chain(&self) -> Option<Mat3> {
         self.chain.homography()
+    }
+
+    /// An earlier observed frame becomes the reference ([`Chain::rebase`]): `to_frame` is
+    /// [`Tracker::chain`] as read when that frame was the last observed.
+    pub fn rebase(&mut self, to_frame: Option<Mat3>) {
+        self.chain.rebase(to_frame);
     }
 
     /// The teacher-like utility of the last observed frame against the reference, or None when
@@ -961,6 +976,41 @@ mod tests {
             (h[0][2] - 1.5).abs() < 0.1 && (h[1][2] + 1.0).abs() < 0.1,
             "{h:?}"
         );
+    }
+
+    #[test]
+    fn a_chain_rebased_on_an_earlier_frame_is_the_chain_started_there() {
+        let step = |dx: f64, dy: f64, k: f64| [[k, 0.0, dx], [0.0, k, dy], [0.0, 0.0, 1.0]];
+        let steps = [
+            step(3.0, 1.0, 1.0),
+            step(-2.0, 4.0, 1.01),
+            step(5.0, 0.0, 0.99),
+        ];
+        let mut whole = Chain::default();
+        whole.start();
+        whole.push(Some(steps[0]));
+        let at_first = whole.homography();
+        for s in &steps[1..] {
+            whole.push(Some(*s));
+        }
+        whole.rebase(at_first);
+        let mut from_first = Chain::default();
+        from_first.start();
+        for s in &steps[1..] {
+            from_first.push(Some(*s));
+        }
+        let (a, b) = (
+            whole.homography().unwrap(),
+            from_first.homography().unwrap(),
+        );
+        for r in 0..3 {
+            for c in 0..3 {
+                assert!((a[r][c] - b[r][c]).abs() < 1e-9, "{a:?} against {b:?}");
+            }
+        }
+        // Rebased on a frame where the chain was lost: lost.
+        whole.rebase(None);
+        assert!(!whole.is_live());
     }
 
     #[test]

@@ -23,6 +23,15 @@
 //! (whatever its utility: the keep was due), or to the last one the wait allows. Keeps for any
 //! other reason end a wait. Without sharpness (the oracle, a model failure) nothing waits.
 //!
+//! Sharpest of the recent frames ([`GateConfig::sharpness_lookback`] > 0): a keep due on score
+//! (rule 5) on a frame blurrier than [`LOOKBACK_RATIO`] of the sharpest usable frame among the
+//! `sharpness_lookback` frames before it (dropped on score since the last keep) goes to that
+//! sharper frame instead: [`Decision::kept_back`] says how many frames back it is, the current
+//! frame is dropped (reason `score`), and the earlier frame is kept with reason `sharper` and
+//! becomes the reference. The element holds that many frames to make this possible (its latency
+//! grows by as many frame durations). It acts before `sharpness_wait`, which applies only when no
+//! earlier frame is sharper.
+//!
 //! Every kept frame becomes the new reference.
 
 use std::fmt;
@@ -40,10 +49,13 @@ pub enum Reason {
     Junk,
     /// Dropped: a keep is due but waits for a sharper frame ([`GateConfig::sharpness_wait`]).
     Deferred,
+    /// Kept in place of a later, blurrier frame on which a keep was due
+    /// ([`GateConfig::sharpness_lookback`]).
+    Sharper,
 }
 
 impl Reason {
-    pub const ALL: [Reason; 8] = [
+    pub const ALL: [Reason; 9] = [
         Reason::First,
         Reason::Warmup,
         Reason::Score,
@@ -52,6 +64,7 @@ impl Reason {
         Reason::Error,
         Reason::Junk,
         Reason::Deferred,
+        Reason::Sharper,
     ];
 
     /// The string written into `LeanGateMeta`'s `reason` field.
@@ -65,6 +78,7 @@ impl Reason {
             Reason::Error => "error",
             Reason::Junk => "junk",
             Reason::Deferred => "deferred",
+            Reason::Sharper => "sharper",
         }
     }
 
@@ -103,6 +117,8 @@ pub struct GateConfig {
     pub max_gap: u64,
     /// Most frames a keep due on a blurred frame waits for a sharper one; 0 = never waits.
     pub sharpness_wait: u64,
+    /// How many frames back a keep due on a blurred frame may go for a sharper one; 0 = none.
+    pub sharpness_lookback: u64,
 }
 
 /// A frame is blurred, for [`GateConfig::sharpness_wait`], when its sharpness is below this
@@ -110,6 +126,11 @@ pub struct GateConfig {
 pub const SHARPER_RATIO: f64 = 0.8;
 /// How many preceding frames a frame's sharpness is compared with.
 pub const SHARPNESS_HISTORY: usize = 3;
+/// A keep due on a frame goes back to an earlier frame ([`GateConfig::sharpness_lookback`])
+/// when the due frame's sharpness is below this fraction of that frame's.
+pub const LOOKBACK_RATIO: f64 = 0.9;
+/// The most frames [`GateConfig::sharpness_lookback`] may hold.
+pub const MAX_LOOKBACK: u64 = 30;
 
 impl Default for GateConfig {
     fn default() -> Self {
@@ -118,6 +139,7 @@ impl Default for GateConfig {
             warmup: 0,
             max_gap: 0,
             sharpness_wait: 0,
+            sharpness_lookback: 0,
         }
     }
 }
@@ -131,6 +153,10 @@ pub struct Decision {
     pub keyframe_index: u64,
     /// Frames since the reference this frame was compared with (0 for a kept frame).
     pub frames_since_keyframe: u64,
+    /// With [`GateConfig::sharpness_lookback`]: the keep due on this frame went to the frame
+    /// this many frames before it (kept, reason [`Reason::Sharper`], the new reference); 0: none.
+    /// This frame itself is dropped.
+    pub kept_back: u64,
 }
 
 /// The gate's state machine.
@@ -146,6 +172,11 @@ pub struct Gate {
     sharpness: std::collections::VecDeque<f64>,
     /// Frames a due keep has waited for a sharper frame (0: none waiting).
     waited: u64,
+    /// Frames decided so far (junk included): the position of the next frame.
+    position: u64,
+    /// (position, sharpness) of the recent frames dropped on score since the last keep, the
+    /// candidates of [`GateConfig::sharpness_lookback`], oldest first.
+    candidates: std::collections::VecDeque<(u64, f64)>,
 }
 
 impl Gate {
@@ -159,6 +190,8 @@ impl Gate {
             kept: 0,
             sharpness: std::collections::VecDeque::with_capacity(SHARPNESS_HISTORY + 1),
             waited: 0,
+            position: 0,
+            candidates: std::collections::VecDeque::new(),
         }
     }
 
@@ -195,6 +228,7 @@ impl Gate {
         self.since_keyframe = 0;
         self.sharpness.clear();
         self.waited = 0;
+        self.candidates.clear();
     }
 
     /// A new stream or a flush: forget the reference and restart the warm-up count.
@@ -202,6 +236,16 @@ impl Gate {
         self.drop_reference();
         self.frames_since_restart = 0;
         self.force_next = false;
+    }
+
+    /// Frames decided so far (junk included): the position the next frame will have.
+    pub fn position(&self) -> u64 {
+        self.position
+    }
+
+    /// The recent frames can no longer be kept instead of a later one (the element let them go).
+    pub fn forget_candidates(&mut self) {
+        self.candidates.clear();
     }
 
     /// Keep the next frame whatever its score (`leangate-force-keyframe`).
@@ -217,6 +261,16 @@ impl Gate {
     /// Decide the fate of the next frame, given its sharpness
     /// ([`crate::quality::sharpness`]) for [`GateConfig::sharpness_wait`].
     pub fn decide_with(&mut self, score: Score, sharpness: Option<f64>) -> Decision {
+        let position = self.position;
+        self.position += 1;
+        let lookback = self.cfg.sharpness_lookback.min(MAX_LOOKBACK);
+        while self
+            .candidates
+            .front()
+            .is_some_and(|&(p, _)| p + lookback < position)
+        {
+            self.candidates.pop_front();
+        }
         if score == Score::Junk {
             // Not a frame of the stream's pictures: no reference, warm-up or keep changes.
             if self.has_reference {
@@ -227,6 +281,7 @@ impl Gate {
                 reason: Reason::Junk,
                 keyframe_index: self.kept,
                 frames_since_keyframe: self.since_keyframe,
+                kept_back: 0,
             };
         }
         let mut reason = if !self.has_reference || score == Score::NoReference {
@@ -246,6 +301,34 @@ impl Gate {
                 _ => None,
             }
         };
+        // A keep due on score on a frame blurrier than a recent one goes back to that one.
+        if reason == Some(Reason::Score) && self.waited == 0 {
+            let best =
+                self.candidates
+                    .iter()
+                    .copied()
+                    .fold(None, |m: Option<(u64, f64)>, c| match m {
+                        Some(m) if m.1 >= c.1 => Some(m),
+                        _ => Some(c),
+                    });
+            if let (Some(s), Some((p, b))) = (sharpness, best) {
+                if s < LOOKBACK_RATIO * b {
+                    self.remember_sharpness(sharpness);
+                    self.frames_since_restart = self.frames_since_restart.saturating_add(1);
+                    self.candidates.clear();
+                    self.force_next = false;
+                    self.since_keyframe = position - p;
+                    self.kept += 1;
+                    return Decision {
+                        keep: false,
+                        reason: Reason::Score,
+                        keyframe_index: self.kept,
+                        frames_since_keyframe: self.since_keyframe,
+                        kept_back: position - p,
+                    };
+                }
+            }
+        }
         // A keep due on score (now, or waiting since an earlier frame) on a blurred frame waits.
         let mut deferred = false;
         let due = reason == Some(Reason::Score) || (reason.is_none() && self.waited > 0);
@@ -266,16 +349,12 @@ impl Gate {
                 reason = Some(Reason::Score);
             }
         }
-        if let Some(s) = sharpness {
-            if self.sharpness.len() == SHARPNESS_HISTORY {
-                self.sharpness.pop_front();
-            }
-            self.sharpness.push_back(s);
-        }
+        self.remember_sharpness(sharpness);
         self.frames_since_restart = self.frames_since_restart.saturating_add(1);
         match reason {
             Some(reason) => {
                 self.has_reference = true;
+                self.candidates.clear();
                 self.waited = 0;
                 self.force_next = false;
                 self.since_keyframe = 0;
@@ -285,10 +364,14 @@ impl Gate {
                     reason,
                     keyframe_index: self.kept,
                     frames_since_keyframe: 0,
+                    kept_back: 0,
                 }
             }
             None => {
                 self.since_keyframe += 1;
+                if let (Some(s), false, true) = (sharpness, deferred, lookback > 0) {
+                    self.candidates.push_back((position, s));
+                }
                 Decision {
                     keep: false,
                     reason: if deferred {
@@ -298,8 +381,18 @@ impl Gate {
                     },
                     keyframe_index: self.kept,
                     frames_since_keyframe: self.since_keyframe,
+                    kept_back: 0,
                 }
             }
+        }
+    }
+
+    fn remember_sharpness(&mut self, sharpness: Option<f64>) {
+        if let Some(s) = sharpness {
+            if self.sharpness.len() == SHARPNESS_HISTORY {
+                self.sharpness.pop_front();
+            }
+            self.sharpness.push_back(s);
         }
     }
 }
@@ -442,6 +535,57 @@ mod tests {
         });
         g.decide(Score::NoReference);
         assert!(g.decide(Score::Utility(0.6)).keep);
+    }
+
+    #[test]
+    fn a_keep_due_on_a_blurred_frame_goes_back_to_a_sharper_recent_one() {
+        let mut g = Gate::new(GateConfig {
+            sharpness_lookback: 2,
+            ..Default::default()
+        });
+        fn step(g: &mut Gate, u: f64, s: f64) -> (bool, Reason, u64, u64, u64) {
+            let d = g.decide_with(Score::Utility(u), Some(s));
+            (
+                d.keep,
+                d.reason,
+                d.kept_back,
+                d.keyframe_index,
+                d.frames_since_keyframe,
+            )
+        }
+        assert!(step(&mut g, 0.0, 100.0).0);
+        // Candidates 80 (3 back: beyond the look-back), 90, 70; the due frame (40) goes back to
+        // the 90 one, two frames before it, which becomes keyframe 2.
+        assert_eq!(step(&mut g, 0.1, 80.0), (false, Reason::Score, 0, 1, 1));
+        assert_eq!(step(&mut g, 0.3, 90.0), (false, Reason::Score, 0, 1, 2));
+        assert_eq!(step(&mut g, 0.4, 70.0), (false, Reason::Score, 0, 1, 3));
+        assert_eq!(step(&mut g, 0.6, 40.0), (false, Reason::Score, 2, 2, 2));
+        // The frames before that keep are no candidates any more: a due blurred frame after it
+        // keeps at once when nothing since is sharper...
+        assert!(step(&mut g, 0.9, 10.0).0);
+        // ...and a due frame at least 0.9 as sharp as the best candidate keeps itself.
+        step(&mut g, 0.1, 100.0);
+        assert_eq!(step(&mut g, 0.6, 91.0), (true, Reason::Score, 0, 4, 0));
+        // Junk is never a candidate; off (0) nothing goes back; without sharpness neither.
+        step(&mut g, 0.1, 100.0);
+        assert!(!g.decide(Score::Junk).keep);
+        // (the junk frame in between counts: the element holds every frame)
+        assert_eq!(step(&mut g, 0.6, 20.0).2, 2);
+        let mut off = Gate::new(GateConfig::default());
+        off.decide(Score::NoReference);
+        off.decide_with(Score::Utility(0.1), Some(100.0));
+        assert!(off.decide_with(Score::Utility(0.6), Some(10.0)).keep);
+        let mut g = Gate::new(GateConfig {
+            sharpness_lookback: 2,
+            ..Default::default()
+        });
+        g.decide(Score::NoReference);
+        g.decide_with(Score::Utility(0.1), Some(100.0));
+        assert_eq!(g.decide(Score::Utility(0.6)).kept_back, 0);
+        // forget_candidates: the held frames are gone.
+        g.decide_with(Score::Utility(0.1), Some(100.0));
+        g.forget_candidates();
+        assert!(g.decide_with(Score::Utility(0.6), Some(10.0)).keep);
     }
 
     #[test]

@@ -59,6 +59,9 @@ pub struct Utility {
     measure_sharpness: bool,
     /// Scratch for [`measure`], kept between frames.
     bins: Vec<f32>,
+    /// [`Tracker::chain`] after each of the last observed frames (None: not trackable), newest
+    /// last, at most [`crate::policy::MAX_LOOKBACK`] + 1: what [`Utility::on_keep_back`] rebases to.
+    recent: std::collections::VecDeque<Option<crate::geometry::Mat3>>,
 }
 
 impl Utility {
@@ -74,6 +77,7 @@ impl Utility {
             sharpness: None,
             measure_sharpness: false,
             bins: Vec::new(),
+            recent: std::collections::VecDeque::new(),
         }
     }
 
@@ -160,6 +164,21 @@ impl Utility {
     /// restarts when there is no reference, and forgets everything while the prior is off or the
     /// frame is unreadable (the chain cannot bridge a gap).
     pub fn observe(
+        &mut self,
+        frame: Option<(&[f32], &TensorSpec)>,
+        has_reference: bool,
+        enabled: bool,
+    ) {
+        self.observe_frame(frame, has_reference, enabled);
+        if self.recent.len() > crate::policy::MAX_LOOKBACK as usize {
+            self.recent.pop_front();
+        }
+        let trackable = !self.quality.is_junk();
+        self.recent
+            .push_back(self.tracker.chain().filter(|_| trackable));
+    }
+
+    fn observe_frame(
         &mut self,
         frame: Option<(&[f32], &TensorSpec)>,
         has_reference: bool,
@@ -257,12 +276,33 @@ impl Utility {
     pub fn on_keep(&mut self) {
         self.tracker.set_reference();
         self.tau = None;
+        if let Some(last) = self.recent.back_mut() {
+            *last = self.tracker.chain();
+        }
+    }
+
+    /// The frame observed `back` frames before the last one was kept and is the new reference
+    /// ([`crate::policy::Decision::kept_back`]): the prior's chain goes on from it (lost when it
+    /// was lost at that frame, or that frame is no longer remembered).
+    pub fn on_keep_back(&mut self, back: u64) {
+        let at = (self.recent.len() as u64)
+            .checked_sub(1 + back)
+            .and_then(|i| self.recent.get(i as usize).copied())
+            .flatten();
+        self.tracker.rebase(at);
+        self.tau = None;
+        // What the remembered frames' chains were measured from is gone.
+        let n = self.recent.len();
+        for (i, h) in self.recent.iter_mut().enumerate() {
+            *h = (i + 1 == n).then(|| self.tracker.chain()).flatten();
+        }
     }
 
     /// Forget the stream (start, flush, caps change).
     pub fn clear(&mut self) {
         self.tracker.clear();
         self.tau = None;
+        self.recent.clear();
     }
 }
 

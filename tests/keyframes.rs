@@ -241,3 +241,143 @@ fn a_keep_due_on_a_blurred_frame_goes_to_a_sharper_one() {
     assert!(bad2 * n0 < bad0 * n2, "{bad2}/{n2} against {bad0}/{n0}");
     assert!(n2 <= n0, "{n2} keyframes against {n0}");
 }
+
+/// The kept frames' median sharpness as a fraction of the sharpest frame within three of each.
+fn median_sharpness_ratio(keep: &[bool], sharp: &[f64]) -> f64 {
+    let n = keep.len();
+    let mut r: Vec<f64> = (0..n)
+        .filter(|&i| keep[i])
+        .map(|i| {
+            let best = sharp[i.saturating_sub(3)..(i + 4).min(n)]
+                .iter()
+                .fold(0.0f64, |a, &b| a.max(b));
+            sharp[i] / best
+        })
+        .collect();
+    r.sort_by(|a, b| a.total_cmp(b));
+    r[r.len() / 2]
+}
+
+/// `sharpness-lookback=3` on the first 300 frames of tum_fr1_desk, in annotate mode: every frame
+/// leaves exactly once and in order (the last three at EOS), keeps due on blurred frames go back
+/// to sharper ones (reason `sharper`, the due frame dropped), the kept frames' median sharpness
+/// against their neighbours rises, and drop mode lets exactly the same frames through. The
+/// latency query reports the three held frames.
+#[test]
+fn a_keep_due_on_a_blurred_frame_goes_back_to_a_sharper_recent_one() {
+    let Some(frames) = desk_frames(0, 300) else {
+        return;
+    };
+    let sharp: Vec<f64> = frames.iter().map(|f| frame_sharpness(f)).collect();
+    let run = |props: &str| {
+        let mut h = harness(props, &rgb_caps(W, H));
+        let mut out = Vec::new();
+        for (i, f) in frames.iter().enumerate() {
+            h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
+            out.extend(drain(&mut h));
+        }
+        let latency = h.query_latency();
+        assert!(h.push_event(gst::event::Eos::new()));
+        out.extend(drain(&mut h));
+        (out, latency)
+    };
+    let (at_once, _) = run("mode=annotate");
+    let (back, latency) = run("mode=annotate sharpness-lookback=3");
+    assert_eq!(back.len(), frames.len(), "every frame leaves once");
+    let pts: Vec<u64> = back.iter().map(|b| b.pts().unwrap().mseconds()).collect();
+    assert_eq!(
+        pts,
+        (0..frames.len() as u64).map(|i| i * 33).collect::<Vec<_>>()
+    );
+    assert!(
+        latency.is_some_and(|l| l >= gst::ClockTime::from_mseconds(99)),
+        "latency {latency:?}: three frames at 30/s are held"
+    );
+    let metas: Vec<_> = back.iter().map(meta).collect();
+    let sharper: Vec<usize> = (0..metas.len())
+        .filter(|&i| metas[i].reason == Reason::Sharper)
+        .collect();
+    assert!(!sharper.is_empty(), "no keep went back on a fast sweep");
+    for &i in &sharper {
+        assert!(metas[i].keep && metas[i].frames_since_keyframe == 0);
+        // The frame the keep was due on is dropped within three frames after it, compared with
+        // the new reference from then on.
+        let due = (i + 1..(i + 4).min(metas.len()))
+            .find(|&j| metas[j].keyframe_index == metas[i].keyframe_index && !metas[j].keep);
+        assert!(due.is_some(), "keep at {i}: no due frame after it");
+    }
+    let keeps = |v: &[gst::Buffer]| v.iter().map(|b| meta(b).keep).collect::<Vec<bool>>();
+    let (k0, k3) = (keeps(&at_once), keeps(&back));
+    let (m0, m3) = (
+        median_sharpness_ratio(&k0, &sharp),
+        median_sharpness_ratio(&k3, &sharp),
+    );
+    eprintln!("median kept sharpness / sharpest within 3: {m0:.2} at once, {m3:.2} going back");
+    assert!(m3 > m0 + 0.05, "{m3:.2} against {m0:.2}");
+    // Drop mode: the same frames, and only them.
+    let (dropped, _) = run("sharpness-lookback=3");
+    let kept_pts: Vec<u64> = (0..k3.len()).filter(|&i| k3[i]).map(|i| pts[i]).collect();
+    let out_pts: Vec<u64> = dropped
+        .iter()
+        .map(|b| b.pts().unwrap().mseconds())
+        .collect();
+    assert_eq!(out_pts, kept_pts);
+}
+
+/// Frames held for `sharpness-lookback` across what a stream does: new caps release them first
+/// (in order, before the new-caps frames), a flush discards them, the property going to 0 while
+/// frames are held lets them out before the next frame. Nothing is lost or reordered otherwise.
+#[test]
+fn held_frames_survive_caps_changes_flushes_and_property_changes() {
+    let Some(frames) = desk_frames(100, 20) else {
+        return;
+    };
+    let mut h = harness("mode=annotate sharpness-lookback=5", &rgb_caps(W, H));
+    let pts = |v: &[gst::Buffer]| {
+        v.iter()
+            .map(|b| b.pts().unwrap().mseconds())
+            .collect::<Vec<_>>()
+    };
+    for (i, f) in frames[..8].iter().enumerate() {
+        h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
+    }
+    let first = drain(&mut h);
+    assert!(first.len() < 8, "nothing held: {:?}", pts(&first));
+    // New caps: the held frames leave before the caps do, then the new frames follow.
+    h.set_src_caps_str(&rgb_caps(W / 2, H / 2));
+    let small = image::imageops::thumbnail(
+        &image::RgbImage::from_raw(W, H, frames[8].clone()).unwrap(),
+        W / 2,
+        H / 2,
+    )
+    .into_raw();
+    h.push(buffer(small, 8 * 33)).unwrap();
+    let mut out = first;
+    out.extend(drain(&mut h));
+    assert_eq!(pts(&out), (0..9).map(|i| i * 33).collect::<Vec<_>>());
+    // A flush discards what is held; the stream goes on.
+    h.set_src_caps_str(&rgb_caps(W, H));
+    for (i, f) in frames[9..14].iter().enumerate() {
+        h.push(buffer(f.clone(), (9 + i as u64) * 33)).unwrap();
+    }
+    drain(&mut h);
+    assert!(h.push_event(gst::event::FlushStart::new()));
+    assert!(h.push_event(gst::event::FlushStop::new(true)));
+    h.set_src_caps_str(&rgb_caps(W, H));
+    h.push_event(gst::event::Segment::new(&gst::FormattedSegment::<
+        gst::ClockTime,
+    >::new()));
+    drain(&mut h);
+    for (i, f) in frames[14..18].iter().enumerate() {
+        h.push(buffer(f.clone(), (14 + i as u64) * 33)).unwrap();
+    }
+    let mid = drain(&mut h);
+    // The property to 0: the held frames leave before the next one, which leaves at once.
+    h.element()
+        .unwrap()
+        .set_property("sharpness-lookback", 0u32);
+    h.push(buffer(frames[18].clone(), 18 * 33)).unwrap();
+    let mut tail = mid;
+    tail.extend(drain(&mut h));
+    assert_eq!(pts(&tail), (14..19).map(|i| i * 33).collect::<Vec<_>>());
+}

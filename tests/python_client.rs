@@ -17,8 +17,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 const PYTHON: &str = "/usr/bin/python3";
-const REASONS: [&str; 8] = [
-    "first", "warmup", "score", "max-gap", "forced", "error", "junk", "deferred",
+const REASONS: [&str; 9] = [
+    "first", "warmup", "score", "max-gap", "forced", "error", "junk", "deferred", "sharper",
 ];
 
 fn repo() -> PathBuf {

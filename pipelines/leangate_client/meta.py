@@ -11,7 +11,17 @@ FORCE_KEYFRAME_EVENT = "leangate-force-keyframe"
 RESET_EVENT = "leangate-reset"
 FEEDBACK_EVENT = "leangate-feedback"
 STATS_MESSAGE = "leangate-stats"
-REASONS = ("first", "warmup", "score", "max-gap", "forced", "error", "junk", "deferred")
+REASONS = (
+    "first",
+    "warmup",
+    "score",
+    "max-gap",
+    "forced",
+    "error",
+    "junk",
+    "deferred",
+    "sharper",
+)
 #: The meta's ``quality``: ``usable``, junk (never kept), or ``textureless`` (utility 0).
 QUALITIES = ("usable", "dark", "saturated", "noise", "textureless")
 

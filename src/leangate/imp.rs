@@ -13,7 +13,7 @@ use super::{
     RESET_EVENT,
 };
 use crate::meta::GateMeta;
-use crate::policy::{Gate, GateConfig, Score};
+use crate::policy::{Gate, GateConfig, Reason, Score};
 use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
 use crate::quality::Quality;
 use crate::remote::{Backend, Interrupt, RemoteOptions, RemoteScorer};
@@ -39,6 +39,7 @@ const DEFAULT_THRESHOLD: f64 = THRESHOLD_FROM_MODEL;
 const DEFAULT_WARMUP: u32 = 0;
 const DEFAULT_MAX_GAP: u32 = 0;
 const DEFAULT_SHARPNESS_WAIT: u32 = 0;
+const DEFAULT_SHARPNESS_LOOKBACK: u32 = 0;
 const DEFAULT_MODE: GateMode = GateMode::Drop;
 const DEFAULT_EXECUTION_PROVIDER: ExecutionProviderChoice = ExecutionProviderChoice::Auto;
 const DEFAULT_PRECISION: PrecisionChoice = PrecisionChoice::Auto;
@@ -72,6 +73,7 @@ struct Settings {
     warmup: u32,
     max_gap: u32,
     sharpness_wait: u32,
+    sharpness_lookback: u32,
     mode: GateMode,
     execution_provider: ExecutionProviderChoice,
     precision: PrecisionChoice,
@@ -105,6 +107,7 @@ impl Default for Settings {
             warmup: DEFAULT_WARMUP,
             max_gap: DEFAULT_MAX_GAP,
             sharpness_wait: DEFAULT_SHARPNESS_WAIT,
+            sharpness_lookback: DEFAULT_SHARPNESS_LOOKBACK,
             mode: DEFAULT_MODE,
             execution_provider: DEFAULT_EXECUTION_PROVIDER,
             precision: DEFAULT_PRECISION,
@@ -136,6 +139,7 @@ struct FrameSettings {
     warmup: u32,
     max_gap: u32,
     sharpness_wait: u32,
+    sharpness_lookback: u32,
     mode: GateMode,
     stats_interval: u64,
     geometry: bool,
@@ -150,6 +154,7 @@ impl From<&Settings> for FrameSettings {
             warmup: s.warmup,
             max_gap: s.max_gap,
             sharpness_wait: s.sharpness_wait,
+            sharpness_lookback: s.sharpness_lookback,
             mode: s.mode,
             stats_interval: s.stats_interval,
             geometry: s.geometry,
@@ -186,6 +191,9 @@ struct State {
     reference: Vec<f32>,
     reference_pts: Option<gst::ClockTime>,
     current: Vec<f32>,
+    /// The model pictures of the recent frames that `sharpness-lookback` may still keep
+    /// (candidates of [`Gate`]), oldest first.
+    recent: std::collections::VecDeque<Recent>,
     stats: InferenceStats,
     last_stats_pts: Option<gst::ClockTime>,
     /// `frames-in` / `frames-kept` at the previous stats message (for the interval fields).
@@ -255,6 +263,11 @@ pub struct LeanGate {
     feedback: Mutex<std::collections::VecDeque<Result<(f64, f64), String>>>,
     /// The utility's offset learnt from feedback (f64 bits), for the `feedback-offset` property.
     feedback_offset: AtomicU64,
+    /// Frames held for `sharpness-lookback`, oldest first (only the streaming thread and
+    /// serialized events touch it; taken alone, never with `settings` or `state`).
+    held: Mutex<std::collections::VecDeque<Held>>,
+    /// One frame's duration from the caps (ns; 0: unknown), for the latency query.
+    frame_ns: AtomicU64,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -276,6 +289,24 @@ fn shown(name: &str, value: &glib::Value) -> String {
 struct Verdict {
     keep: bool,
     meta: GateMeta,
+    /// The keep due on this frame went to the frame this many before it (`sharpness-lookback`).
+    kept_back: u64,
+}
+
+/// A recent frame's model picture, kept for `sharpness-lookback`.
+struct Recent {
+    /// The frame's position in the gate ([`Gate::position`]).
+    position: u64,
+    pts: Option<gst::ClockTime>,
+    tensor: Vec<f32>,
+}
+
+/// A frame the element holds for `sharpness-lookback`: its fate is final once it is kept, once
+/// a later frame is kept, or once it is more than `sharpness-lookback` frames old.
+struct Held {
+    buf: gst::Buffer,
+    meta: GateMeta,
+    done: bool,
 }
 
 impl LeanGate {
@@ -289,6 +320,7 @@ impl LeanGate {
             warmup: settings.warmup as u64,
             max_gap: settings.max_gap as u64,
             sharpness_wait: settings.sharpness_wait as u64,
+            sharpness_lookback: settings.sharpness_lookback as u64,
         }
     }
 
@@ -406,6 +438,49 @@ impl LeanGate {
         }
     }
 
+    /// Push frames whose fate is settled (`sharpness-lookback`), in order: kept ones (every one
+    /// in annotate mode) with their LeanGateMeta, a gap for each dropped one. No lock is held.
+    fn output_held(
+        &self,
+        ready: Vec<Held>,
+        mode: GateMode,
+    ) -> Result<gst::FlowSuccess, gst::FlowError> {
+        let src = self.obj().src_pad().clone();
+        for h in ready {
+            if !h.meta.keep && mode == GateMode::Drop {
+                if let Some(pts) = h.buf.pts().or(h.buf.dts()) {
+                    let gap = gst::event::Gap::builder(pts)
+                        .duration(h.buf.duration())
+                        .build();
+                    let _ = src.push_event(gap);
+                }
+                continue;
+            }
+            let mut buf = h.buf;
+            if let Err(e) = h.meta.attach(buf.make_mut()) {
+                gst::warning!(CAT, imp = self, "cannot attach LeanGateMeta: {e}");
+            }
+            src.push(buf)?;
+        }
+        Ok(gst::FlowSuccess::Ok)
+    }
+
+    /// Let every held frame go with its fate as it stands (pushed when `push`, else discarded:
+    /// a flush), and tell the gate they can no longer be kept instead of a later frame.
+    fn release_held(&self, push: bool) {
+        let ready: Vec<Held> = lock(&self.held).drain(..).collect();
+        if ready.is_empty() {
+            return;
+        }
+        if let Some(state) = lock(&self.state).as_mut() {
+            state.gate.forget_candidates();
+        }
+        if push {
+            let mode = self.frame_settings().mode;
+            let _ = self.output_held(ready, mode);
+        }
+    }
+
     /// Preprocess the buffer into `state.current`.
     fn preprocess(&self, state: &mut State, buf: &gst::BufferRef) -> Result<(), String> {
         let State { pre, current, .. } = state;
@@ -463,7 +538,9 @@ impl LeanGate {
         let spec = &state.scorer.info().spec;
         let frame = frame_readable.then_some((&state.current[..], spec));
         state.utility.set_quality_check(fs.reject_junk);
-        state.utility.set_sharpness_measure(fs.sharpness_wait > 0);
+        state
+            .utility
+            .set_sharpness_measure(fs.sharpness_wait > 0 || fs.sharpness_lookback > 0);
         state.utility.observe(frame, has_reference, fs.geometry);
         let quality = state.utility.quality();
         let mut screened = false;
@@ -517,12 +594,52 @@ impl LeanGate {
             state.stats.record(inference_us);
         }
         let pts = buf.pts();
-        let decision = state.gate.decide_with(score, state.utility.sharpness());
+        let position = state.gate.position();
+        let sharpness = state.utility.sharpness();
+        let decision = state.gate.decide_with(score, sharpness);
         let reference_pts = if decision.keep && score == Score::NoReference {
             pts
         } else {
             state.reference_pts
         };
+        if decision.kept_back > 0 {
+            // The keep went to a sharper recent frame (held by `submit_input_buffer`): it is the
+            // reference now, and the prior's chain goes on from it.
+            let at = position - decision.kept_back;
+            match state.recent.iter().position(|r| r.position == at) {
+                Some(i) => {
+                    std::mem::swap(&mut state.reference, &mut state.recent[i].tensor);
+                    state.reference_pts = state.recent[i].pts;
+                    state.utility.on_keep_back(decision.kept_back);
+                    state.scorer.on_keep(false);
+                }
+                // Not remembered (cannot happen: the gate's candidates are these frames); the
+                // next frame starts afresh rather than comparing with the wrong picture.
+                None => state.gate.drop_reference(),
+            }
+            self.frames_kept.fetch_add(1, Ordering::Relaxed);
+        } else if !decision.keep
+            && fs.sharpness_lookback > 0
+            && sharpness.is_some()
+            && frame_readable
+            && decision.reason == Reason::Score
+        {
+            // A candidate for a later keep (the gate took it as one: same conditions).
+            // Entries the gate no longer asks for (older, or before the last keep) are reused.
+            let mut tensor = Vec::new();
+            while state.recent.len() >= fs.sharpness_lookback as usize {
+                if let Some(r) = state.recent.pop_front() {
+                    tensor = r.tensor;
+                }
+            }
+            tensor.clear();
+            tensor.extend_from_slice(&state.current);
+            state.recent.push_back(Recent {
+                position,
+                pts,
+                tensor,
+            });
+        }
         if decision.keep {
             // A split model reuses the features it just computed for this frame.
             state
@@ -577,6 +694,7 @@ impl LeanGate {
                 screened,
                 quality,
             },
+            kept_back: decision.kept_back,
         }))
     }
 }
@@ -639,6 +757,19 @@ impl ObjectImpl for LeanGate {
                     )
                     .maximum(30)
                     .default_value(DEFAULT_SHARPNESS_WAIT)
+                    .mutable_playing()
+                    .build(),
+                glib::ParamSpecUInt::builder("sharpness-lookback")
+                    .nick("Keep the sharpest of the recent frames")
+                    .blurb(
+                        "Hold this many frames; when a keep is due on a frame blurrier than 0.9 \
+                         of the sharpest of them (dropped since the last keep; variance of the \
+                         Laplacian of the model's picture), keep that sharper frame instead \
+                         (reason sharper) and drop the due one. Adds this many frame durations \
+                         of latency (reported in the latency query). 0 = hold nothing",
+                    )
+                    .maximum(crate::policy::MAX_LOOKBACK as u32)
+                    .default_value(DEFAULT_SHARPNESS_LOOKBACK)
                     .mutable_playing()
                     .build(),
                 glib::ParamSpecEnum::builder_with_default("mode", DEFAULT_MODE)
@@ -948,6 +1079,10 @@ impl ObjectImpl for LeanGate {
                     settings.sharpness_wait = value.get().expect("type checked upstream");
                     None
                 }
+                "sharpness-lookback" => {
+                    settings.sharpness_lookback = value.get().expect("type checked upstream");
+                    None
+                }
                 "mode" => {
                     settings.mode = value.get().expect("type checked upstream");
                     None
@@ -1029,12 +1164,18 @@ impl ObjectImpl for LeanGate {
         };
         // Gate parameters apply from the next frame (the streaming thread reads the settings
         // once per frame): no other lock is taken here, and the warning is posted unlocked.
+        let latency_changed = name == "sharpness-lookback" && refused.is_none();
         match refused {
             Some(why) => {
                 gst::warning!(CAT, imp = self, "{why}");
                 gst::element_imp_warning!(self, gst::CoreError::StateChange, ("{}", why));
             }
             None => gst::debug!(CAT, imp = self, "{name} set to {}", shown(name, value)),
+        }
+        if latency_changed {
+            // The element's latency changed: let the pipeline query it again.
+            let obj = self.obj();
+            let _ = obj.post_message(gst::message::Latency::builder().src(&*obj).build());
         }
     }
 
@@ -1052,6 +1193,7 @@ impl LeanGate {
             "warmup" => settings.warmup.to_value(),
             "max-gap" => settings.max_gap.to_value(),
             "sharpness-wait" => settings.sharpness_wait.to_value(),
+            "sharpness-lookback" => settings.sharpness_lookback.to_value(),
             "mode" => settings.mode.to_value(),
             "execution-provider" => settings.execution_provider.to_value(),
             "precision" => settings.precision.to_value(),
@@ -1258,6 +1400,7 @@ impl BaseTransformImpl for LeanGate {
             reference,
             reference_pts: None,
             current,
+            recent: std::collections::VecDeque::new(),
             stats: InferenceStats::default(),
             last_stats_pts: None,
             interval_start: (0, 0, 0),
@@ -1269,6 +1412,8 @@ impl BaseTransformImpl for LeanGate {
 
     fn stop(&self) -> Result<(), gst::ErrorMessage> {
         lock(&self.interrupt).take();
+        let held = std::mem::take(&mut *lock(&self.held));
+        drop(held);
         let state = lock(&self.state).take();
         // Dropping the session happens outside the lock.
         drop(state);
@@ -1297,6 +1442,14 @@ impl BaseTransformImpl for LeanGate {
         )
         .map_err(|e| gst::loggable_error!(CAT, "{e}"))?;
         gst::debug!(CAT, imp = self, "configured for {incaps}");
+        let fps = info.fps();
+        let frame_ns = if fps.numer() > 0 && fps.denom() > 0 {
+            (1_000_000_000u128 * fps.denom() as u128 / fps.numer() as u128).min(u64::MAX as u128)
+                as u64
+        } else {
+            0
+        };
+        self.frame_ns.store(frame_ns, Ordering::Relaxed);
         // New caps (a new picture geometry, format or rate): the old reference is not
         // comparable any more, nor what the consumer reported about the old pictures.
         state.gate.drop_reference();
@@ -1313,6 +1466,19 @@ impl BaseTransformImpl for LeanGate {
             _ => None,
         };
         let res = BaseTransformImplExt::parent_query(self, direction, query);
+        if let (true, gst::PadDirection::Src, gst::QueryViewMut::Latency(q)) =
+            (res, direction, query.view_mut())
+        {
+            // Frames held for `sharpness-lookback` leave that many frame durations later.
+            let frames = lock(&self.settings).sharpness_lookback as u64;
+            let extra = gst::ClockTime::from_nseconds(
+                frames.saturating_mul(self.frame_ns.load(Ordering::Relaxed)),
+            );
+            if !extra.is_zero() {
+                let (live, min, max) = q.result();
+                q.set(live, min + extra, max.map(|m| m + extra));
+            }
+        }
         let refused = match query.view() {
             gst::QueryView::AcceptCaps(q) => !res || !q.result(),
             _ => false,
@@ -1330,6 +1496,13 @@ impl BaseTransformImpl for LeanGate {
     }
 
     fn sink_event(&self, event: gst::Event) -> bool {
+        match event.view() {
+            // Frames held for `sharpness-lookback` go before any serialized event (caps, segment,
+            // EOS...) with their fate as it stands; a flush discards them.
+            gst::EventView::FlushStop(_) => self.release_held(false),
+            _ if event.is_serialized() => self.release_held(true),
+            _ => {}
+        }
         match event.view() {
             // Not serialized: the streaming thread may be scoring a frame; interrupt it.
             gst::EventView::FlushStart(_) => self.interrupt(Interrupt::cancel),
@@ -1382,6 +1555,71 @@ impl BaseTransformImpl for LeanGate {
             self.note_custom_event(&event);
         }
         self.parent_src_event(event)
+    }
+
+    fn submit_input_buffer(
+        &self,
+        is_discont: bool,
+        inbuf: gst::Buffer,
+    ) -> Result<gst::FlowSuccess, gst::FlowError> {
+        let fs = self.frame_settings();
+        if fs.sharpness_lookback == 0 {
+            // Frames held before `sharpness-lookback` went to 0 go first.
+            self.release_held(true);
+            return self.parent_submit_input_buffer(is_discont, inbuf);
+        }
+        // Held frames are pushed here, in order; the base class then has nothing to output.
+        let mut out = Outbox::default();
+        let verdict = self.gate_frame(&inbuf, &fs, &mut out);
+        self.send(out);
+        let verdict = match verdict {
+            Ok(Some(v)) => v,
+            Ok(None) => return Err(gst::FlowError::Flushing),
+            Err(e) => {
+                gst::element_imp_error!(
+                    self,
+                    gst::CoreError::Negotiation,
+                    ("buffer received before the element started")
+                );
+                return Err(e);
+            }
+        };
+        let ready: Vec<Held> = {
+            let mut held = lock(&self.held);
+            held.push_back(Held {
+                buf: inbuf,
+                meta: verdict.meta.clone(),
+                done: verdict.keep,
+            });
+            let n = held.len();
+            if verdict.kept_back > 0 {
+                if let Some(h) = n
+                    .checked_sub(1 + verdict.kept_back as usize)
+                    .and_then(|i| held.get_mut(i))
+                {
+                    h.meta.keep = true;
+                    h.meta.reason = Reason::Sharper;
+                    h.meta.keyframe_index = verdict.meta.keyframe_index;
+                    h.meta.frames_since_keyframe = 0;
+                }
+            }
+            // A keep (this frame, or one before it) settles every frame before it; frames older
+            // than the look-back are settled as they stand.
+            let settled = if verdict.keep || verdict.kept_back > 0 {
+                n
+            } else {
+                n.saturating_sub(1 + fs.sharpness_lookback as usize)
+            };
+            for h in held.iter_mut().take(settled) {
+                h.done = true;
+            }
+            let mut ready = Vec::new();
+            while held.front().is_some_and(|h| h.done) {
+                ready.extend(held.pop_front());
+            }
+            ready
+        };
+        self.output_held(ready, fs.mode)
     }
 
     fn transform_ip(&self, buf: &mut gst::BufferRef) -> Result<gst::FlowSuccess, gst::FlowError> {

@@ -7,7 +7,7 @@ use std::sync::Once;
 use gst::prelude::*;
 
 /// Every property the issue asks the element to have.
-pub const PROPERTIES: [&str; 15] = [
+pub const PROPERTIES: [&str; 17] = [
     "model",
     "threshold",
     "warmup",
@@ -23,6 +23,8 @@ pub const PROPERTIES: [&str; 15] = [
     "frames-kept",
     "reject-junk",
     "frames-junk",
+    "sharpness-wait",
+    "sharpness-lookback",
 ];
 
 /// GStreamer (once per test binary) with the leangate plugin registered. A CRITICAL log message

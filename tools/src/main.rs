@@ -1006,7 +1006,7 @@ fn print_summary(r: &eval::EvalReport) {
         r.threshold
     );
     say!(
-        "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7}",
+        "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>6} {:>7} {:>7}",
         "policy",
         "kept",
         "ratio",
@@ -1016,6 +1016,7 @@ fn print_summary(r: &eval::EvalReport) {
         "min S",
         "med S",
         "overdue",
+        "sharp",
         "rmse",
         "fps"
     );
@@ -1027,7 +1028,7 @@ fn print_summary(r: &eval::EvalReport) {
     for (name, p) in &r.policies {
         let g = |k: &str| p.get(k).cloned().unwrap_or(serde_json::Value::Null);
         say!(
-            "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7}",
+            "{:<11} {:>5} {:>7} {:>6} {:>5} {:>6} {:>7} {:>7} {:>7} {:>6} {:>7} {:>7}",
             name,
             f(&g("kept"), 0),
             f(&g("keep_ratio"), 3),
@@ -1037,6 +1038,7 @@ fn print_summary(r: &eval::EvalReport) {
             f(&g("min_pair_S"), 3),
             f(&g("median_pair_S"), 3),
             f(&g("overdue_drops"), 0),
+            f(&g("kept_sharpness"), 2),
             f(&g("utility_rmse"), 3),
             f(&g("fps"), 1),
         );
@@ -1053,7 +1055,9 @@ const EVAL_LEGEND: &str = "columns:
     breaks: S < 0.05 (MASt3R-SLAM's tracking fails); late: S < 0.333 (a keyframe was due in
     between); min S, med S: the smallest and median S
   overdue: dropped frames whose teacher tau against the policy's reference was already >= the
-    threshold; rmse: the policy's utility against the teacher's tau; fps: frames/s of the model
+    threshold; sharp: the kept frames' median sharpness as a fraction of the sharpest frame
+    within +-3 of each (variance of the Laplacian at 320x240; JSON also `kept_blurred`, the share
+    below one half); rmse: the policy's utility against the teacher's tau; fps: frames/s of the model
     run (the element in a pipeline, with the eval's own decoding)
   oracle: the same gate driven by the exact teacher (the upper bound); stride, pixel_diff,
     motion, overlap: cheap gates tuned to the model's kept count (an equal budget)";

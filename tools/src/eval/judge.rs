@@ -33,6 +33,44 @@ pub struct PolicyReport {
     pub utility_rmse: Option<Option<f64>>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fps: Option<f64>,
+    /// The kept frames' sharpness, each as a fraction of the sharpest frame within
+    /// ±[`SHARP_NEIGHBOURS`] of it ([`kept_sharpness`]): the median, and the share below one half.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub kept_sharpness: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub kept_blurred: Option<f64>,
+}
+
+/// How many frames on each side a kept frame's sharpness is compared with.
+pub const SHARP_NEIGHBOURS: usize = 3;
+
+/// `(median, share below 0.5)` over the kept frames of each one's sharpness divided by the
+/// largest within ±[`SHARP_NEIGHBOURS`] frames (itself included): 1 when no neighbour is
+/// sharper. Frames without a sharpness (junk) are left out; None when no kept frame has one.
+pub fn kept_sharpness(keep: &[bool], sharpness: &[Option<f64>]) -> Option<(f64, f64)> {
+    let n = keep.len().min(sharpness.len());
+    let mut ratios: Vec<f64> = (0..n)
+        .filter(|&i| keep[i])
+        .filter_map(|i| {
+            let s = sharpness[i]?;
+            let lo = i.saturating_sub(SHARP_NEIGHBOURS);
+            let hi = (i + SHARP_NEIGHBOURS + 1).min(n);
+            let best = sharpness[lo..hi].iter().flatten().fold(s, |m, &v| m.max(v));
+            Some(if best > 0.0 { s / best } else { 1.0 })
+        })
+        .collect();
+    if ratios.is_empty() {
+        return None;
+    }
+    ratios.sort_by(|a, b| a.total_cmp(b));
+    let m = ratios.len();
+    let median = if m % 2 == 1 {
+        ratios[m / 2]
+    } else {
+        0.5 * (ratios[m / 2 - 1] + ratios[m / 2])
+    };
+    let blurred = ratios.iter().filter(|&&r| r < 0.5).count() as f64 / m as f64;
+    Some((median, blurred))
 }
 
 /// Teacher scores by stream frame, memoised (policies share many pairs); `None` for a pair with
@@ -106,6 +144,8 @@ pub fn judge(
         utility_mae: scored.then_some(None),
         utility_rmse: scored.then_some(None),
         fps,
+        kept_sharpness: None,
+        kept_blurred: None,
     };
     let Some(tc) = teacher else {
         return r;
@@ -178,6 +218,27 @@ pub fn judge(
 mod tests {
     use super::*;
     use crate::eval::tests::trace;
+
+    #[test]
+    fn kept_sharpness_compares_each_keep_with_its_neighbours() {
+        let s = |v: &[f64]| v.iter().map(|&x| Some(x)).collect::<Vec<_>>();
+        // Frame 4 (sharpness 10) has a neighbour at 40 within 3 frames: 0.25; frame 9 is the
+        // sharpest around it: 1.
+        let sharp = s(&[
+            40.0, 40.0, 40.0, 40.0, 10.0, 40.0, 20.0, 20.0, 20.0, 30.0, 5.0,
+        ]);
+        let mut keep = vec![false; sharp.len()];
+        keep[4] = true;
+        keep[9] = true;
+        let (median, blurred) = kept_sharpness(&keep, &sharp).unwrap();
+        assert!((median - 0.625).abs() < 1e-12, "{median}");
+        assert_eq!(blurred, 0.5);
+        // Junk (no sharpness) is left out; nothing measurable gives None.
+        let mut junk = sharp.clone();
+        junk[4] = None;
+        assert_eq!(kept_sharpness(&keep, &junk), Some((1.0, 0.0)));
+        assert_eq!(kept_sharpness(&[true], &[None]), None);
+    }
 
     #[test]
     fn judge_without_teacher_has_counts_only() {

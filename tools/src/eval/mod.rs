@@ -361,7 +361,12 @@ pub fn evaluate(
     let budget = model_trace.kept();
     let mut policies = serde_json::Map::new();
     let mut kept_rows = Vec::new();
-    let mut add = |name: &str, report: PolicyReport, trace: &Trace| {
+    let sharpness = run.sharpness.clone();
+    let mut add = |name: &str, mut report: PolicyReport, trace: &Trace| {
+        if let Some((median, blurred)) = judge::kept_sharpness(&trace.keep, &sharpness) {
+            report.kept_sharpness = Some(median);
+            report.kept_blurred = Some(blurred);
+        }
         policies.insert(name.to_string(), serde_json::to_value(report).unwrap());
         kept_rows.push((name.to_string(), trace.keep.clone()));
     };

@@ -20,6 +20,9 @@ pub struct ModelRun {
     pub thumbs: Vec<Vec<u8>>,
     /// (frame index, RGB thumbnail) of every kept frame.
     pub kept_thumbs: Vec<(usize, image::RgbImage)>,
+    /// Sharpness of every frame ([`gstleangate::quality::sharpness`] of its grey picture at
+    /// [`SHARP_W`] x [`SHARP_H`]; None: junk), for [`super::judge::kept_sharpness`].
+    pub sharpness: Vec<Option<f64>>,
     pub fps: f64,
     pub threshold: f64,
     pub provider: String,
@@ -56,11 +59,42 @@ pub fn init_gstreamer() -> Result<(), EvalError> {
     res
 }
 
+/// The picture size the eval measures each frame's sharpness at.
+pub const SHARP_W: u32 = 320;
+pub const SHARP_H: u32 = 240;
+
+type PreCache = Option<(gst::Caps, gst_video::VideoInfo, Preprocessor)>;
+
 /// RGB thumbnail of a raw buffer, through the same preprocessing the element uses.
-fn thumbnail(
-    cache: &mut Option<(gst::Caps, gst_video::VideoInfo, Preprocessor)>,
+fn thumbnail(cache: &mut PreCache, sample: &gst::Sample) -> Result<image::RgbImage, EvalError> {
+    let (t, plane) = resized(cache, sample, THUMB_W, THUMB_H)?;
+    let rgb = (0..plane)
+        .flat_map(|i| [t[i], t[plane + i], t[2 * plane + i]])
+        .map(|v| v.round().clamp(0.0, 255.0) as u8)
+        .collect();
+    Ok(image::RgbImage::from_raw(THUMB_W, THUMB_H, rgb).expect("thumbnail size"))
+}
+
+/// The sharpness of a raw buffer's grey picture at [`SHARP_W`] x [`SHARP_H`].
+fn sharpness(cache: &mut PreCache, sample: &gst::Sample) -> Result<Option<f64>, EvalError> {
+    let (t, plane) = resized(cache, sample, SHARP_W, SHARP_H)?;
+    let grey: Vec<f32> = (0..plane)
+        .map(|i| (t[i] + t[plane + i] + t[2 * plane + i]) / 3.0)
+        .collect();
+    Ok(gstleangate::quality::sharpness(
+        &grey,
+        SHARP_W as usize,
+        SHARP_H as usize,
+    ))
+}
+
+/// A raw buffer resized to `w` x `h`, planar RGB 0–255, and the plane size.
+fn resized(
+    cache: &mut PreCache,
     sample: &gst::Sample,
-) -> Result<image::RgbImage, EvalError> {
+    w: u32,
+    h: u32,
+) -> Result<(Vec<f32>, usize), EvalError> {
     let caps = sample
         .caps()
         .ok_or_else(|| EvalError("sample without caps".into()))?;
@@ -74,8 +108,8 @@ fn thumbnail(
             info.height(),
             YuvMatrix::from_colorimetry(&info.colorimetry(), info.height()),
             TensorSpec {
-                width: THUMB_W,
-                height: THUMB_H,
+                width: w,
+                height: h,
                 resize: ResizeMode::Stretch,
                 mean: [0.0; 3],
                 std: [1.0 / 255.0; 3],
@@ -91,12 +125,7 @@ fn thumbnail(
     let mut t = vec![0.0; pre.spec().len()];
     pre.run_buffer(buf, info, &mut t)
         .map_err(err("thumbnail"))?;
-    let plane = (THUMB_W * THUMB_H) as usize;
-    let rgb = (0..plane)
-        .flat_map(|i| [t[i], t[plane + i], t[2 * plane + i]])
-        .map(|v| v.round().clamp(0.0, 255.0) as u8)
-        .collect();
-    Ok(image::RgbImage::from_raw(THUMB_W, THUMB_H, rgb).expect("thumbnail size"))
+    Ok((t, (w * h) as usize))
 }
 
 /// The feeder waits for the sink: frame `i` is fed once `i` frames have left the element.
@@ -297,6 +326,8 @@ pub fn run_model(
             gate.link(&sink).map_err(err("link"))?;
             let seq = seq.clone();
             let lock_step = feedback.is_some().then(|| step.clone());
+            // Frames held for `sharpness-lookback` leave that many frames later.
+            let held = gate.property::<u32>("sharpness-lookback") as usize;
             feeder = Some(std::thread::spawn(move || -> Result<(), EvalError> {
                 // EOS however the feeding ends (done, an error, even a panic): the sink must
                 // not wait for frames that never come.
@@ -311,7 +342,10 @@ pub fn run_model(
                 let t0 = seq.frames.first().map(|f| f.timestamp).unwrap_or(0.0);
                 let feed = || {
                     for i in 0..seq.len() {
-                        if lock_step.as_ref().is_some_and(|s| !s.wait_for(i)) {
+                        if lock_step
+                            .as_ref()
+                            .is_some_and(|s| !s.wait_for(i.saturating_sub(held)))
+                        {
                             break; // the sink stopped pulling (an error, reported there)
                         }
                         let img = seq.load_rgb(i).map_err(err("frame"))?;
@@ -372,6 +406,7 @@ pub fn run_model(
     let mut thumbs = Vec::new();
     let mut kept_thumbs = Vec::new();
     let mut cache = None;
+    let (mut sharp_cache, mut frame_sharpness) = (None, Vec::new());
     let mut failure = None;
     // Reports not yet sent: (the frame at which the consumer sends it, tau).
     let mut reports = std::collections::VecDeque::new();
@@ -399,6 +434,13 @@ pub fn run_model(
                 break;
             }
         };
+        match sharpness(&mut sharp_cache, &sample) {
+            Ok(s) => frame_sharpness.push(s),
+            Err(e) => {
+                failure = Some(e);
+                break;
+            }
+        }
         thumbs.push(grey(&rgb));
         let i = metas.len();
         if m.keep {
@@ -448,6 +490,7 @@ pub fn run_model(
         metas,
         thumbs,
         kept_thumbs,
+        sharpness: frame_sharpness,
         provider: stats
             .as_ref()
             .map(|s| s.execution_provider.clone())
