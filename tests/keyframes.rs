@@ -333,6 +333,16 @@ fn held_frames_survive_caps_changes_flushes_and_property_changes() {
         return;
     };
     let mut h = harness("mode=annotate sharpness-lookback=5", &rgb_caps(W, H));
+    // Upstream is asked for five more buffers than it would otherwise allocate.
+    let caps: gst::Caps = rgb_caps(W, H).parse().unwrap();
+    let mut q = gst::query::Allocation::new(Some(&caps), true);
+    let sink = h.element().unwrap().static_pad("sink").unwrap();
+    assert!(sink.query(&mut q));
+    let pools: Vec<_> = q.allocation_pools().collect();
+    assert!(
+        pools.iter().any(|p| p.2 >= 5 && (p.3 == 0 || p.3 >= p.2)),
+        "{pools:?}"
+    );
     let pts = |v: &[gst::Buffer]| {
         v.iter()
             .map(|b| b.pts().unwrap().mseconds())

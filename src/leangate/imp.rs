@@ -1557,6 +1557,36 @@ impl BaseTransformImpl for LeanGate {
         self.parent_src_event(event)
     }
 
+    fn propose_allocation(
+        &self,
+        decide_query: Option<&gst::query::Allocation>,
+        query: &mut gst::query::Allocation,
+    ) -> Result<(), gst::LoggableError> {
+        self.parent_propose_allocation(decide_query, query)?;
+        // Frames held for `sharpness-lookback` are buffers upstream cannot reuse meanwhile: ask
+        // for that many more, so that a decoder with a bounded pool does not stall on them.
+        let held = lock(&self.settings).sharpness_lookback;
+        if held == 0 {
+            return Ok(());
+        }
+        let pools: Vec<_> = query.allocation_pools().collect();
+        if pools.is_empty() {
+            let size = query
+                .get_owned()
+                .0
+                .and_then(|caps| gst_video::VideoInfo::from_caps(&caps).ok())
+                .map_or(0, |info| info.size() as u32);
+            query.add_allocation_pool(None::<&gst::BufferPool>, size, held, 0);
+        } else {
+            for (i, (pool, size, min, max)) in pools.into_iter().enumerate() {
+                let min = min.saturating_add(held);
+                let max = if max == 0 { 0 } else { max.max(min) };
+                query.set_nth_allocation_pool(i as u32, pool.as_ref(), size, min, max);
+            }
+        }
+        Ok(())
+    }
+
     fn submit_input_buffer(
         &self,
         is_discont: bool,
