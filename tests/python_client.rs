@@ -2286,3 +2286,51 @@ fn the_python_tools_say_their_version() {
         stdout(&o)
     );
 }
+
+/// The package's modules import one another without a cycle, counting the imports inside
+/// functions too (a cycle works until the order of first imports changes, then fails at import).
+/// Parsed, not imported: no bindings needed.
+#[test]
+fn the_python_package_has_no_import_cycle() {
+    let script = r#"
+import ast, pathlib, sys
+pkg = pathlib.Path(sys.argv[1])
+mods = {p.stem for p in pkg.glob("*.py")}
+graph = {}
+for m in mods:
+    deps = set()
+    for node in ast.walk(ast.parse((pkg / f"{m}.py").read_text())):
+        if isinstance(node, ast.ImportFrom) and node.level == 1:
+            if node.module:
+                deps.add(node.module.split(".")[0])
+            else:
+                for a in node.names:
+                    deps.add(a.name if a.name in mods else "__init__")
+    graph[m] = deps & mods - {m}
+state = {}
+def visit(m, path):
+    if state.get(m) == 1:
+        sys.exit("import cycle: " + " -> ".join(path[path.index(m):] + [m]))
+    if state.get(m) == 2:
+        return
+    state[m] = 1
+    for d in sorted(graph[m]):
+        visit(d, path + [m])
+    state[m] = 2
+for m in sorted(graph):
+    visit(m, [])
+edges = sum(len(d) for d in graph.values())
+print(f"{len(graph)} modules, {edges} imports, no cycle")
+"#;
+    let out = Command::new(PYTHON)
+        .args(["-c", script])
+        .arg(repo().join("pipelines/leangate_client"))
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success() && text.contains("no cycle"),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}

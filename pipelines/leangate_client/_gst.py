@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
-from typing import Iterable, Optional, Union
+from typing import Any, Iterable, List, Optional, Union
 
 from .errors import SetupError
 
@@ -131,3 +131,32 @@ def ensure_plugin(
         "export GST_PLUGIN_PATH=$PWD/target/debug), or pass plugin_path= / --plugin-path"
         + (f" (also tried {', '.join(tried)})" if tried else "")
     )
+
+
+def _make(factory: str, name: Optional[str] = None):
+    el = Gst.ElementFactory.make(factory, name)
+    if el is None:
+        raise SetupError(
+            f"GStreamer element `{factory}` not found (Debian: apt install "
+            "gstreamer1.0-plugins-base gstreamer1.0-plugins-good)"
+        )
+    return el
+
+
+def _enum_nicks(el, prop: str) -> List[str]:
+    pspec = el.find_property(prop)
+    try:
+        return sorted(v.value_nick for v in pspec.enum_class.__enum_values__.values())
+    except AttributeError:
+        return []
+
+
+def _set(el, prop: str, value: Any) -> None:
+    """``el.set_property`` with a SetupError (naming the accepted values) for a bad value."""
+    try:
+        el.set_property(prop, value)
+    except (TypeError, ValueError, OverflowError) as e:
+        nicks = _enum_nicks(el, prop)
+        known = f"; one of: {', '.join(nicks)}" if nicks else ""
+        factory = el.get_factory().get_name() if el.get_factory() else el.get_name()
+        raise SetupError(f"bad value {value!r} for {factory} property {prop}{known} ({e})") from None

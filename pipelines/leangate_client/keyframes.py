@@ -27,7 +27,7 @@ import threading
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Set, Tuple
 
 from . import _gst
-from ._gst import PathLike
+from ._gst import PathLike, _make, _set
 from .errors import PipelineError, SetupError
 from .meta import ROW_COLUMNS, csv_value, json_value, meta_dict, meta_row
 
@@ -261,8 +261,6 @@ class KeptFrameSaver:
     def attach(self, pipeline, tee, frame_index: Callable[[Optional[int]], Optional[int]]) -> None:
         """Add ``queue ! videoconvert ! ENCODER ! multifilesink`` to ``pipeline``, fed by a new
         pad of ``tee``; ``frame_index(pts)`` gives the input index of the frame with that PTS."""
-        from .source import _make, _set
-
         Gst = _gst.Gst
         encoder, props = FORMATS[self.format]
         if self.staging is None:

@@ -49,7 +49,8 @@ from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tupl
 
 from . import _gst
 from .errors import PipelineError, SetupError
-from .source import LeanGateSource, _make, _set, buffer_to_rgb
+from ._gst import _make, _set
+from .source import LeanGateSource, buffer_to_rgb
 
 log = logging.getLogger("leangate_client.reconstruct")
 

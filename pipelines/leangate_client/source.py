@@ -21,7 +21,7 @@ import urllib.parse
 from typing import Any, Dict, Iterator, List, Mapping, Optional, Tuple
 
 from . import _gst
-from ._gst import PathLike, ensure_plugin
+from ._gst import PathLike, _make, _set, ensure_plugin
 from .argtypes import (
     non_negative_int,
     non_negative_seconds,
@@ -40,35 +40,6 @@ MODES = ("drop", "annotate")
 EXECUTION_PROVIDERS = ("auto", "cpu", "cuda", "tensorrt")
 PRECISIONS = ("auto", "fp32", "int8")
 TEST_PARAMETERS = ("num-buffers", "width", "height", "fps", "format")
-
-
-def _make(factory: str, name: Optional[str] = None):
-    el = _gst.Gst.ElementFactory.make(factory, name)
-    if el is None:
-        raise SetupError(
-            f"GStreamer element `{factory}` not found (Debian: apt install "
-            "gstreamer1.0-plugins-base gstreamer1.0-plugins-good)"
-        )
-    return el
-
-
-def _enum_nicks(el, prop: str) -> List[str]:
-    pspec = el.find_property(prop)
-    try:
-        return sorted(v.value_nick for v in pspec.enum_class.__enum_values__.values())
-    except AttributeError:
-        return []
-
-
-def _set(el, prop: str, value: Any) -> None:
-    """``el.set_property`` with a SetupError (naming the accepted values) for a bad value."""
-    try:
-        el.set_property(prop, value)
-    except (TypeError, ValueError, OverflowError) as e:
-        nicks = _enum_nicks(el, prop)
-        known = f"; one of: {', '.join(nicks)}" if nicks else ""
-        factory = el.get_factory().get_name() if el.get_factory() else el.get_name()
-        raise SetupError(f"bad value {value!r} for {factory} property {prop}{known} ({e})") from None
 
 
 def parse_test_uri(spec: str) -> Dict[str, Any]:
