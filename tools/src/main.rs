@@ -780,7 +780,7 @@ fn eval_cmd(
                 eprintln!("plot written to {}", p.display());
             }
             if let Some(p) = contact_sheet.as_deref().map(per_sequence) {
-                eval::contact_sheet(&data.kept_thumbs, 64, &p)?;
+                eval::contact_sheet(&data.kept_thumbs, &data.kept_labels, 64, &p)?;
                 eprintln!(
                     "contact sheet of the kept frames written to {}",
                     p.display()

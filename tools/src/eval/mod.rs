@@ -317,6 +317,8 @@ pub struct PlotData {
     pub kept: Vec<(String, Vec<bool>)>,
     /// Thumbnails of the frames the model kept.
     pub kept_thumbs: Vec<(usize, image::RgbImage)>,
+    /// What the contact sheet writes under each of them ([`kept_label`]).
+    pub kept_labels: Vec<String>,
 }
 
 /// Run every policy and judge it, on the sequence started `start` frames in ([`Source::open_from`]).
@@ -446,9 +448,36 @@ pub fn evaluate(
             predicted_tau: model_trace.utility.clone(),
             threshold: t,
             kept: kept_rows,
+            kept_labels: run
+                .kept_thumbs
+                .iter()
+                .map(|&(i, _)| kept_label(i, &run))
+                .collect(),
             kept_thumbs: run.kept_thumbs,
         },
     ))
+}
+
+/// The label of a kept frame on the contact sheet: its index, its time from the first frame, the
+/// utility that kept it and, unless it was kept on its score, why (`first`, `max-gap`, ...).
+pub fn kept_label(i: usize, run: &ModelRun) -> String {
+    let t0 = run.pts.first().copied().flatten();
+    let time = match (run.pts.get(i).copied().flatten(), t0) {
+        (Some(t), Some(t0)) => format!("{:.2} s", t - t0),
+        _ => "- s".into(),
+    };
+    let Some(m) = run.metas.get(i) else {
+        return format!("#{i}  {time}");
+    };
+    let u = if m.utility.is_finite() {
+        format!("u {:.2}", m.utility)
+    } else {
+        "u -".into()
+    };
+    match m.reason {
+        gstleangate::Reason::Score => format!("#{i}  {time}  {u}"),
+        r => format!("#{i}  {time}  {u}  {r}"),
+    }
 }
 
 /// Every file an eval of `sequences` with `model` reads, as canonical paths: the video file, or

@@ -23,6 +23,8 @@ pub struct ModelRun {
     /// Sharpness of every frame ([`gstleangate::quality::sharpness`] of its grey picture at
     /// [`SHARP_W`] x [`SHARP_H`]; None: junk), for [`super::judge::kept_sharpness`].
     pub sharpness: Vec<Option<f64>>,
+    /// Every frame's presentation time (seconds), as it left the element.
+    pub pts: Vec<Option<f64>>,
     pub fps: f64,
     pub threshold: f64,
     pub provider: String,
@@ -407,6 +409,7 @@ pub fn run_model(
     let mut kept_thumbs = Vec::new();
     let mut cache = None;
     let (mut sharp_cache, mut frame_sharpness) = (None, Vec::new());
+    let mut frame_pts = Vec::new();
     let mut failure = None;
     // Reports not yet sent: (the frame at which the consumer sends it, tau).
     let mut reports = std::collections::VecDeque::new();
@@ -421,6 +424,7 @@ pub fn run_model(
             continue;
         };
         let Some(buf) = sample.buffer() else { continue };
+        frame_pts.push(buf.pts().map(|t| t.nseconds() as f64 * 1e-9));
         let Some(m) = GateMeta::read(buf) else {
             failure = Some(EvalError(
                 "a buffer left leangate without LeanGateMeta".into(),
@@ -491,6 +495,7 @@ pub fn run_model(
         thumbs,
         kept_thumbs,
         sharpness: frame_sharpness,
+        pts: frame_pts,
         provider: stats
             .as_ref()
             .map(|s| s.execution_provider.clone())

@@ -209,9 +209,15 @@ fn legend<DB: DrawingBackend>(
     Ok(())
 }
 
-/// A grid of the kept frames' thumbnails (at most `max_tiles`, evenly sampled), 8 per row.
+/// Height of the label strip under each contact-sheet thumbnail.
+pub const LABEL_H: u32 = 16;
+
+/// A grid of the kept frames' thumbnails (at most `max_tiles`, evenly sampled), 8 per row, each
+/// with its label (`labels[k]` for `kept[k]`, e.g. [`super::kept_label`]: index, time, utility)
+/// in a strip under it.
 pub fn contact_sheet(
     kept: &[(usize, image::RgbImage)],
+    labels: &[String],
     max_tiles: usize,
     out: &Path,
 ) -> Result<(), EvalError> {
@@ -222,20 +228,38 @@ pub fn contact_sheet(
     let cols = n.min(8) as u32;
     let rows = n.div_ceil(cols as usize) as u32;
     let pad = 4;
+    let (tile_w, tile_h) = (THUMB_W + pad, THUMB_H + LABEL_H + pad);
     let mut sheet = image::RgbImage::from_pixel(
-        cols * (THUMB_W + pad) + pad,
-        rows * (THUMB_H + pad) + pad,
+        cols * tile_w + pad,
+        rows * tile_h + pad,
         image::Rgb([255, 255, 255]),
     );
-    for k in 0..n {
-        let (_, t) = &kept[k * kept.len() / n];
+    let picked: Vec<usize> = (0..n).map(|k| k * kept.len() / n).collect();
+    for (k, &j) in picked.iter().enumerate() {
         let (c, r) = (k as u32 % cols, k as u32 / cols);
         image::imageops::replace(
             &mut sheet,
-            t,
-            (pad + c * (THUMB_W + pad)) as i64,
-            (pad + r * (THUMB_H + pad)) as i64,
+            &kept[j].1,
+            (pad + c * tile_w) as i64,
+            (pad + r * tile_h) as i64,
         );
+    }
+    register_font();
+    let size = sheet.dimensions();
+    {
+        let root = BitMapBackend::with_buffer(&mut sheet, size).into_drawing_area();
+        let font = ("sans-serif", 12).into_font().color(&BLACK);
+        for (k, &j) in picked.iter().enumerate() {
+            let Some(label) = labels.get(j) else { continue };
+            let (c, r) = (k as u32 % cols, k as u32 / cols);
+            let at = (
+                (pad + c * tile_w + 2) as i32,
+                (pad + r * tile_h + THUMB_H + 2) as i32,
+            );
+            root.draw(&Text::new(label.as_str(), at, font.clone()))
+                .map_err(err("contact sheet"))?;
+        }
+        root.present().map_err(err("contact sheet"))?;
     }
     save(&sheet, out)
 }
@@ -267,12 +291,32 @@ fn render(
 /// keeps, one row per policy in its style (bottom); the legend and the row names sit in a
 /// column right of the data.
 pub fn plot(data: &PlotData, title: &str, out: &Path) -> Result<(), EvalError> {
-    let size = (1200, 540 + 28 * data.kept.len() as u32);
+    let size = (1200, 540 + 28 * data.kept.len() as u32 + CAPTION_H);
     render(size, out, |root| draw_plot(root, data, title))
 }
 
+/// Height of the caption line under the utility plot.
+const CAPTION_H: u32 = 22;
+
+/// What the utility plot's grey curve is (under the plot when there is a teacher).
+pub const TEACHER_CAPTION: &str = "teacher tau (model's ref.): the exact teacher's tau of each \
+     frame against the last frame the MODEL kept, so it restarts at every model keep (the oracle \
+     row keeps against its own frames).";
+
 fn draw_plot(root: Canvas<'_>, data: &PlotData, title: &str) -> Result<(), EvalError> {
     register_font();
+    let (_, full_h) = root.dim_in_pixel();
+    let (root, caption) = root.split_vertically(full_h - CAPTION_H);
+    caption.fill(&WHITE).map_err(err("plot"))?;
+    if data.teacher_tau.iter().any(Option::is_some) {
+        caption
+            .draw(&Text::new(
+                TEACHER_CAPTION,
+                (10, 2),
+                ("sans-serif", 13).into_font().color(&BLACK),
+            ))
+            .map_err(err("plot"))?;
+    }
     let n = data.predicted_tau.len().max(2);
     let rows = data.kept.len();
     let e = err::<String>("plot");
@@ -343,7 +387,7 @@ fn draw_plot(root: Canvas<'_>, data: &PlotData, title: &str) -> Result<(), EvalE
         entries.insert(
             0,
             Entry {
-                label: "teacher tau".into(),
+                label: "teacher tau (model's ref.)".into(),
                 style: teacher,
                 marker: false,
             },
@@ -520,6 +564,20 @@ fn draw_sweep(root: Canvas<'_>, points: &[SweepPoint], title: &str) -> Result<()
                 .draw_series(data.into_iter().map(|p| Mark::new(p, &st)))
                 .map_err(|x| e(x.to_string()))?;
         }
+        // Each of the model's points carries the threshold it was run at.
+        let font = ("sans-serif", 12).into_font().color(&style("model").color);
+        chart
+            .draw_series(
+                points
+                    .iter()
+                    .filter(|p| p.policy == "model")
+                    .filter_map(|p| get(p).map(|y| (p, y)))
+                    .map(|(p, y)| {
+                        EmptyElement::at((p.kept as f64, y))
+                            + Text::new(format!("t {:.2}", p.threshold), (6, -16), font.clone())
+                    }),
+            )
+            .map_err(|x| e(x.to_string()))?;
     }
     let entries: Vec<Entry> = policies
         .iter()
@@ -530,6 +588,13 @@ fn draw_sweep(root: Canvas<'_>, points: &[SweepPoint], title: &str) -> Result<()
         })
         .collect();
     legend(&legend_area, 40, 24, &entries)?;
+    legend_area
+        .draw(&Text::new(
+            "t 0.50: the model's threshold",
+            (10, 40 + 24 * entries.len() as i32 + 8),
+            ("sans-serif", 13).into_font().color(&style("model").color),
+        ))
+        .map_err(err("sweep plot"))?;
     root.present().map_err(err("sweep plot"))?;
     Ok(())
 }
@@ -596,6 +661,36 @@ mod tests {
     }
 
     #[test]
+    fn contact_sheet_labels_each_thumbnail_under_it() {
+        let grey = image::RgbImage::from_pixel(THUMB_W, THUMB_H, image::Rgb([128, 128, 128]));
+        let kept = vec![(3, grey.clone()), (250, grey)];
+        let labels = vec![
+            "#3  0.10 s  u 0.52".to_string(),
+            "#250  8.33 s  u 0.61  max-gap".to_string(),
+        ];
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("sheet.png");
+        contact_sheet(&kept, &labels, 64, &out).unwrap();
+        let img = image::open(&out).unwrap().to_rgb8();
+        let pad = 4;
+        assert_eq!(img.height(), THUMB_H + LABEL_H + 2 * pad);
+        // The strip under each thumbnail holds dark text; the two labels differ.
+        let strip = |k: u32| -> Vec<bool> {
+            let x0 = pad + k * (THUMB_W + pad);
+            (0..LABEL_H)
+                .flat_map(|y| (0..THUMB_W).map(move |x| (x0 + x, pad + THUMB_H + y)))
+                .map(|(x, y)| img.get_pixel(x, y)[0] < 128)
+                .collect()
+        };
+        let (a, b) = (strip(0), strip(1));
+        let ink = |v: &[bool]| v.iter().filter(|&&d| d).count();
+        assert!(ink(&a) > 30 && ink(&b) > ink(&a), "{} {}", ink(&a), ink(&b));
+        assert_ne!(a, b);
+        // The thumbnails themselves are untouched.
+        assert_eq!(img.get_pixel(pad + 10, pad + 10)[0], 128);
+    }
+
+    #[test]
     fn sweep_plot_draws_each_policy_in_its_style_beside_the_legend() {
         let points: Vec<SweepPoint> = (0..3)
             .flat_map(|k| {
@@ -632,12 +727,23 @@ mod tests {
             threshold: 0.5,
             kept,
             kept_thumbs: Vec::new(),
+            kept_labels: Vec::new(),
         };
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("utility.png");
         plot(&data, "utility", &out).unwrap();
         let img = image::open(&out).unwrap().to_rgb8();
-        assert_eq!(img.dimensions(), (1200, 540 + 28 * POLICIES.len() as u32));
+        assert_eq!(
+            img.dimensions(),
+            (1200, 540 + 28 * POLICIES.len() as u32 + CAPTION_H)
+        );
         check_colours(&img);
+        // The caption says what the teacher curve is: text in the strip at the bottom.
+        let h = img.height();
+        let ink = (h - CAPTION_H..h)
+            .flat_map(|y| (0..600).map(move |x| (x, y)))
+            .filter(|&(x, y)| img.get_pixel(x, y)[0] < 100)
+            .count();
+        assert!(ink > 200, "caption ink {ink}");
     }
 }
