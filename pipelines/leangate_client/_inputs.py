@@ -1,0 +1,488 @@
+"""Inputs and outputs of :mod:`leangate_client.reconstruct`: reading a video, a TUM RGB-D directory or
+an image folder; gating it through ``leangate``; choosing explicit frames; the output directory
+(``OUT/images`` written or linked, replaced only when this module made it: the marker file)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+import stat as stat_mod
+import tempfile
+from dataclasses import dataclass, field
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
+
+from . import _gst
+from .errors import PipelineError, SetupError
+from ._gst import _make, _set
+from .source import LeanGateSource, buffer_to_rgb
+from ._colmap import import_pycolmap
+from ._outdir import OUTPUT_SUBDIRS, _make_owned_dir, check_output_subdir
+
+log = logging.getLogger("leangate_client.reconstruct")
+
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+
+
+#: Ground-truth poses further than this from a frame's timestamp are not associated.
+GT_MAX_DIFFERENCE_S = 0.02
+
+
+# -- inputs ------------------------------------------------------------------------------------
+@dataclass
+class FrameRef:
+    """One frame of an input: its index in the sequence, timestamp (s) and image file (None for
+    a video frame not yet written)."""
+
+    index: int
+    timestamp: Optional[float] = None
+    path: Optional[str] = None
+
+
+@dataclass
+class InputSequence:
+    """What ``open_input`` found: ``kind`` is ``video``, ``sequence`` (rgb.txt) or ``images``."""
+
+    path: str
+    kind: str
+    frames: List[FrameRef] = field(default_factory=list)
+    intrinsics: Optional[Tuple[float, float, float, float]] = None
+    #: (timestamp, camera centre x, y, z), camera-to-world translations, sorted by time.
+    groundtruth: List[Tuple[float, float, float, float]] = field(default_factory=list)
+
+    def centre_at(self, t: Optional[float]) -> Optional[Tuple[float, float, float]]:
+        """Ground-truth camera centre nearest to ``t`` (within 20 ms), or None."""
+        if t is None or not self.groundtruth:
+            return None
+        import bisect
+
+        ts = [g[0] for g in self.groundtruth]
+        k = bisect.bisect_left(ts, t)
+        best = None
+        for j in (k - 1, k):
+            if 0 <= j < len(ts) and abs(ts[j] - t) <= GT_MAX_DIFFERENCE_S:
+                if best is None or abs(ts[j] - t) < abs(ts[best] - t):
+                    best = j
+        return None if best is None else tuple(self.groundtruth[best][1:])  # type: ignore
+
+
+def _data_lines(path: str) -> Iterable[Tuple[int, List[str]]]:
+    with open(path) as f:
+        for n, line in enumerate(f, 1):
+            s = line.strip()
+            if s and not s.startswith("#"):
+                yield n, s.split()
+
+
+def _float_or_none(text: str) -> Optional[float]:
+    """``text`` as a finite float, else None."""
+    try:
+        v = float(text)
+    except ValueError:
+        return None
+    return v if math.isfinite(v) else None
+
+
+def read_intrinsics(path: str) -> Tuple[float, float, float, float]:
+    """``fx fy cx cy [depth_scale]`` from the first data line of intrinsics.txt."""
+    for n, parts in _data_lines(path):
+        try:
+            fx, fy, cx, cy = (float(v) for v in parts[:4])
+        except ValueError:
+            raise SetupError(f"{path} line {n}: expected `fx fy cx cy depth_scale`") from None
+        return fx, fy, cx, cy
+    raise SetupError(f"{path}: no intrinsics line")
+
+
+def open_input(path: str) -> InputSequence:
+    """Describe a video file, a TUM-layout directory or a folder of images."""
+    if os.path.isfile(path):
+        return InputSequence(path=path, kind="video")
+    if not os.path.isdir(path):
+        raise SetupError(f"input not found: {path}")
+    rgb_txt = os.path.join(path, "rgb.txt")
+    if os.path.isfile(rgb_txt):
+        frames = []
+        for n, parts in _data_lines(rgb_txt):
+            t = _float_or_none(parts[0]) if len(parts) >= 2 else None
+            if t is None:
+                raise SetupError(
+                    f"{rgb_txt} line {n}: expected `timestamp path` with a numeric timestamp, "
+                    f"got {' '.join(parts)!r}"
+                )
+            frames.append(FrameRef(len(frames), t, os.path.join(path, parts[1])))
+        seq = InputSequence(path=path, kind="sequence", frames=frames)
+    else:
+        folder = os.path.join(path, "rgb") if os.path.isdir(os.path.join(path, "rgb")) else path
+        names = sorted(n for n in os.listdir(folder) if n.lower().endswith(IMAGE_EXTS))
+        if not names:
+            raise SetupError(f"{path}: no rgb.txt and no .png/.jpg images")
+        seq = InputSequence(
+            path=path,
+            kind="images",
+            frames=[FrameRef(i, i / 30.0, os.path.join(folder, n)) for i, n in enumerate(names)],
+        )
+    intr = os.path.join(path, "intrinsics.txt")
+    if os.path.isfile(intr):
+        seq.intrinsics = read_intrinsics(intr)
+    for name in ("groundtruth.txt", "groundtruth_tum.txt"):
+        gt = os.path.join(path, name)
+        if os.path.isfile(gt):
+            rows = []
+            for n, parts in _data_lines(gt):
+                try:
+                    rows.append(tuple(float(v) for v in parts[:4]))
+                except ValueError:
+                    raise SetupError(f"{gt} line {n}: expected `t tx ty tz qx qy qz qw`") from None
+            seq.groundtruth = sorted(rows)  # type: ignore[arg-type]
+            break
+    return seq
+
+
+# -- gating ------------------------------------------------------------------------------------
+class SequenceGateSource(LeanGateSource):
+    """``LeanGateSource`` over an image sequence: ``multifilesrc ! decodebin ! leangate ! ...``.
+    The images are linked (symlinks, else copies) as ``%06d.EXT`` into a temporary directory so
+    that multifilesrc reads them in sequence order at 30 fps; ``meta["frame"]`` is the index in
+    ``frames``. All images must share one format (PNG or JPEG)."""
+
+    def __init__(self, frames: Sequence[FrameRef], **kwargs):
+        if not frames:
+            raise SetupError("empty image sequence")
+        exts = {os.path.splitext(f.path or "")[1].lower() for f in frames}
+        exts = {".jpg" if e == ".jpeg" else e for e in exts}
+        if len(exts) != 1 or not exts <= {".jpg", ".png"}:
+            raise SetupError(f"an image sequence must be all PNG or all JPEG, found {sorted(exts)}")
+        self._ext = exts.pop()
+        self._tmp = tempfile.mkdtemp(prefix="leangate-seq-")
+        for k, f in enumerate(frames):
+            dst = os.path.join(self._tmp, f"{k:06d}{self._ext}")
+            try:
+                os.symlink(os.path.abspath(f.path), dst)  # type: ignore[arg-type]
+            except OSError:
+                shutil.copyfile(f.path, dst)  # type: ignore[arg-type]
+        self._count = len(frames)
+        super().__init__(self._tmp, **kwargs)
+
+    @staticmethod
+    def _check_source(source: str) -> None:
+        if not os.path.isdir(source):
+            raise SetupError(f"not a directory: {source}")
+
+    def _caps(self) -> str:
+        kind = "image/jpeg" if self._ext == ".jpg" else "image/png"
+        return f"{kind},framerate=30/1"
+
+    @property
+    def description(self) -> str:
+        props = " ".join(f"{k}={v}" for k, v in self.gate_properties.items())
+        return (
+            f"multifilesrc location={self._tmp}/%06d{self._ext} index=0 "
+            f"stop-index={self._count - 1} caps={self._caps()} ! decodebin ! leangate name=gate "
+            f"{props} ! videoconvert ! appsink name=sink caps=video/x-raw,format=RGB sync=false"
+        )
+
+    _pipeline_name = "leangate-sequence"
+
+    def _build_source(self, pipeline, gate) -> None:
+        Gst = _gst.Gst
+        src = _make("multifilesrc", "src")
+        _set(src, "location", os.path.join(self._tmp, f"%06d{self._ext}"))
+        _set(src, "index", 0)
+        _set(src, "stop-index", self._count - 1)
+        _set(src, "caps", Gst.Caps.from_string(self._caps()))
+        dec = _make("decodebin", "decode")
+        pipeline.add(src)
+        pipeline.add(dec)
+        if not src.link(dec):
+            raise SetupError("cannot link multifilesrc ! decodebin")
+        self._watch_decoder(dec, gate)
+
+    def close(self) -> None:
+        super().close()
+        if getattr(self, "_tmp", None):
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._tmp = None
+
+
+def write_image(path: str, rgb) -> None:
+    """Write an (H, W, 3) uint8 RGB array (PNG or JPEG by extension) with pycolmap's Bitmap."""
+    pycolmap = import_pycolmap()
+    bmp = pycolmap.Bitmap.from_array(_gst.np.ascontiguousarray(rgb))
+    if not bmp.write(path):
+        raise SetupError(f"cannot write {path}")
+
+
+@dataclass
+class GateResult:
+    """The frames the gate kept (with their meta) and the element's statistics."""
+
+    kept: List[FrameRef]
+    metas: List[Dict[str, Any]]
+    frames_in: int
+    stats: Any = None
+
+
+def gate_input(
+    inp: InputSequence,
+    image_dir: str,
+    *,
+    model=None,
+    threshold: Optional[float] = None,
+    warmup: Optional[int] = None,
+    max_gap: Optional[int] = None,
+    execution_provider: Optional[str] = None,
+    plugin_path=None,
+    plugin_fallbacks=(),
+    max_frames: Optional[int] = None,
+) -> GateResult:
+    """Run the input through leangate (drop mode); kept video frames are written as PNG into
+    ``image_dir`` (a sequence's kept frames are used from their files)."""
+    kw = dict(
+        model=model,
+        threshold=threshold,
+        mode="drop",
+        warmup=warmup,
+        max_gap=max_gap,
+        execution_provider=execution_provider,
+        plugin_path=plugin_path,
+        plugin_fallbacks=plugin_fallbacks,
+    )
+    kept: List[FrameRef] = []
+    metas: List[Dict[str, Any]] = []
+    if inp.kind == "video":
+        os.makedirs(image_dir, exist_ok=True)
+        src: LeanGateSource = LeanGateSource(inp.path, arrays=True, max_frames=max_frames, **kw)
+    else:
+        frames = inp.frames[:max_frames] if max_frames else inp.frames
+        src = SequenceGateSource(frames, arrays=False, **kw)
+    log.info("gating %s", inp.path)
+    with src:
+        for frame, meta in src:
+            idx = meta["frame"]
+            if idx is None:
+                raise PipelineError("a kept frame without a PTS: cannot tell its index")
+            if inp.kind == "video":
+                ref = FrameRef(idx, None if meta["pts"] is None else meta["pts"] / 1e9)
+                ref.path = os.path.join(image_dir, f"frame_{idx:06d}.png")
+                write_image(ref.path, frame)
+            else:
+                ref = inp.frames[idx]
+            kept.append(ref)
+            metas.append(meta)
+            log.info(
+                "kept frame %d (%s, utility %s, keyframe %d)",
+                idx,
+                meta["reason"],
+                "nan" if math.isnan(meta["utility"]) else f"{meta['utility']:.3f}",
+                meta["keyframe_index"],
+            )
+    log.info("gate: kept %d of %d frames", len(kept), src.frames_in)
+    return GateResult(kept, metas, src.frames_in, src.stats)
+
+
+def decode_video_frames(path: str, wanted: Iterable[int], image_dir: str) -> List[FrameRef]:
+    """Decode a video (``filesrc ! decodebin ! videoconvert ! appsink``, no gate) and write the
+    frames whose decode index is in ``wanted`` as PNG into ``image_dir``."""
+    Gst, GstVideo = _gst.Gst, _gst.GstVideo
+    wanted = sorted(set(wanted))
+    if not wanted:
+        return []
+    _gst._init()  # bindings present, Gst initialised
+    os.makedirs(image_dir, exist_ok=True)
+    pipeline = Gst.Pipeline.new("decode")
+    src, dec = _make("filesrc"), _make("decodebin")
+    convert, sink = _make("videoconvert"), _make("appsink")
+    _set(src, "location", os.path.abspath(path))
+    _set(sink, "caps", Gst.Caps.from_string("video/x-raw,format=RGB"))
+    _set(sink, "sync", False)
+    for el in (src, dec, convert, sink):
+        pipeline.add(el)
+    src.link(dec)
+    convert.link(sink)
+
+    def on_pad(_dec, pad):
+        caps = pad.get_current_caps() or pad.query_caps(None)
+        if caps.get_structure(0).get_name().startswith("video/"):
+            target = convert.get_static_pad("sink")
+            if not target.is_linked():
+                pad.link(target)
+
+    dec.connect("pad-added", on_pad)
+    out: List[FrameRef] = []
+    pipeline.set_state(Gst.State.PLAYING)
+    bus = pipeline.get_bus()
+    index = 0
+    todo = set(wanted)
+    try:
+        while todo:
+            msg = bus.pop_filtered(Gst.MessageType.ERROR)
+            if msg is not None:
+                err, dbg = msg.parse_error()
+                raise PipelineError(f"decoding {path}: {err.message}")
+            sample = sink.emit("try-pull-sample", Gst.SECOND)
+            if sample is None:
+                if sink.get_property("eos"):
+                    break
+                continue
+            if index in todo:
+                info = GstVideo.VideoInfo.new_from_caps(sample.get_caps())
+                buf = sample.get_buffer()
+                ref = FrameRef(index, None if buf.pts == Gst.CLOCK_TIME_NONE else buf.pts / 1e9)
+                ref.path = os.path.join(image_dir, f"frame_{index:06d}.png")
+                write_image(ref.path, buffer_to_rgb(buf, info))
+                out.append(ref)
+                todo.discard(index)
+            index += 1
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+    if todo:
+        log.warning("%s has %d frames: %d requested frames are past its end", path, index, len(todo))
+    return out
+
+
+def image_name(f: FrameRef) -> str:
+    """The name COLMAP knows a frame by, relative to the output directory:
+    ``images/frame_<index>.<ext>``. By index, not by file: a sequence may list one file twice
+    (a pause written by repeating a frame), and COLMAP's database refuses two images of one
+    name."""
+    ext = os.path.splitext(f.path or "")[1] or ".png"
+    return f"images/frame_{f.index:06d}{ext}"
+
+
+def _input_under_output(
+    inp: InputSequence, out_dir: str, extra: Sequence[str] = ()
+) -> Optional[Tuple[str, str]]:
+    """The first input file (the video, or a frame's image; ``extra``: more frame files) that
+    lies under ``OUT/images`` or ``OUT/sparse`` (resolved, links followed), or is the same file
+    as one there (a hard link: same st_dev/st_ino), with the folder; else None."""
+    roots = [os.path.realpath(os.path.join(out_dir, s)) for s in OUTPUT_SUBDIRS]
+    inodes: Dict[Tuple[int, int], str] = {}
+    for top in roots:
+        for dirpath, _dirs, files in os.walk(top):  # links not followed
+            for n in files:
+                try:
+                    st = os.lstat(os.path.join(dirpath, n))
+                except OSError:
+                    continue
+                if stat_mod.S_ISREG(st.st_mode):
+                    inodes[(st.st_dev, st.st_ino)] = top
+    paths = [inp.path] if inp.kind == "video" else [f.path for f in inp.frames if f.path]
+    for path in list(paths) + list(extra):
+        real = os.path.realpath(path)
+        for top in roots:
+            if real == top or real.startswith(top + os.sep):
+                return path, top
+        try:
+            st = os.stat(path)
+        except OSError:
+            continue  # a missing file is reported later
+        top = inodes.get((st.st_dev, st.st_ino))  # type: ignore[assignment]
+        if top is not None:
+            return path, f"{top} (a hard link to it)"
+    return None
+
+
+def check_output_dir(inp: InputSequence, out_dir: str, extra: Sequence[str] = ()) -> None:
+    """Raise SetupError (nothing deleted) when a run into ``out_dir`` would delete the input
+    (the input, or a file of it, lies in ``OUT/images`` or ``OUT/sparse``, also through a hard
+    link) or a folder this module did not make (see ``check_output_subdir``)."""
+    src = os.path.realpath(inp.path)
+    for sub in OUTPUT_SUBDIRS:
+        d = os.path.realpath(os.path.join(out_dir, sub))
+        if src == d or src.startswith(d + os.sep):
+            raise SetupError(
+                f"--out {out_dir}: its {sub}/ folder is (or holds) the input {inp.path}, which "
+                "would be deleted; choose another output directory"
+            )
+    hit = _input_under_output(inp, out_dir, extra)
+    if hit is not None:
+        raise SetupError(
+            f"--out {out_dir}: the input file {hit[0]} lies in {hit[1]}, which a run replaces "
+            "(the input would be deleted); choose another output directory"
+        )
+    for sub in OUTPUT_SUBDIRS:
+        check_output_subdir(out_dir, sub)
+
+
+def fresh_image_dir(inp: InputSequence, out_dir: str, extra: Sequence[str] = ()) -> str:
+    """Empty ``OUT/images`` (made anew, with ``OUTPUT_MARKER``), after ``check_output_dir``:
+    nothing is deleted when the input lies there or the folder was not made by this module."""
+    check_output_dir(inp, out_dir, extra)
+    d = os.path.join(out_dir, "images")
+    if os.path.lexists(d):
+        shutil.rmtree(d)
+    _make_owned_dir(d)
+    return d
+
+
+def link_images(frames: Sequence[FrameRef], out_dir: str) -> List[str]:
+    """Make each frame's file visible as ``OUT/image_name(f)`` (a symlink, else a copy) and
+    return the name of each frame's image. A frame whose file an earlier frame already uses (a
+    pause written by repeating a frame) gets that frame's image: COLMAP sees each file once (two
+    identical images are a zero-baseline pair that can wreck its initialisation), and the
+    repeat takes the same pose."""
+    first: Dict[str, str] = {}
+    names = []
+    for f in frames:
+        src = os.path.realpath(f.path)  # type: ignore[arg-type]
+        name = first.get(src)
+        if name is None:
+            name = first[src] = image_name(f)
+            dst = os.path.join(out_dir, name)
+            try:
+                os.symlink(src, dst)
+            except OSError:
+                shutil.copyfile(src, dst)
+        else:
+            log.info("frame %d repeats the image %s: reconstructed once", f.index, name)
+        names.append(name)
+    return names
+
+
+def select_frames(
+    inp: InputSequence,
+    out_dir: str,
+    frames: Optional[Sequence[Any]] = None,
+    every: Optional[int] = None,
+) -> List[FrameRef]:
+    """Explicit frames: ``frames`` (indices, or (index, path) pairs whose path overrides the
+    sequence's file) or every ``every``-th frame; video frames are decoded and written."""
+    if every is not None and every < 1:
+        raise SetupError(f"every must be at least 1, not {every}")
+    idx = [f[0] if isinstance(f, (tuple, list)) else f for f in frames or []]
+    for i in idx:
+        if not isinstance(i, int) or i < 0:
+            raise SetupError(f"frame indices are integers >= 0, not {i!r}")
+    seen: set = set()
+    for i in idx:
+        if i in seen:
+            raise SetupError(f"frame {i} is listed twice")
+        seen.add(i)
+    image_dir = os.path.join(out_dir, "images")
+    if inp.kind == "video":
+        if every:
+            raise SetupError("--every needs an image sequence; give --frames for a video")
+        return decode_video_frames(inp.path, idx, image_dir)
+    if every:
+        return inp.frames[::every]
+    out = []
+    by_path = {os.path.abspath(f.path): f for f in inp.frames if f.path}
+    for f in frames or []:
+        if isinstance(f, (tuple, list)):
+            i, p = f[0], f[1]
+        else:
+            i, p = f, None
+        if p:
+            # The caller's own index (e.g. eval's, over frames with ground truth); the timestamp
+            # comes from the sequence's listing of that file.
+            p = os.path.abspath(p if os.path.isabs(p) else os.path.join(inp.path, p))
+            known = by_path.get(p)
+            out.append(FrameRef(i, known.timestamp if known else None, p))
+        elif 0 <= i < len(inp.frames):
+            out.append(inp.frames[i])
+        else:
+            raise SetupError(f"frame {i} out of range ({len(inp.frames)} frames in {inp.path})")
+    return out
