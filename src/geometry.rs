@@ -233,7 +233,7 @@ pub const LK_CLASSIC: Lk = Lk {
 
 /// The prior's settings (on the 80x60 picture of the embedded student): 7x7 window, up to 5
 /// iterations per level, stop below 0.05 pixel. About 8x cheaper than [`LK_CLASSIC`] on
-/// 160x120 with the same agreement with the teacher (`training/RESULTS.md`).
+/// 160x120 with the same agreement with the teacher (`training/experiments/NOTEBOOK.md`).
 pub const LK_PRIOR: Lk = Lk {
     half_win: 3,
     iters: 5,

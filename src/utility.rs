@@ -122,7 +122,7 @@ impl Utility {
     /// low. The utility is never lowered, so feedback never makes a keep come later than without
     /// it (lowering it let the noise of single reports delay keeps into late ones where the
     /// default is already right), and the sum itself may go below 0, so that noise does not
-    /// ratchet the offset up on a stream where keeps come on time (`training/RESULTS.md`).
+    /// ratchet the offset up on a stream where keeps come on time (`training/experiments/NOTEBOOK.md`).
     /// Returns the new offset; a `tau` outside [0, 1] (or not a number) is refused and changes
     /// nothing.
     pub fn feedback(&mut self, tau: f64, threshold: f64, rate: f64) -> Result<f64, String> {

@@ -98,7 +98,7 @@ fn fuse_relu_only_is_idempotent_and_refuses_bad_builds_without_rewriting_either_
     refused(&python, &tmp.path().join("nowhere"), "nowhere");
 }
 
-/// `python -m training.quantize --head-only` (after `training.finetune`: keep an INT8 encoder,
+/// `python -m training.quantize --head-only` (after `training.experiments.finetune`: keep an INT8 encoder,
 /// quantize the head alone) refuses what it cannot use before anything is written: no such INT8
 /// encoder, a file that is not ONNX, an FP32 encoder given as the INT8 one, a folder without the
 /// calibrated FP32 student. One line naming it, no traceback, the output folder not created.

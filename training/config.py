@@ -59,7 +59,7 @@ DESK_SPLIT = {
 # Every real labelled sequence and its documented split (training.fuse reports each part).
 REAL_SPLITS = {TUM_SEQ: TUM_SPLIT, DESK_SEQ: DESK_SPLIT}
 # Two more real sequences, split the same way for fine-tuning the student's head
-# (`training.finetune`): tum_fr1_xyz (595 frames, the same Kinect and office, slow translation) and
+# (`training.experiments.finetune`): tum_fr1_xyz (595 frames, the same Kinect and office, slow translation) and
 # 7scenes_redkitchen_long (940 frames, another Kinect and room); both are rebuilt by the importers
 # (training/README.md). `fit` may be trained on; `test` is reported only (15-frame guard gaps).
 XYZ_SEQ = "tum_fr1_xyz"
@@ -68,7 +68,7 @@ SEVEN_SEQ = "7scenes_redkitchen_long"
 SEVEN_SPLIT = {"fit": (0, 459), "test": (475, 939)}
 # Every documented split (training.tum.make_part writes any part of them).
 ALL_SPLITS = {**REAL_SPLITS, XYZ_SEQ: XYZ_SPLIT, SEVEN_SEQ: SEVEN_SPLIT}
-# What `training.finetune` trains the head on: each sequence's fitting part (tum_fr1_rpy's train part,
+# What `training.experiments.finetune` trains the head on: each sequence's fitting part (tum_fr1_rpy's train part,
 # which the student was trained on already; not its cal part, where the fusion is fitted).
 FINETUNE_PARTS = {TUM_SEQ: "train", DESK_SEQ: "fit", XYZ_SEQ: "fit", SEVEN_SEQ: "fit"}
 # Where the element's fusion of the student with the geometric prior is fitted (training.fuse):

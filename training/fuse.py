@@ -36,7 +36,7 @@ SHIPPED = "s+geo"  # the candidate --write puts into the embedded model (w2 = 0)
 # The student's share in the shipped fusion, fixed rather than fitted: fitted freely, its weight
 # swings from 0.09 to 0.34 between the fits (rpy cal + desk fit; either whole sequence) at equal
 # fit error, while with 0.25 the other weights agree across all three fits (w0 0.106-0.114, w1
-# 0.69-0.73) and the fit parts' RMSE rises by 0.002 only. See training/RESULTS.md.
+# 0.69-0.73) and the fit parts' RMSE rises by 0.002 only. See training/experiments/NOTEBOOK.md.
 STUDENT_WEIGHT = 0.25
 # the files whose metadata the element reads (pair model, split encoders of both builds)
 FILES = [f"{NAME}.onnx", f"{NAME}-encoder.onnx", f"{NAME}-int8-encoder.onnx"]
@@ -201,7 +201,7 @@ def candidates():
 def replay(u, tau, threshold, a, b, correction=None):
     """The gate over frames a..b on the dense tables: kept frames, late keeps, breaks, min pair S.
     A frame beyond the horizon from its reference is kept (the tables end there). `correction`
-    (optional; `training.feedback`) adds `correction.offset(i)` to frame i's utility and is told
+    (optional; `training.experiments.feedback`) adds `correction.offset(i)` to frame i's utility and is told
     `correction.report(i, tau)` of every keep, as the element's feedback is."""
     H = u.shape[1]
     ref, kept, late, breaks, min_s = a, 1, 0, 0, 1.0

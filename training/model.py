@@ -9,7 +9,7 @@
                                 (GRU-style update, paper-like), tau = sigmoid(readout(latent)).
 Input RGB in [0,1] normalised outside the graph by the element: (x - MEAN) / STD.
 That is the shipped `s16`; `LeanGateS("s8")` is a candidate with 64 channels on a 15x20 grid (stride 8)
-and a 1x1 reduction of the 300-cell cost volume in the head (0.20 GFLOP; not shipped, RESULTS.md).
+and a 1x1 reduction of the 300-cell cost volume in the head (0.20 GFLOP; not shipped, training/experiments/NOTEBOOK.md).
 """
 import torch
 import torch.nn as nn

@@ -17,7 +17,7 @@ the QuantizeLinear/DequantizeLinear pair between each Conv and its ReLU where th
 has zero point 0, so that ONNX Runtime runs Conv + ReLU as one QLinearConv writing the ReLU's
 quantization (instead of QLinearConv, DequantizeLinear, QuantizeLinear: a double rounding). 8 pairs
 in the shipped student; about 14 % off the encoder's and 27 % off the head's CPU time, but its keep
-decisions move like any other small change of the student (`RESULTS.md`), so it is not the default. Idempotent
+decisions move like any other small change of the student (`training/experiments/NOTEBOOK.md`), so it is not the default. Idempotent
 (a fused build stays byte for byte); both models are read and fused before either is rewritten, and
 a missing or non-ONNX one is an error naming it. Needs onnx alone (`.venv/bin/python` runs it).
 
@@ -26,7 +26,7 @@ leangate.* metadata, leangate.head pointing at the int8 head and leangate.precis
 reports the utility difference to the float student on tum_fr1_rpy's calibration part and
 7-Scenes pairs (never used to quantize).
 
-`--head-only` (after `training.finetune`, whose encoder is the shipped one): the INT8 encoder of
+`--head-only` (after `training.experiments.finetune`, whose encoder is the shipped one): the INT8 encoder of
 `--int8-encoder` (the shipped build) is copied into --out-dir with the new models' metadata, and only
 the head is quantized, its activation ranges observed on that encoder's features of --pairs pairs of
 the fine-tuning parts (`config.FINETUNE_PARTS`, real frames read from ../shared/data): the data the

@@ -1661,13 +1661,13 @@ fn venv_module(module: &str) -> Option<Command> {
     Some(c)
 }
 
-/// `training.overlap_check` splits the teacher's tau into the 3-D check, depth holes and the
+/// `training.experiments.overlap_check` splits the teacher's tau into the 3-D check, depth holes and the
 /// views' own geometry. On a synthetic pan (exact depth, no holes) the 3-D check removes almost
 /// nothing, the dense overlap equals the teacher without the check, everything grows with the gap,
 /// and the prior's tau_geo is reported beside it.
 #[test]
 fn overlap_check_decomposes_the_teachers_tau_on_a_synthetic_pan() {
-    let Some(mut cmd) = venv_module("training.overlap_check") else {
+    let Some(mut cmd) = venv_module("training.experiments.overlap_check") else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -1725,8 +1725,8 @@ fn overlap_check_decomposes_the_teachers_tau_on_a_synthetic_pan() {
 }
 
 /// The fine-tuning and diagnosis tools refuse bad input in one line naming it, before loading
-/// torch or any data: `training.head_loso` with one sequence, a missing one or a folder that is no
-/// sequence, and without torch a clear "needs torch"; `training.overlap_check` with a missing
+/// torch or any data: `training.experiments.head_loso` with one sequence, a missing one or a folder that is no
+/// sequence, and without torch a clear "needs torch"; `training.experiments.overlap_check` with a missing
 /// sequence, bad `--gaps`, a gap longer than the sequence, broken intrinsics or a broken pose row.
 #[test]
 fn finetune_tools_refuse_bad_input_in_one_line() {
@@ -1760,46 +1760,46 @@ fn finetune_tools_refuse_bad_input_in_one_line() {
             .collect()
     };
     let mut cases: Vec<(&str, Vec<String>, &str)> = vec![
-        ("training.head_loso", loso(&[&a]), "at least two"),
+        ("training.experiments.head_loso", loso(&[&a]), "at least two"),
         (
-            "training.head_loso",
+            "training.experiments.head_loso",
             loso(&[&a, &missing]),
             "nowhere: no such directory",
         ),
         (
-            "training.head_loso",
+            "training.experiments.head_loso",
             loso(&[&a, &empty]),
             "not a sequence with depth and poses (no rgb.txt)",
         ),
         (
-            "training.overlap_check",
+            "training.experiments.overlap_check",
             vec![s(&missing)],
             "nowhere: no such sequence directory",
         ),
         (
-            "training.overlap_check",
+            "training.experiments.overlap_check",
             vec![s(&a), "--gaps".into(), "x".into()],
             "--gaps x: expected",
         ),
         (
-            "training.overlap_check",
+            "training.experiments.overlap_check",
             vec![s(&a), "--gaps".into(), "20".into()],
             "fewer than the largest gap",
         ),
         (
-            "training.overlap_check",
+            "training.experiments.overlap_check",
             vec![s(&bad_k)],
             "intrinsics.txt:1",
         ),
         (
-            "training.overlap_check",
+            "training.experiments.overlap_check",
             vec![s(&bad_gt)],
             "groundtruth.txt",
         ),
     ];
     if !has_torch {
         cases.push((
-            "training.head_loso",
+            "training.experiments.head_loso",
             loso(&[&a, &b]),
             "this step needs torch",
         ));

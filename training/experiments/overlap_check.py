@@ -14,7 +14,7 @@ ground-truth poses (depth at a quarter of the resolution), it prints the mean of
   * `far`: the fraction of valid depth beyond 4 m;
   * `tau_geo`: the element's prior on the same pairs (`leangate geometry`), for comparison.
 
-Usage: python -m training.overlap_check SEQ [SEQ ...] [--gaps 1,5,10,15] [--every 7]
+Usage: python -m training.experiments.overlap_check SEQ [SEQ ...] [--gaps 1,5,10,15] [--every 7]
 """
 import argparse
 import os
@@ -22,10 +22,10 @@ import tempfile
 
 import numpy as np
 
-from .fuse import _csv, _run
-from .import_tum import check_pose, read_list
-from .seqio import check_intrinsics, rows
-from .tum import quat_to_rot
+from ..fuse import _csv, _run
+from ..import_tum import check_pose, read_list
+from ..seqio import check_intrinsics, rows
+from ..tum import quat_to_rot
 
 
 def load(seq):

@@ -8,7 +8,7 @@ axis-angle in the reference camera's frame, split into roll (about the optical a
 counts only valid-depth pixels). Printed per model: the mean residual, on roll-dominated pairs and on
 the others, and a least-squares fit of the residual on the four quantities.
 
-Usage: python -m training.residuals --models DIR[,DIR...] [--names a,b]
+Usage: python -m training.experiments.residuals --models DIR[,DIR...] [--names a,b]
        (each DIR holds leangate-s-encoder.onnx and leangate-s-head.onnx, calibrated or not)
 """
 import argparse
@@ -17,11 +17,11 @@ import os
 import numpy as np
 from PIL import Image
 
-from .calibrate import encode, score_pairs, sessions
-from .compare import pair_set
-from .config import DATA_ROOT
-from .seqio import rows as _rows
-from .tum import quat_to_rot
+from ..calibrate import encode, score_pairs, sessions
+from ..compare import pair_set
+from ..config import DATA_ROOT
+from ..seqio import rows as _rows
+from ..tum import quat_to_rot
 
 
 def nearest(stamps, ts):

@@ -16,7 +16,7 @@ Metadata: the first member's, with `leangate.calibration` listing every member's
 `leangate.members`, and the parameter and FLOP counts summed.
 Checks with ONNX Runtime: head(encoder) == pair, and both == the mean of the members.
 
-Usage: python -m training.ensemble --members DIR,DIR[,...] --out-dir DIR
+Usage: python -m training.experiments.ensemble --members DIR,DIR[,...] --out-dir DIR
 """
 import argparse
 import os
@@ -25,7 +25,7 @@ import numpy as np
 import onnx
 from onnx import helper, numpy_helper
 
-from .config import IN_H, IN_W, NAME
+from ..config import IN_H, IN_W, NAME
 
 PARTS = {
     "encoder": (f"{NAME}-encoder.onnx", ["image"], "features"),

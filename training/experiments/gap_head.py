@@ -1,4 +1,4 @@
-"""A reference-gap head on the student's features: measured, not shipped (training/RESULTS.md).
+"""A reference-gap head on the student's features: measured, not shipped (training/experiments/NOTEBOOK.md).
 
 On real video the teacher's tau exceeds the geometric prior's tau_geo by a gap that is a property of
 the reference frame (Kinect depth noise, holes and edges fail the teacher's 0.1 m check): 0.12 on
@@ -17,17 +17,17 @@ held-out sequences), and the gap it predicts on sequences it never saw against t
 there is one (7scenes_redkitchen_dev and _long, the two synthetic fusion-fit sequences).
 
 Usage (after `python -m training.fuse`, whose cached tables it reads):
-    python -m training.gap_head [--lam 300,1000,3000]
+    python -m training.experiments.gap_head [--lam 300,1000,3000]
 """
 import argparse
 import os
 
 import numpy as np
 
-from .calibrate import encode
-from .config import DATA_ROOT, FUSION_FIT_PARTS, MODELS_DIR, REAL_SPLITS, SHARED
-from .fuse import STUDENT_WEIGHT, Fusion, cell, evaluate, fit, int8_sessions, sequence_data
-from .preprocess import load_resized, read_list
+from ..calibrate import encode
+from ..config import DATA_ROOT, FUSION_FIT_PARTS, MODELS_DIR, REAL_SPLITS, SHARED
+from ..fuse import STUDENT_WEIGHT, Fusion, cell, evaluate, fit, int8_sessions, sequence_data
+from ..preprocess import load_resized, read_list
 
 HORIZON = 60
 NEAR = (0.35, 0.65)

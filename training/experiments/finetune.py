@@ -15,10 +15,10 @@ loss with delta 0.1 as in training, Adam.
 
 Writes a checkpoint (`<out>/finetuned.pt`, `training.export`'s format) and the exported, calibrated
 FP32 split and pair models (`<out>/leangate-s*.onnx`). Then `training.quantize --head-only`,
-`training.fuse --write` and `leangate eval` (training/README.md). `training.head_loso` validates the
+`training.fuse --write` and `leangate eval` (training/README.md). `training.experiments.head_loso` validates the
 procedure leave-one-sequence-out.
 
-Usage: python -m training.finetune [--out out/train-data/finetune] [--steps 1500] [--lr 1e-4]
+Usage: python -m training.experiments.finetune [--out out/train-data/finetune] [--steps 1500] [--lr 1e-4]
 """
 import argparse
 import os
@@ -28,11 +28,11 @@ import sys
 
 import numpy as np
 
-from .calibrate import bake, encode
-from .config import ALL_SPLITS, DATA_ROOT, FINETUNE_PARTS, MODELS_DIR, NAME, SHARED
-from .fuse import decision_weight, sequence_data
-from .preprocess import load_resized, read_list
-from .quantize import metadata, set_metadata
+from ..calibrate import bake, encode
+from ..config import ALL_SPLITS, DATA_ROOT, FINETUNE_PARTS, MODELS_DIR, NAME, SHARED
+from ..fuse import decision_weight, sequence_data
+from ..preprocess import load_resized, read_list
+from ..quantize import metadata, set_metadata
 
 HORIZON = 120  # the cached teacher tables (fuse.sequence_data) hold every frame's next 120 frames
 
@@ -90,7 +90,7 @@ class Shipped:
         return torch.clamp(self.v0 + (torch.clamp(u[:, None] - self._kn, min=0).minimum(self._wd) * self._sl).sum(1), 0, 1)
 
     def model(self):
-        from .model import LeanGateS, load_onnx_weights
+        from ..model import LeanGateS, load_onnx_weights
 
         m = LeanGateS("s16")
         load_onnx_weights(m, self.enc_path, self.head_path)
@@ -191,7 +191,7 @@ def main():
     subprocess.run([sys.executable, "-m", "training.export", "--ckpt", ckpt, "--out-dir", a.out], check=True)
     old = metadata(shipped.enc_path)
     note = (f"; head fine-tuned through this calibration for {a.steps} steps on "
-            + ", ".join(f"{n} frames {s}-{e}" for n, (s, e) in spans.items()) + " (training.finetune)")
+            + ", ".join(f"{n} frames {s}-{e}" for n, (s, e) in spans.items()) + " (training.experiments.finetune)")
     meta = {"leangate.threshold": old["leangate.threshold"], "leangate.calibration": old["leangate.calibration"] + note}
     for n in (f"{NAME}.onnx", f"{NAME}-head.onnx"):
         bake(os.path.join(a.out, n), shipped.knots, shipped.v0, shipped.slopes, meta)

@@ -3,7 +3,7 @@
 
 For each sequence directory (e.g. the documented parts written by `python -m training.tum`), the
 teacher's tau, the student's INT8 score and the prior's tau_geo of every frame against each of
-its next 120 frames (`fuse.sequence_data`'s cached tables, the same as `training.feedback`'s)
+its next 120 frames (`fuse.sequence_data`'s cached tables, the same as `training.experiments.feedback`'s)
 give the default's fused utility (`feedback.fused`). The gate is replayed from `--phases` start
 frames (`fuse.replay`, as `leangate eval --phases` runs it) with a constant `offset` added to the
 utility wherever the prior's chain holds (where it is lost the element uses the student alone,
@@ -15,7 +15,7 @@ so what separates the sequences has to be seen per stream). With `--depth`, also
 sequence's median sensor depth, its share of depth readings beyond 3.5 m and of pixels without
 depth (every 6th frame), the scene property the teacher's 0.1 m check is most sensitive to.
 
-Usage: python -m training.band SEQ [SEQ ...] [--offsets=-0.06:0.08:0.005] [--phases 10]
+Usage: python -m training.experiments.band SEQ [SEQ ...] [--offsets=-0.06:0.08:0.005] [--phases 10]
        [--threshold 0.5] [--depth]
 """
 import argparse
@@ -23,10 +23,10 @@ import os
 
 import numpy as np
 
-from .config import DATA_ROOT, MODELS_DIR
+from ..config import DATA_ROOT, MODELS_DIR
 from .feedback import fused, fusion_weights, sequence_table
-from .fuse import replay
-from .seqio import rows
+from ..fuse import replay
+from ..seqio import rows
 
 BAND = 0.15
 

@@ -14,9 +14,9 @@ frames later and moves the correction by one of three rules:
   symmetric  an offset moved the same way, within +-0.3 (the utility may go down).
 
 Prints, per rule, rate and delay, each sequence's kept / oracle and late keeps and the sums
-(`training/RESULTS.md`, "Feedback from the SLAM", has the tables that chose the default).
+(`training/experiments/NOTEBOOK.md`, "Feedback from the SLAM", has the tables that chose the default).
 
-Usage: python -m training.feedback SEQ [SEQ ...] [--rules sum+,floor,symmetric]
+Usage: python -m training.experiments.feedback SEQ [SEQ ...] [--rules sum+,floor,symmetric]
        [--rates 0.2,0.3,0.4] [--delays 3,10] [--phases 10]
 """
 import argparse
@@ -24,9 +24,9 @@ import os
 
 import numpy as np
 
-from .config import DATA_ROOT, MODELS_DIR, NAME
-from .fuse import replay, sequence_data
-from .quantize import metadata
+from ..config import DATA_ROOT, MODELS_DIR, NAME
+from ..fuse import replay, sequence_data
+from ..quantize import metadata
 
 LIMIT = 0.3
 RULES = ("sum+", "floor", "symmetric")

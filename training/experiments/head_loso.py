@@ -1,11 +1,11 @@
 """Leave one real sequence out: does fine-tuning the student's head on the other real sequences
-(`training.finetune`'s procedure) help the gate on the one left out?
+(`training.experiments.finetune`'s procedure) help the gate on the one left out?
 
 For each real sequence given (`--sequence`, at least two), with the whole of the others as the
 training set:
 
   1. the shipped head is fine-tuned on the others' teacher-labelled pairs exactly as
-     `training.finetune` does (the calibration a fixed last layer, the encoder frozen);
+     `training.experiments.finetune` does (the calibration a fixed last layer, the encoder frozen);
   2. the shipped head and the fine-tuned one each score every pair (FP32, the same features), and
      the fusion of the shipped form (`w0 + w1 tau_geo + 0.25 s`) is fitted on the training
      sequences and replayed on the one left out (`fuse.replay`, horizon 120), as is the student
@@ -16,7 +16,7 @@ training set:
 The teacher's tau and the prior's tau_geo come from `fuse.sequence_data` (cached under `--tables`).
 Needs torch. Usage:
 
-  python -m training.head_loso --sequence ../shared/data/tum_fr1_rpy --sequence ... [--steps 1500]
+  python -m training.experiments.head_loso --sequence ../shared/data/tum_fr1_rpy --sequence ... [--steps 1500]
 """
 import argparse
 import json
@@ -24,9 +24,9 @@ import os
 
 import numpy as np
 
-from .config import DATA_ROOT, MODELS_DIR
+from ..config import DATA_ROOT, MODELS_DIR
 from .finetune import HORIZON, Shipped, check_sequence, features, finetune_head, load_tables, need_torch
-from .fuse import STUDENT_WEIGHT, Fusion, cell, evaluate, fit
+from ..fuse import STUDENT_WEIGHT, Fusion, cell, evaluate, fit
 
 
 def main():
