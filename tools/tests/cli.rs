@@ -1760,7 +1760,11 @@ fn finetune_tools_refuse_bad_input_in_one_line() {
             .collect()
     };
     let mut cases: Vec<(&str, Vec<String>, &str)> = vec![
-        ("training.experiments.head_loso", loso(&[&a]), "at least two"),
+        (
+            "training.experiments.head_loso",
+            loso(&[&a]),
+            "at least two",
+        ),
         (
             "training.experiments.head_loso",
             loso(&[&a, &missing]),
