@@ -474,6 +474,14 @@ impl LeanGate {
             let at = position - decision.kept_back;
             match state.recent.iter().position(|r| r.position == at) {
                 Some(i) => {
+                    gst::trace!(
+                        CAT,
+                        imp = self,
+                        "pts {:?} keep true (sharper: the keep due at pts {:?}, {} frames later)",
+                        state.recent[i].pts,
+                        pts,
+                        decision.kept_back
+                    );
                     std::mem::swap(&mut state.reference, &mut state.recent[i].tensor);
                     state.reference_pts = state.recent[i].pts;
                     state.utility.on_keep_back(decision.kept_back);
