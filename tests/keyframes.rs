@@ -272,9 +272,18 @@ fn a_keep_due_on_a_blurred_frame_goes_back_to_a_sharper_recent_one() {
     let run = |props: &str| {
         let mut h = harness(props, &rgb_caps(W, H));
         let mut out = Vec::new();
+        let held = if props.contains("annotate") && props.contains("lookback=3") {
+            3
+        } else {
+            0
+        };
         for (i, f) in frames.iter().enumerate() {
             h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
             out.extend(drain(&mut h));
+            // Annotate mode: every frame but the last three has left (no more are held).
+            if held > 0 {
+                assert!(out.len() + held > i, "frame {i}: {} out", out.len());
+            }
         }
         let latency = h.query_latency();
         assert!(h.push_event(gst::event::Eos::new()));

@@ -1004,12 +1004,13 @@ impl BaseTransformImpl for LeanGate {
                     h.meta.frames_since_keyframe = 0;
                 }
             }
-            // A keep (this frame, or one before it) settles every frame before it; frames older
-            // than the look-back are settled as they stand.
+            // A keep (this frame, or one before it) settles every frame before it; a frame that
+            // is `sharpness-lookback` frames old (this one included in the count) can no longer
+            // be kept instead of a later one, and is settled as it stands.
             let settled = if verdict.keep || verdict.kept_back > 0 {
                 n
             } else {
-                n.saturating_sub(1 + fs.sharpness_lookback as usize)
+                n.saturating_sub(fs.sharpness_lookback as usize)
             };
             for h in held.iter_mut().take(settled) {
                 h.done = true;

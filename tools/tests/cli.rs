@@ -142,6 +142,31 @@ fn eval_feedback_reports_to_the_element_reproducibly_and_needs_the_teacher() {
     let immediate = eval_json(&seq, &["--model", &model, "--feedback", "0"]);
     let o = immediate["feedback_offset"].as_f64().unwrap();
     assert!((0.0..=0.3).contains(&o), "{o}");
+    // With frames held by the element (`sharpness-lookback`), the frame-by-frame feeding waits
+    // for fewer frames to come out, and the run ends (it used to wait for one frame too many
+    // forever). Under `timeout`, so that a regression fails instead of hanging the suite.
+    let out = std::process::Command::new("timeout")
+        .arg("300")
+        .arg(env!("CARGO_BIN_EXE_leangate"))
+        .args([
+            "eval",
+            "--model",
+            &model,
+            "--feedback",
+            "--set",
+            "sharpness-lookback=3",
+        ])
+        .arg("--sequence")
+        .arg(&seq)
+        .env_remove("LEANGATE_MODEL")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{:?}: {}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
 
     let clip = dir.path().join("clip.mp4");
     std::fs::write(&clip, b"not looked at").unwrap();
