@@ -15,7 +15,7 @@ of the chained homography; NaN where the chain is lost). It then
 The numpy replay is for choosing quickly; the figures that ship are `leangate eval`'s (the real
 element in a real pipeline).
 
-Usage: python -m training.crossval [--models models] [--write]
+Usage: python -m training.fuse [--models models] [--regeo] [--write]
 """
 import argparse
 import json
