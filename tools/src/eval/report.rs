@@ -1,7 +1,7 @@
 //! Pictures of an evaluation: the utility plot, the contact sheet, the equal-budget sweep plot.
 
 use std::path::Path;
-use std::sync::Once;
+use std::sync::OnceLock;
 
 use plotters::coord::{CoordTranslate, Shift};
 use plotters::element::{Drawable, PointCollection};
@@ -244,7 +244,7 @@ pub fn contact_sheet(
             (pad + r * tile_h) as i64,
         );
     }
-    register_font();
+    register_font()?;
     let size = sheet.dimensions();
     {
         let root = BitMapBackend::with_buffer(&mut sheet, size).into_drawing_area();
@@ -304,7 +304,7 @@ pub const TEACHER_CAPTION: &str = "teacher tau (model's ref.): the exact teacher
      row keeps against its own frames).";
 
 fn draw_plot(root: Canvas<'_>, data: &PlotData, title: &str) -> Result<(), EvalError> {
-    register_font();
+    register_font()?;
     let (_, full_h) = root.dim_in_pixel();
     let (root, caption) = root.split_vertically(full_h - CAPTION_H);
     caption.fill(&WHITE).map_err(err("plot"))?;
@@ -432,24 +432,38 @@ fn draw_plot(root: Canvas<'_>, data: &PlotData, title: &str) -> Result<(), EvalE
     Ok(())
 }
 
-fn register_font() {
-    static ONCE: Once = Once::new();
-    ONCE.call_once(|| {
-        for p in [
-            "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-            "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
-        ] {
-            if let Ok(bytes) = std::fs::read(p) {
-                let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                let _ = plotters::style::register_font(
-                    "sans-serif",
-                    plotters::style::FontStyle::Normal,
-                    bytes,
-                );
-                break;
-            }
-        }
+/// The fonts the pictures' text is drawn with: the first of these that exists (DejaVu Sans where
+/// Debian/Ubuntu, Fedora and Arch put it, else Liberation Sans).
+pub const FONTS: [&str; 4] = [
+    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
+    "/usr/share/fonts/TTF/DejaVuSans.ttf",
+    "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
+];
+
+/// Register the first of [`FONTS`] found as plotters' "sans-serif" (once); without one no label
+/// could be drawn, so that is an error naming the fonts looked for and the package to install.
+fn register_font() -> Result<(), EvalError> {
+    static FOUND: OnceLock<bool> = OnceLock::new();
+    let found = *FOUND.get_or_init(|| {
+        FONTS.iter().any(|p| {
+            let Ok(bytes) = std::fs::read(p) else {
+                return false;
+            };
+            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+            plotters::style::register_font("sans-serif", plotters::style::FontStyle::Normal, bytes)
+                .is_ok()
+        })
     });
+    if found {
+        Ok(())
+    } else {
+        Err(EvalError(format!(
+            "no font to write the pictures' text with: install DejaVu Sans (Debian/Ubuntu: \
+             fonts-dejavu-core); looked for {}",
+            FONTS.join(", ")
+        )))
+    }
 }
 
 /// The equal-budget curves of `--sweep`: late keeps (top) and min pair S (bottom) against the
@@ -461,8 +475,22 @@ pub fn plot_sweep(points: &[SweepPoint], title: &str, out: &Path) -> Result<(), 
     })
 }
 
+/// A sweep point's threshold label (`t 0.50`).
+fn threshold_label(t: f64) -> String {
+    format!("t {t:.2}")
+}
+
+/// The note under the sweep plot's legend: what the `t` labels are, and where the other
+/// policies' points come from.
+pub const SWEEP_NOTE: [&str; 4] = [
+    "t 0.50: the threshold the model",
+    "(above its point) and the oracle",
+    "(below) ran at; the others run at",
+    "the model's budget at each t",
+];
+
 fn draw_sweep(root: Canvas<'_>, points: &[SweepPoint], title: &str) -> Result<(), EvalError> {
-    register_font();
+    register_font()?;
     let e = err::<String>("sweep plot");
     let mut policies: Vec<&str> = Vec::new();
     for p in points {
@@ -564,20 +592,29 @@ fn draw_sweep(root: Canvas<'_>, points: &[SweepPoint], title: &str) -> Result<()
                 .draw_series(data.into_iter().map(|p| Mark::new(p, &st)))
                 .map_err(|x| e(x.to_string()))?;
         }
-        // Each of the model's points carries the threshold it was run at.
-        let font = ("sans-serif", 12).into_font().color(&style("model").color);
-        chart
-            .draw_series(
-                points
-                    .iter()
-                    .filter(|p| p.policy == "model")
-                    .filter_map(|p| get(p).map(|y| (p, y)))
-                    .map(|(p, y)| {
-                        EmptyElement::at((p.kept as f64, y))
-                            + Text::new(format!("t {:.2}", p.threshold), (6, -16), font.clone())
-                    }),
-            )
-            .map_err(|x| e(x.to_string()))?;
+        // Each of the model's points (above it) and the oracle's (below it) carries the
+        // threshold it was run at; the other policies are at the model's budget of that
+        // threshold, so they have none of their own.
+        for (policy, at) in [("model", (6, -16)), ("oracle", (6, 5))] {
+            let font = ("sans-serif", 12).into_font().color(&style(policy).color);
+            chart
+                .draw_series(
+                    points
+                        .iter()
+                        .filter(|p| p.policy == policy)
+                        .filter_map(|p| get(p).map(|y| (p, y)))
+                        .map(|(p, y)| {
+                            // On a pale box, legible where it crosses a curve.
+                            EmptyElement::at((p.kept as f64, y))
+                                + Rectangle::new(
+                                    [(at.0 - 2, at.1 - 1), (at.0 + 38, at.1 + 13)],
+                                    WHITE.mix(0.6).filled(),
+                                )
+                                + Text::new(threshold_label(p.threshold), at, font.clone())
+                        }),
+                )
+                .map_err(|x| e(x.to_string()))?;
+        }
     }
     let entries: Vec<Entry> = policies
         .iter()
@@ -588,13 +625,16 @@ fn draw_sweep(root: Canvas<'_>, points: &[SweepPoint], title: &str) -> Result<()
         })
         .collect();
     legend(&legend_area, 40, 24, &entries)?;
-    legend_area
-        .draw(&Text::new(
-            "t 0.50: the model's threshold",
-            (10, 40 + 24 * entries.len() as i32 + 8),
-            ("sans-serif", 13).into_font().color(&style("model").color),
-        ))
-        .map_err(err("sweep plot"))?;
+    let note = ("sans-serif", 13).into_font().color(&BLACK);
+    for (k, line) in SWEEP_NOTE.iter().enumerate() {
+        legend_area
+            .draw(&Text::new(
+                *line,
+                (10, 40 + 24 * entries.len() as i32 + 8 + 17 * k as i32),
+                note.clone(),
+            ))
+            .map_err(err("sweep plot"))?;
+    }
     root.present().map_err(err("sweep plot"))?;
     Ok(())
 }
@@ -690,13 +730,13 @@ mod tests {
         assert_eq!(img.get_pixel(pad + 10, pad + 10)[0], 128);
     }
 
-    #[test]
-    fn sweep_plot_draws_each_policy_in_its_style_beside_the_legend() {
-        let points: Vec<SweepPoint> = (0..3)
+    /// Three points per policy, the model's and oracle's run at `0.3 + step * k`.
+    fn sweep_points(step: f64) -> Vec<SweepPoint> {
+        (0..3)
             .flat_map(|k| {
                 POLICIES.iter().enumerate().map(move |(i, p)| SweepPoint {
                     policy: p.to_string(),
-                    threshold: 0.3 + 0.1 * k as f64,
+                    threshold: 0.3 + step * k as f64,
                     kept: 20 + 10 * k + i,
                     late_keeps: 12 - 4 * k + i,
                     breaks: 0,
@@ -704,13 +744,56 @@ mod tests {
                     median_pair_s: None,
                 })
             })
-            .collect();
+            .collect()
+    }
+
+    fn sweep_png(points: &[SweepPoint]) -> image::RgbImage {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("sweep.png");
-        plot_sweep(&points, "sweep", &out).unwrap();
-        let img = image::open(&out).unwrap().to_rgb8();
+        plot_sweep(points, "sweep", &out).unwrap();
+        image::open(&out).unwrap().to_rgb8()
+    }
+
+    #[test]
+    fn sweep_plot_draws_each_policy_in_its_style_beside_the_legend() {
+        let img = sweep_png(&sweep_points(0.1));
         assert_eq!(img.dimensions(), (1000 + LEGEND_W, 930));
         check_colours(&img);
+    }
+
+    #[test]
+    fn sweep_plot_labels_the_model_and_oracle_points_with_their_threshold() {
+        assert_eq!(threshold_label(0.5), "t 0.50");
+        assert_eq!(threshold_label(0.449999), "t 0.45");
+        // The same points run at other thresholds: only the labels change, in the plot areas,
+        // drawn in the model's and the oracle's colours (or their anti-aliased edges).
+        let (a, b) = (
+            sweep_png(&sweep_points(0.1)),
+            sweep_png(&sweep_points(0.15)),
+        );
+        let changed: Vec<(u32, u32)> = a
+            .enumerate_pixels()
+            .filter(|(x, y, p)| b.get_pixel(*x, *y) != *p)
+            .map(|(x, y, _)| (x, y))
+            .collect();
+        assert!(changed.len() > 100, "{} pixels changed", changed.len());
+        assert!(changed.iter().all(|&(x, _)| x < a.width() - LEGEND_W));
+        // A pixel of text in colour c, anti-aliased on white: white * (1 - a) + c * a, a >= 0.3.
+        let tinted = |p: &image::Rgb<u8>, c: RGBColor| {
+            let c = [c.0, c.1, c.2].map(f64::from);
+            let p = p.0.map(f64::from);
+            let k = (0..3).max_by(|&i, &j| c[j].total_cmp(&c[i])).unwrap();
+            let a = (255.0 - p[k]) / (255.0 - c[k]);
+            a >= 0.3 && (0..3).all(|i| (255.0 * (1.0 - a) + c[i] * a - p[i]).abs() < 25.0)
+        };
+        for policy in ["model", "oracle"] {
+            let c = style(policy).color;
+            let ink = changed
+                .iter()
+                .filter(|&&(x, y)| tinted(a.get_pixel(x, y), c) || tinted(b.get_pixel(x, y), c))
+                .count();
+            assert!(ink > 40, "{policy}: {ink} changed pixels of its colour");
+        }
     }
 
     #[test]
