@@ -2371,3 +2371,85 @@ fn eval_progress_lines_only_when_asked() {
     }
     assert!(said.contains("leangate eval: model 10/10 frames"), "{said}");
 }
+
+/// `leangate eval --contact-sheet` writes one tile per kept frame (up to 64), each a thumbnail
+/// with its label (index, time, utility) in the strip under it: every strip holds text and no
+/// two strips are alike (different frame indices); `--plot` has its caption under the plot.
+#[test]
+fn eval_pictures_carry_their_labels() {
+    use leangate_tools::eval::{LABEL_H, THUMB_H, THUMB_W};
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 40, "mixed", 7);
+    let (json, sheet, plot) = (
+        dir.path().join("eval.json"),
+        dir.path().join("kept.png"),
+        dir.path().join("eval.png"),
+    );
+    let out = leangate()
+        .args(["eval", "--sequence"])
+        .arg(&seq)
+        .args(["--model", &fixture("mad.onnx"), "--threshold", "0.05"])
+        .arg("--json")
+        .arg(&json)
+        .arg("--contact-sheet")
+        .arg(&sheet)
+        .arg("--plot")
+        .arg(&plot)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let kept = v["policies"]["model"]["kept"].as_u64().unwrap() as u32;
+    assert!(kept >= 2, "{kept} kept: too few to compare labels");
+
+    // The layout of eval::contact_sheet: 8 tiles a row, 4 px padding, a label strip under each.
+    let (pad, label_h) = (4, LABEL_H);
+    let img = image::open(&sheet).unwrap().to_rgb8();
+    let tiles = kept.min(64);
+    let cols = tiles.min(8);
+    assert_eq!(
+        img.dimensions(),
+        (
+            cols * (THUMB_W + pad) + pad,
+            tiles.div_ceil(cols) * (THUMB_H + label_h + pad) + pad
+        )
+    );
+    let strip = |k: u32| -> Vec<bool> {
+        let (x0, y0) = (
+            pad + k % cols * (THUMB_W + pad),
+            pad + k / cols * (THUMB_H + label_h + pad) + THUMB_H,
+        );
+        (0..label_h)
+            .flat_map(|y| (0..THUMB_W).map(move |x| (x0 + x, y0 + y)))
+            .map(|(x, y)| img.get_pixel(x, y).0.iter().all(|&c| c < 100))
+            .collect()
+    };
+    let strips: Vec<Vec<bool>> = (0..tiles).map(strip).collect();
+    for (k, s) in strips.iter().enumerate() {
+        let ink = s.iter().filter(|&&d| d).count();
+        assert!(ink > 40, "tile {k}: {ink} dark pixels in its label strip");
+    }
+    for a in 0..strips.len() {
+        for b in a + 1..strips.len() {
+            assert_ne!(
+                strips[a], strips[b],
+                "tiles {a} and {b} have the same label"
+            );
+        }
+    }
+
+    // The utility plot: dark text in the caption line at its bottom.
+    let img = image::open(&plot).unwrap().to_rgb8();
+    let h = img.height();
+    let ink = (h - 20..h)
+        .flat_map(|y| (0..600).map(move |x| (x, y)))
+        .filter(|&(x, y)| img.get_pixel(x, y).0.iter().all(|&c| c < 100))
+        .count();
+    assert!(ink > 200, "caption: {ink} dark pixels");
+}

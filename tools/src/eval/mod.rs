@@ -48,7 +48,7 @@ pub use model_run::{init_gstreamer, run_model, GateModel, ModelRun};
 pub use motion::{motion_for_budget, motion_gate};
 pub use multi::{sum_phases, sum_policies, sum_sweeps, MultiReport, PhaseSum, PolicySum};
 pub use overlap::{overlap_for_budget, overlap_gate};
-pub use report::{contact_sheet, plot, plot_sweep};
+pub use report::{contact_sheet, plot, plot_sweep, LABEL_H};
 
 /// Every policy `evaluate` runs and `sweep` samples, in report order.
 pub const POLICIES: [&str; 6] = [
