@@ -177,6 +177,9 @@ pub struct Gate {
     /// (position, sharpness) of the recent frames dropped on score since the last keep, the
     /// candidates of [`GateConfig::sharpness_lookback`], oldest first.
     candidates: std::collections::VecDeque<(u64, f64)>,
+    /// The look-back in force at the last decision: the frames before the next one that are
+    /// still held (the element let older ones go then), so the farthest a keep may go back.
+    held: u64,
 }
 
 impl Gate {
@@ -192,6 +195,7 @@ impl Gate {
             waited: 0,
             position: 0,
             candidates: std::collections::VecDeque::new(),
+            held: 0,
         }
     }
 
@@ -264,10 +268,13 @@ impl Gate {
         let position = self.position;
         self.position += 1;
         let lookback = self.cfg.sharpness_lookback.min(MAX_LOOKBACK);
+        // A look-back raised since the last frame reaches no further back than what is held.
+        let reach = lookback.min(self.held);
+        self.held = lookback;
         while self
             .candidates
             .front()
-            .is_some_and(|&(p, _)| p + lookback < position)
+            .is_some_and(|&(p, _)| p + reach < position)
         {
             self.candidates.pop_front();
         }
@@ -586,6 +593,33 @@ mod tests {
         g.decide_with(Score::Utility(0.1), Some(100.0));
         g.forget_candidates();
         assert!(g.decide_with(Score::Utility(0.6), Some(10.0)).keep);
+    }
+
+    #[test]
+    fn a_raised_lookback_goes_back_no_further_than_the_frames_still_held() {
+        let mut g = Gate::new(GateConfig {
+            sharpness_lookback: 2,
+            ..Default::default()
+        });
+        g.decide(Score::NoReference);
+        // A sharp candidate, then two blurred ones: with a look-back of 2, the element lets the
+        // sharp one go when the second blurred one comes.
+        g.decide_with(Score::Utility(0.1), Some(100.0));
+        g.decide_with(Score::Utility(0.1), Some(10.0));
+        g.decide_with(Score::Utility(0.1), Some(10.0));
+        // Raised to 30 before the due frame: the sharp frame (3 back) has left; the keep goes
+        // back to the sharpest of the two frames still held (it went to the one that had left).
+        g.set_config(GateConfig {
+            sharpness_lookback: 30,
+            ..Default::default()
+        });
+        assert_eq!(g.decide_with(Score::Utility(0.6), Some(5.0)).kept_back, 2);
+        // From then on the look-back of 30 reaches that far.
+        for _ in 0..10 {
+            g.decide_with(Score::Utility(0.1), Some(100.0));
+        }
+        g.decide_with(Score::Utility(0.1), Some(10.0));
+        assert_eq!(g.decide_with(Score::Utility(0.6), Some(5.0)).kept_back, 11);
     }
 
     #[test]

@@ -400,3 +400,70 @@ fn held_frames_survive_caps_changes_flushes_and_property_changes() {
     tail.extend(drain(&mut h));
     assert_eq!(pts(&tail), (14..19).map(|i| i * 33).collect::<Vec<_>>());
 }
+
+/// `frame` blurred (a Gaussian of sigma 4).
+fn blurred(frame: &[u8]) -> Vec<u8> {
+    let img = image::RgbImage::from_raw(W, H, frame.to_vec()).unwrap();
+    image::imageops::blur(&img, 4.0).into_raw()
+}
+
+/// Every keep the gate makes reaches the output when `sharpness-lookback` rises while frames are
+/// held. A still view (a sharp frame A five times, then blurred three times) and a blurred view
+/// far along the sweep (B), the look-back 3 and raised to 30 just before B: B's keep goes back to
+/// the sharpest frame still held (an A at most three back), which leaves kept (`sharper`), B
+/// dropped; the kept frames' indices run 1, 2 with none missing, as many as `frames-kept`. It used
+/// to go back four frames, to an A that had already left as dropped: that keep was lost (counted,
+/// the reference moved to a frame nobody received) and B dropped.
+#[test]
+fn a_keep_goes_back_only_to_a_frame_still_held_when_the_lookback_rises() {
+    let Some(frames) = desk_frames(0, 0) else {
+        return;
+    };
+    let (a, b) = (&frames[100], &frames[160]);
+    let mut seq = vec![a.clone(); 5];
+    seq.extend(std::iter::repeat_n(blurred(a), 3));
+    seq.push(blurred(b));
+    for (mode, lookback_first) in [("annotate", 3u32), ("drop", 3), ("annotate", 0)] {
+        let mut h = harness(
+            &format!("mode={mode} sharpness-lookback={lookback_first}"),
+            &rgb_caps(W, H),
+        );
+        let mut out = Vec::new();
+        for (i, f) in seq.iter().enumerate() {
+            if i == seq.len() - 1 {
+                h.element()
+                    .unwrap()
+                    .set_property("sharpness-lookback", 30u32);
+            }
+            h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
+            out.extend(drain(&mut h));
+        }
+        assert!(h.push_event(gst::event::Eos::new()));
+        out.extend(drain(&mut h));
+        let metas: Vec<_> = out.iter().map(meta).collect();
+        let kept: Vec<(u64, u64, Reason)> = out
+            .iter()
+            .zip(&metas)
+            .filter(|(_, m)| m.keep)
+            .map(|(b, m)| (b.pts().unwrap().mseconds() / 33, m.keyframe_index, m.reason))
+            .collect();
+        eprintln!("{mode} lookback {lookback_first} -> 30: kept {kept:?}");
+        if mode == "annotate" {
+            assert_eq!(out.len(), seq.len(), "every frame leaves once");
+        }
+        let counted = h.element().unwrap().property::<u64>("frames-kept");
+        assert_eq!(
+            kept.iter().map(|k| k.1).collect::<Vec<_>>(),
+            (1..=counted).collect::<Vec<_>>(),
+            "{mode}: a keep went missing: {kept:?}, {counted} counted"
+        );
+        assert_eq!(kept[0], (0, 1, Reason::First));
+        if lookback_first > 0 {
+            // B was due and blurred: its keep went back to a sharp A still held (5, 6 or 7 are
+            // blurred, so 4 would be the one, but it left when the look-back was 3).
+            assert_eq!(kept.len(), 2, "{kept:?}");
+            assert_eq!(kept[1].2, Reason::Sharper, "{kept:?}");
+            assert!((5..8).contains(&kept[1].0), "{kept:?}");
+        }
+    }
+}
