@@ -259,7 +259,10 @@ fn median_sharpness_ratio(keep: &[bool], sharp: &[f64]) -> f64 {
 }
 
 /// `sharpness-lookback=3` on the first 300 frames of tum_fr1_desk, in annotate mode: every frame
-/// leaves exactly once and in order (the last three at EOS), keeps due on blurred frames go back
+/// leaves exactly once and in order, three frames after it came (the last three at EOS; a keep
+/// used to let every held frame out at once, and the sink of a live pipeline, waiting for the
+/// last of them, blocked the source for the whole look-back: late frames, kept ones among them,
+/// were dropped), keeps due on blurred frames go back
 /// to sharper ones (reason `sharper`, the due frame dropped), the kept frames' median sharpness
 /// against their neighbours rises, and drop mode lets exactly the same frames through. The
 /// latency query reports the three held frames.
@@ -272,18 +275,22 @@ fn a_keep_due_on_a_blurred_frame_goes_back_to_a_sharper_recent_one() {
     let run = |props: &str| {
         let mut h = harness(props, &rgb_caps(W, H));
         let mut out = Vec::new();
-        let held = if props.contains("annotate") && props.contains("lookback=3") {
-            3
-        } else {
-            0
-        };
+        let held = if props.contains("lookback=3") { 3 } else { 0 };
+        let annotate = props.contains("annotate");
         for (i, f) in frames.iter().enumerate() {
             h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
-            out.extend(drain(&mut h));
-            // Annotate mode: every frame but the last three has left (no more are held).
-            if held > 0 {
-                assert!(out.len() + held > i, "frame {i}: {} out", out.len());
+            let now = drain(&mut h);
+            // Every frame leaves three frames later, neither sooner nor later: one frame in,
+            // one out (annotate mode), as a live pipeline's sink expects them. In drop mode a
+            // kept frame leaves then, alone.
+            if annotate {
+                assert_eq!(now.len(), usize::from(i >= held), "frame {i}");
             }
+            if let Some(b) = now.first() {
+                let due = i.checked_sub(held).map(|j| j as u64 * 33);
+                assert_eq!(Some(b.pts().unwrap().mseconds()), due, "frame {i}");
+            }
+            out.extend(now);
         }
         let latency = h.query_latency();
         assert!(h.push_event(gst::event::Eos::new()));
@@ -334,7 +341,7 @@ fn a_keep_due_on_a_blurred_frame_goes_back_to_a_sharper_recent_one() {
 }
 
 /// Frames held for `sharpness-lookback` across what a stream does: new caps release them first
-/// (in order, before the new-caps frames), a flush discards them, the property going to 0 while
+/// (in order, before the new-caps frames, which are held in turn), a flush discards them, the property going to 0 while
 /// frames are held lets them out before the next frame. Nothing is lost or reordered otherwise.
 #[test]
 fn held_frames_survive_caps_changes_flushes_and_property_changes() {
@@ -373,13 +380,14 @@ fn held_frames_survive_caps_changes_flushes_and_property_changes() {
     h.push(buffer(small, 8 * 33)).unwrap();
     let mut out = first;
     out.extend(drain(&mut h));
-    assert_eq!(pts(&out), (0..9).map(|i| i * 33).collect::<Vec<_>>());
+    // (the new-caps frame, a keep, is held like any other)
+    assert_eq!(pts(&out), (0..8).map(|i| i * 33).collect::<Vec<_>>());
     // A flush discards what is held; the stream goes on.
     h.set_src_caps_str(&rgb_caps(W, H));
     for (i, f) in frames[9..14].iter().enumerate() {
         h.push(buffer(f.clone(), (9 + i as u64) * 33)).unwrap();
     }
-    drain(&mut h);
+    assert_eq!(pts(&drain(&mut h)), [8 * 33]);
     assert!(h.push_event(gst::event::FlushStart::new()));
     assert!(h.push_event(gst::event::FlushStop::new(true)));
     h.set_src_caps_str(&rgb_caps(W, H));

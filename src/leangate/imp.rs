@@ -167,12 +167,11 @@ struct Recent {
     tensor: Vec<f32>,
 }
 
-/// A frame the element holds for `sharpness-lookback`: its fate is final once it is kept, once
-/// a later frame is kept, or once it is more than `sharpness-lookback` frames old.
+/// A frame the element holds for `sharpness-lookback`, until it is that many frames old (a
+/// later keep may still go back to it until then).
 struct Held {
     buf: gst::Buffer,
     meta: GateMeta,
-    done: bool,
 }
 
 impl LeanGate {
@@ -304,7 +303,7 @@ impl LeanGate {
         }
     }
 
-    /// Push frames whose fate is settled (`sharpness-lookback`), in order: kept ones (every one
+    /// Push frames leaving the look-back (`sharpness-lookback`), in order: kept ones (every one
     /// in annotate mode) with their LeanGateMeta, a gap for each dropped one. No lock is held.
     fn output_held(
         &self,
@@ -990,7 +989,6 @@ impl BaseTransformImpl for LeanGate {
             held.push_back(Held {
                 buf: inbuf,
                 meta: verdict.meta.clone(),
-                done: verdict.keep,
             });
             let n = held.len();
             if verdict.kept_back > 0 {
@@ -1004,22 +1002,14 @@ impl BaseTransformImpl for LeanGate {
                     h.meta.frames_since_keyframe = 0;
                 }
             }
-            // A keep (this frame, or one before it) settles every frame before it; a frame that
-            // is `sharpness-lookback` frames old (this one included in the count) can no longer
-            // be kept instead of a later one, and is settled as it stands.
-            let settled = if verdict.keep || verdict.kept_back > 0 {
-                n
-            } else {
-                n.saturating_sub(fs.sharpness_lookback as usize)
-            };
-            for h in held.iter_mut().take(settled) {
-                h.done = true;
-            }
-            let mut ready = Vec::new();
-            while held.front().is_some_and(|h| h.done) {
-                ready.extend(held.pop_front());
-            }
-            ready
+            // A frame leaves when it is `sharpness-lookback` frames old (this one included in
+            // the count), when no later keep can go back to it any more: one frame out for one
+            // in, even when a keep settles the fate of the frames before it sooner. Letting
+            // those out at once would hand a synchronised sink frames due up to the whole
+            // look-back later, and it would block the streaming thread (a live source's) that
+            // long.
+            let leaving = n.saturating_sub(fs.sharpness_lookback as usize);
+            held.drain(..leaving).collect()
         };
         self.output_held(ready, fs.mode)
     }
