@@ -475,3 +475,85 @@ fn a_keep_goes_back_only_to_a_frame_still_held_when_the_lookback_rises() {
         }
     }
 }
+
+/// A forced keyframe, a reset and a gap while `sharpness-lookback` holds frames wait in line
+/// behind them: no frame leaves sooner for them (one frame out for one in, annotate mode), each
+/// leaves right after the frame it followed, and the forced keyframe and the reset still apply to
+/// the next frame (reason `forced`, then `first`). They used to let every held frame out at once,
+/// the sink of a live pipeline blocked on the last of them, and frames came late (two or three
+/// dropped by the sink at each forced keyframe with `sharpness-lookback=30`).
+#[test]
+fn custom_events_and_gaps_wait_in_line_behind_held_frames() {
+    let Some(frames) = desk_frames(100, 14) else {
+        return;
+    };
+    let mut h = harness("mode=annotate sharpness-lookback=3", &rgb_caps(W, H));
+    let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
+    let log = seen.clone();
+    let src = h.element().unwrap().static_pad("src").unwrap();
+    src.add_probe(
+        gst::PadProbeType::BUFFER | gst::PadProbeType::EVENT_DOWNSTREAM,
+        move |_, info| {
+            let item = match &info.data {
+                Some(gst::PadProbeData::Buffer(b)) => {
+                    let m = meta(b);
+                    format!("{}:{}", b.pts().unwrap().mseconds() / 33, m.reason)
+                }
+                Some(gst::PadProbeData::Event(e)) => match e.view() {
+                    gst::EventView::CustomDownstream(c) => {
+                        c.structure().unwrap().name().to_string()
+                    }
+                    gst::EventView::Gap(_) => "gap".into(),
+                    _ => return gst::PadProbeReturn::Ok,
+                },
+                _ => return gst::PadProbeReturn::Ok,
+            };
+            log.lock().unwrap().push(item);
+            gst::PadProbeReturn::Ok
+        },
+    );
+    let custom = |name: &str| gst::event::CustomDownstream::new(gst::Structure::new_empty(name));
+    let mut pushed = 0u64;
+    let mut push = |h: &mut gst_check::Harness, i: usize| {
+        h.push(buffer(frames[i].clone(), i as u64 * 33)).unwrap();
+        pushed += 1;
+        let out = drain(h).len();
+        assert_eq!(out, usize::from(pushed > 3), "frame {i}");
+    };
+    for i in 0..6 {
+        push(&mut h, i);
+    }
+    assert!(h.push_event(custom("leangate-force-keyframe")));
+    push(&mut h, 6);
+    for i in 7..10 {
+        push(&mut h, i);
+    }
+    assert!(h.push_event(custom("leangate-reset")));
+    assert!(
+        h.push_event(gst::event::Gap::builder(gst::ClockTime::from_mseconds(10 * 33 - 1)).build())
+    );
+    for i in 10..14 {
+        push(&mut h, i);
+    }
+    assert!(h.push_event(gst::event::Eos::new()));
+    drain(&mut h);
+    let seen = seen.lock().unwrap().clone();
+    eprintln!("{seen:?}");
+    let at = |s: &str| {
+        seen.iter()
+            .position(|x| x == s)
+            .unwrap_or_else(|| panic!("{s}: {seen:?}"))
+    };
+    // In order: each event right after the frame it followed; the forced and reset frames.
+    assert_eq!(at("leangate-force-keyframe"), at("5:score") + 1, "{seen:?}");
+    assert_eq!(
+        at("6:forced"),
+        at("leangate-force-keyframe") + 1,
+        "{seen:?}"
+    );
+    let reset = at("leangate-reset");
+    assert_eq!(seen[reset - 1].split(':').next(), Some("9"), "{seen:?}");
+    assert_eq!(seen[reset + 1], "gap", "{seen:?}");
+    assert_eq!(seen[reset + 2], "10:first", "{seen:?}");
+    assert_eq!(seen.iter().filter(|s| s.contains(':')).count(), 14);
+}

@@ -172,6 +172,9 @@ struct Recent {
 struct Held {
     buf: gst::Buffer,
     meta: GateMeta,
+    /// Serialized events that came after this frame (and before the next): they leave with it,
+    /// in order, rather than letting every held frame out first (see `sink_event`).
+    events_after: Vec<gst::Event>,
 }
 
 impl LeanGate {
@@ -319,13 +322,16 @@ impl LeanGate {
                         .build();
                     let _ = src.push_event(gap);
                 }
-                continue;
+            } else {
+                let mut buf = h.buf;
+                if let Err(e) = h.meta.attach(buf.make_mut()) {
+                    gst::warning!(CAT, imp = self, "cannot attach LeanGateMeta: {e}");
+                }
+                src.push(buf)?;
             }
-            let mut buf = h.buf;
-            if let Err(e) = h.meta.attach(buf.make_mut()) {
-                gst::warning!(CAT, imp = self, "cannot attach LeanGateMeta: {e}");
+            for event in h.events_after {
+                let _ = src.push_event(event);
             }
-            src.push(buf)?;
         }
         Ok(gst::FlowSuccess::Ok)
     }
@@ -868,8 +874,25 @@ impl BaseTransformImpl for LeanGate {
     fn sink_event(&self, event: gst::Event) -> bool {
         match event.view() {
             // Frames held for `sharpness-lookback` go before any serialized event (caps, segment,
-            // EOS...) with their fate as it stands; a flush discards them.
+            // EOS...) with their fate as it stands; a flush discards them. Custom events (a
+            // forced keyframe, a reset) and gaps wait in line behind them instead: letting every
+            // held frame out at once would hand a synchronised sink frames due up to the whole
+            // look-back later (it would block the streaming thread that long).
             gst::EventView::FlushStop(_) => self.release_held(false),
+            gst::EventView::CustomDownstream(_) | gst::EventView::Gap(_) => {
+                let queued = match lock(&self.held).back_mut() {
+                    Some(last) => {
+                        last.events_after.push(event.clone());
+                        true
+                    }
+                    None => false,
+                };
+                if queued {
+                    // What it asks of the gate applies from the next frame all the same.
+                    self.note_custom_event(&event);
+                    return true;
+                }
+            }
             _ if event.is_serialized() => self.release_held(true),
             _ => {}
         }
@@ -989,6 +1012,7 @@ impl BaseTransformImpl for LeanGate {
             held.push_back(Held {
                 buf: inbuf,
                 meta: verdict.meta.clone(),
+                events_after: Vec::new(),
             });
             let n = held.len();
             if verdict.kept_back > 0 {
