@@ -557,3 +557,54 @@ fn custom_events_and_gaps_wait_in_line_behind_held_frames() {
     assert_eq!(seen[reset + 2], "10:first", "{seen:?}");
     assert_eq!(seen.iter().filter(|s| s.contains(':')).count(), 14);
 }
+
+/// `sharpness-lookback` raised while playing: upstream is asked to allocate again (a
+/// reconfigure event), so that a source with a bounded pool (a camera's, a hardware decoder's)
+/// gets as many more buffers as the element now holds instead of stalling on them. Before, no
+/// new allocation query came: the pool stayed sized for holding nothing.
+#[test]
+fn a_raised_lookback_while_playing_asks_upstream_to_allocate_again() {
+    init();
+    let pipeline = gst::parse::launch(
+        "videotestsrc is-live=true ! video/x-raw,width=320,height=240,framerate=30/1 \
+         ! leangate name=g mode=annotate ! fakesink sync=true",
+    )
+    .unwrap()
+    .downcast::<gst::Pipeline>()
+    .unwrap();
+    let g = pipeline.by_name("g").unwrap();
+    let queries = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let count = queries.clone();
+    g.static_pad("sink")
+        .unwrap()
+        .add_probe(gst::PadProbeType::QUERY_DOWNSTREAM, move |_, info| {
+            if let Some(gst::PadProbeData::Query(q)) = &info.data {
+                if matches!(q.view(), gst::QueryView::Allocation(_)) {
+                    count.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                }
+            }
+            gst::PadProbeReturn::Ok
+        });
+    let wait_for = |n: usize| {
+        let t0 = std::time::Instant::now();
+        while queries.load(std::sync::atomic::Ordering::SeqCst) < n {
+            if t0.elapsed() > std::time::Duration::from_secs(10) {
+                return false;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        true
+    };
+    pipeline.set_state(gst::State::Playing).unwrap();
+    assert!(wait_for(1), "no allocation query at start");
+    // Frames flow at the old setting...
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    let before = queries.load(std::sync::atomic::Ordering::SeqCst);
+    g.set_property("sharpness-lookback", 10u32);
+    let asked = wait_for(before + 1);
+    pipeline.set_state(gst::State::Null).unwrap();
+    assert!(
+        asked,
+        "no new allocation query after sharpness-lookback 0 -> 10"
+    );
+}

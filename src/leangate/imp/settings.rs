@@ -613,6 +613,10 @@ impl LeanGate {
             // The element's latency changed: let the pipeline query it again.
             let obj = self.obj();
             let _ = obj.post_message(gst::message::Latency::builder().src(&*obj).build());
+            // It holds another number of upstream's buffers: let upstream allocate again (the
+            // allocation query asks for that many more), lest a bounded pool (a camera's, a
+            // hardware decoder's) run dry on the frames held.
+            let _ = obj.sink_pad().push_event(gst::event::Reconfigure::new());
         }
     }
 
