@@ -10,7 +10,9 @@
 //! `scoring` (everything the element runs per frame, on real frames in memory). Environment:
 //! LEANGATE_BENCH_REPS (repetitions, default 5; medians, A/B runs interleaved so that the load
 //! of a shared machine hits both alike), LEANGATE_BENCH_FRAMES (frames per synthetic run,
-//! default 200). The model is the embedded default student `leangate-s`.
+//! default 200), and for `preprocess` LEANGATE_BENCH_FORMATS (e.g. `I420,Yuy2`) and
+//! LEANGATE_BENCH_SIZES (e.g. `1920x1080>160x120`) to measure only some rows. The model is the
+//! embedded default student `leangate-s`.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -320,6 +322,13 @@ fn preprocess_us(format: PixelFormat, w: u32, h: u32, out: (u32, u32), reps: usi
 /// default model), and a larger square input for bigger models.
 const PREPROCESS_OUT: [(u32, u32); 2] = [(160, 120), (256, 256)];
 
+/// `name` is in the comma-separated list in env `var` (case-insensitive), or `var` is unset.
+fn chosen(name: &str, var: &str) -> bool {
+    std::env::var(var).map_or(true, |v| {
+        v.split(',').any(|x| x.trim().eq_ignore_ascii_case(name))
+    })
+}
+
 fn section_preprocess(reps: usize) {
     println!("\n## Preprocessing, short-side crop, one core, µs per frame (median of {reps}, interleaved): fast path (`run`) vs the previous float path (`run_reference`); 160x120 is the embedded model's input");
     println!("| format | size | → tensor | fast µs | float reference µs | speed-up |");
@@ -341,7 +350,17 @@ fn section_preprocess(reps: usize) {
                 PixelFormat::Yuy2,
                 PixelFormat::I42010le,
                 PixelFormat::P01010le,
+                PixelFormat::Y42b,
+                PixelFormat::I42210le,
+                PixelFormat::Y444,
+                PixelFormat::Y44410le,
+                PixelFormat::Uyvy,
             ] {
+                if !chosen(&format!("{f:?}"), "LEANGATE_BENCH_FORMATS")
+                    || !chosen(&format!("{w}x{h}>{ow}x{oh}"), "LEANGATE_BENCH_SIZES")
+                {
+                    continue;
+                }
                 let (a, b) = preprocess_us(f, w, h, (ow, oh), reps);
                 println!(
                     "| {f:?} | {w}x{h} | {ow}x{oh} | {a:.0} | {b:.0} | {:.1}x |",

@@ -129,17 +129,18 @@ const I444: (Planes, &[PassDesc]) = (
     &[(1, FULL), (1, FULL), (1, FULL)],
     &[LUMA, pass(1, 1, FULL, S1), pass(2, 1, FULL, S2)],
 );
-/// Packed 4:2:2, two pixels in four samples `Y0 U Y1 V` (YUY2) or `U Y0 V Y1` (UYVY): the luma
-/// read per pixel (two samples), the chroma per pair of pixels (four samples).
+/// Packed 4:2:2, two pixels in four samples `Y0 U Y1 V` (YUY2) or `U Y0 V Y1` (UYVY): the chroma
+/// read per pair of pixels (four samples), the luma per pixel (two samples). Chroma first: its
+/// vertically averaged row holds every luma sample too, and the fast path reads luma from it.
 const YUY2: (Planes, &[PassDesc]) = (
     &[(4, (2, 1))],
-    &[pass(0, 2, FULL, S0), pass(0, 4, (2, 1), &[(1, 1), (3, 2)])],
+    &[pass(0, 4, (2, 1), &[(1, 1), (3, 2)]), pass(0, 2, FULL, S0)],
 );
 const UYVY: (Planes, &[PassDesc]) = (
     &[(4, (2, 1))],
     &[
-        pass(0, 2, FULL, &[(1, 0)]),
         pass(0, 4, (2, 1), &[(0, 1), (2, 2)]),
+        pass(0, 2, FULL, &[(1, 0)]),
     ],
 );
 
@@ -1097,6 +1098,33 @@ mod tests {
                         p.run(&frame, &mut again).unwrap();
                         assert_eq!(fast, again);
                     }
+                }
+            }
+        }
+    }
+
+    /// Packed 4:2:2 averages each source row once: its luma pass reads the chroma pass's
+    /// vertically averaged row (which holds every luma sample), at the default student's 1080p
+    /// input and an odd size; no other layout shares (their passes read other planes). The
+    /// result is checked against the float path in `fast_path_matches_the_float_reference`.
+    #[test]
+    fn packed_422_averages_each_row_once() {
+        for (w, h, ow, oh) in [(1920u32, 1080u32, 160u32, 120u32), (37, 23, 16, 16)] {
+            for f in PixelFormat::ALL {
+                let p = Preprocessor::new(
+                    f,
+                    w,
+                    h,
+                    YuvMatrix::BT709,
+                    spec(ow, oh, ResizeMode::ShortSideCrop),
+                )
+                .unwrap();
+                let shared: Vec<_> = p.passes.iter().filter_map(|p| p.acc_from).collect();
+                if matches!(f, PixelFormat::Yuy2 | PixelFormat::Uyvy) {
+                    assert_eq!(shared.len(), 1, "{f:?} {w}x{h}");
+                    assert_eq!(shared[0].0, 0, "{f:?}: luma reads the chroma pass's row");
+                } else {
+                    assert!(shared.is_empty(), "{f:?} {w}x{h}: {shared:?}");
                 }
             }
         }

@@ -31,6 +31,11 @@ pub(super) struct PlanePass {
     pub(super) y_sum: Vec<bool>,
     /// (sample within the pixel, output slot 0..3), per used sample.
     pub(super) chans: Vec<(usize, usize)>,
+    /// `Some((j, offset))`: an earlier pass `j` reads the same plane through the same vertical
+    /// taps over a sample range that covers this one's (packed 4:2:2: the chroma pass over pixel
+    /// pairs holds every luma sample too), so this pass reads its vertically averaged row from
+    /// `j`'s, `offset` samples in, instead of averaging the same bytes again.
+    pub(super) acc_from: Option<(usize, usize)>,
 }
 
 /// The fast path's buffers.
@@ -108,6 +113,34 @@ pub(super) fn plane_pass(
         y: y_taps,
         y_sum,
         chans: desc.chans.to_vec(),
+        acc_from: None,
+    }
+}
+
+/// Marks each pass whose vertically averaged row an earlier pass already holds: same plane, same
+/// vertical taps, and a covering sample range with room for this pass's horizontal taps.
+fn share_rows(passes: &mut [PlanePass]) {
+    for k in 1..passes.len() {
+        let found = (0..k).find_map(|j| {
+            let (a, b) = (&passes[j], &passes[k]);
+            let (a0, b0) = (a.x0 * a.bpp, b.x0 * b.bpp);
+            let a_len = (a.x1 - a.x0 + a.x.t) * a.bpp;
+            let b_len = (b.x1 - b.x0 + b.x.t) * b.bpp;
+            let same_rows = a.plane == b.plane
+                && a.y_sum == b.y_sum
+                && a.y.len() == b.y.len()
+                && a.y
+                    .iter()
+                    .zip(&b.y)
+                    .all(|(s, t)| s.start == t.start && s.weights == t.weights);
+            (a.acc_from.is_none()
+                && same_rows
+                && a0 <= b0
+                && b.x1 * b.bpp <= a.x1 * a.bpp
+                && b0 - a0 + b_len <= a_len)
+                .then(|| (j, b0 - a0))
+        });
+        passes[k].acc_from = found;
     }
 }
 
@@ -124,7 +157,8 @@ pub(super) fn make_passes(format: PixelFormat, x_taps: &[Taps], y_taps: &[Taps])
             taps.to_vec()
         }
     };
-    d.passes
+    let mut passes = d
+        .passes
         .iter()
         .map(|p| {
             let mut y = taps(y_taps, p.sub.1);
@@ -133,7 +167,9 @@ pub(super) fn make_passes(format: PixelFormat, x_taps: &[Taps], y_taps: &[Taps])
                 .for_each(|w| *w *= unit);
             plane_pass(p, &taps(x_taps, p.sub.0), y, d.bytes == 1)
         })
-        .collect()
+        .collect::<Vec<_>>();
+    share_rows(&mut passes);
+    passes
 }
 
 pub(super) fn has_avx2() -> bool {
@@ -159,9 +195,11 @@ impl Preprocessor {
         rows.try_reserve_exact(self.passes.len()).map_err(e)?;
         sums.try_reserve_exact(self.passes.len()).map_err(e)?;
         for p in &self.passes {
-            acc.push(try_zeroed((p.x1 - p.x0 + p.x.t) * p.bpp)?);
+            // (A pass reading another's averaged row needs neither buffer of its own.)
+            let own = if p.acc_from.is_none() { 1 } else { 0 };
+            acc.push(try_zeroed((p.x1 - p.x0 + p.x.t) * p.bpp * own)?);
             rows.push(try_zeroed(self.spec.width as usize * p.bpp)?);
-            sums.push(try_filled((p.x1 - p.x0) * p.bpp, 0u16)?);
+            sums.push(try_filled((p.x1 - p.x0) * p.bpp * own, 0u16)?);
         }
         Ok(FastScratch { acc, rows, sums })
     }
@@ -224,21 +262,23 @@ impl Preprocessor {
         let (out_r, rest) = out.split_at_mut(plane_len);
         let (out_g, out_b) = rest.split_at_mut(plane_len);
         for oy in 0..oh {
-            for (((pass, acc), hrow), sum) in self
-                .passes
-                .iter()
-                .zip(accs.iter_mut())
-                .zip(hrows.iter_mut())
-                .zip(sums.iter_mut())
-            {
+            for (k, pass) in self.passes.iter().enumerate() {
                 let bpp = pass.bpp;
-                let n = (pass.x1 - pass.x0) * bpp;
-                let (data, r) = (frame.planes[pass.plane], rows[pass.plane]);
-                if wide {
-                    vertical::<2>(&mut acc[..n], sum, data, r, pass, oy);
-                } else {
-                    vertical::<1>(&mut acc[..n], sum, data, r, pass, oy);
-                }
+                let acc: &[f32] = match pass.acc_from {
+                    Some((j, offset)) => &accs[j][offset..],
+                    None => {
+                        let n = (pass.x1 - pass.x0) * bpp;
+                        let (data, r) = (frame.planes[pass.plane], rows[pass.plane]);
+                        let (acc, sum) = (&mut accs[k], &mut sums[k]);
+                        if wide {
+                            vertical::<2>(&mut acc[..n], sum, data, r, pass, oy);
+                        } else {
+                            vertical::<1>(&mut acc[..n], sum, data, r, pass, oy);
+                        }
+                        acc
+                    }
+                };
+                let hrow = &mut hrows[k];
                 match bpp {
                     1 => hpass::<1>(acc, pass, hrow),
                     2 => hpass::<2>(acc, pass, hrow),
@@ -537,6 +577,27 @@ pub(super) fn vacc<const S: usize>(acc: &mut [f32], src: &[u8], w: f32) {
 /// rows of the output width, one per sample.
 #[inline(always)]
 pub(super) fn hpass<const B: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
+    if B == 2 && pass.chans.len() == 1 {
+        // Packed 4:2:2 luma: one sample of two, the other is never read.
+        let n = pass.x.start.len();
+        let c = pass.chans[0].0;
+        if pass.x.t > 10 {
+            return hpass_any::<B>(acc, pass, out);
+        }
+        let out = &mut out[c * n..(c + 1) * n];
+        return match pass.x.t {
+            1 => hpass_one::<B, 1>(acc, pass, c, out),
+            2 => hpass_one::<B, 2>(acc, pass, c, out),
+            3 => hpass_one::<B, 3>(acc, pass, c, out),
+            4 => hpass_one::<B, 4>(acc, pass, c, out),
+            5 => hpass_one::<B, 5>(acc, pass, c, out),
+            6 => hpass_one::<B, 6>(acc, pass, c, out),
+            7 => hpass_one::<B, 7>(acc, pass, c, out),
+            8 => hpass_one::<B, 8>(acc, pass, c, out),
+            9 => hpass_one::<B, 9>(acc, pass, c, out),
+            _ => hpass_one::<B, 10>(acc, pass, c, out),
+        };
+    }
     match pass.x.t {
         1 => hpass_t::<B, 1>(acc, pass, out),
         2 => hpass_t::<B, 2>(acc, pass, out),
@@ -578,6 +639,31 @@ pub(super) fn hpass_t<const B: usize, const T: usize>(
         for c in 0..B {
             outs[c][o] = a[c];
         }
+    }
+}
+
+/// [`hpass`] of sample `c` only, `T` taps per output (unrolled), into one output row.
+#[inline(always)]
+pub(super) fn hpass_one<const B: usize, const T: usize>(
+    acc: &[f32],
+    pass: &PlanePass,
+    c: usize,
+    out: &mut [f32],
+) {
+    for ((&st, w), o) in pass
+        .x
+        .start
+        .iter()
+        .zip(pass.x.w.chunks_exact(T))
+        .zip(out.iter_mut())
+    {
+        let w: &[f32; T] = w.try_into().expect("T taps");
+        let src: &[f32] = &acc[st * B..(st + T) * B];
+        let mut a = 0f32;
+        for k in 0..T {
+            a += w[k] * src[k * B + c];
+        }
+        *o = a;
     }
 }
 
