@@ -126,8 +126,8 @@ fn share_rows(passes: &mut [PlanePass]) {
             let (a0, b0) = (a.x0 * a.bpp, b.x0 * b.bpp);
             let a_len = (a.x1 - a.x0 + a.x.t) * a.bpp;
             let b_len = (b.x1 - b.x0 + b.x.t) * b.bpp;
+            // (Equal taps also mean equal `y_sum`: it follows from the weights and the format.)
             let same_rows = a.plane == b.plane
-                && a.y_sum == b.y_sum
                 && a.y.len() == b.y.len()
                 && a.y
                     .iter()
@@ -195,11 +195,14 @@ impl Preprocessor {
         rows.try_reserve_exact(self.passes.len()).map_err(e)?;
         sums.try_reserve_exact(self.passes.len()).map_err(e)?;
         for p in &self.passes {
-            // (A pass reading another's averaged row needs neither buffer of its own.)
-            let own = if p.acc_from.is_none() { 1 } else { 0 };
-            acc.push(try_zeroed((p.x1 - p.x0 + p.x.t) * p.bpp * own)?);
+            // A pass reading another's averaged row needs neither buffer of its own.
+            let (n, pad) = match p.acc_from {
+                None => ((p.x1 - p.x0) * p.bpp, p.x.t * p.bpp),
+                Some(_) => (0, 0),
+            };
+            acc.push(try_zeroed(n + pad)?);
             rows.push(try_zeroed(self.spec.width as usize * p.bpp)?);
-            sums.push(try_filled((p.x1 - p.x0) * p.bpp * own, 0u16)?);
+            sums.push(try_filled(n, 0u16)?);
         }
         Ok(FastScratch { acc, rows, sums })
     }
@@ -577,13 +580,10 @@ pub(super) fn vacc<const S: usize>(acc: &mut [f32], src: &[u8], w: f32) {
 /// rows of the output width, one per sample.
 #[inline(always)]
 pub(super) fn hpass<const B: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f32]) {
-    if B == 2 && pass.chans.len() == 1 {
-        // Packed 4:2:2 luma: one sample of two, the other is never read.
+    if B > 1 && pass.chans.len() == 1 && pass.x.t <= 10 {
+        // One sample of several is used (packed 4:2:2 luma): the others are never computed.
         let n = pass.x.start.len();
         let c = pass.chans[0].0;
-        if pass.x.t > 10 {
-            return hpass_any::<B>(acc, pass, out);
-        }
         let out = &mut out[c * n..(c + 1) * n];
         return match pass.x.t {
             1 => hpass_one::<B, 1>(acc, pass, c, out),
