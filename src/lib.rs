@@ -41,7 +41,7 @@ pub use leangate::{
     FORCE_KEYFRAME_EVENT, RESET_EVENT,
 };
 pub use meta::{GateMeta, META_NAME};
-pub use policy::{Decision, Gate, GateConfig, Reason, Score};
+pub use policy::{Decision, Gate, GateConfig, Reason, Score, KEYFRAME_S};
 pub use preprocess::{
     PixelFormat, PreprocessError, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix,
 };

@@ -16,21 +16,28 @@
 //! 6. `max_gap > 0` and already `max_gap` consecutive drops → keep, `max-gap`;
 //! 7. otherwise drop (reason `score`).
 //!
-//! Sharper keyframes ([`GateConfig::sharpness_wait`] > 0, with each frame's sharpness given to
-//! [`Gate::decide_with`]): a keep due on score (rule 5) on a frame blurrier than
-//! [`SHARPER_RATIO`] of the sharpest of the [`SHARPNESS_HISTORY`] frames before it waits, the frame
-//! dropped with reason `deferred`, and goes to the first following frame that is not that blurry
-//! (whatever its utility: the keep was due), or to the last one the wait allows. Keeps for any
-//! other reason end a wait. Without sharpness (the oracle, a model failure) nothing waits.
+//! Sharper keyframes (each frame's sharpness given to [`Gate::decide_with`]; without it, the
+//! oracle or a model failure, nothing below applies):
+//! - Sharpest of the recent frames ([`GateConfig::sharpness_lookback`] > 0): a keep due on score
+//!   (rule 5) on a frame blurrier than [`LOOKBACK_RATIO`] of the sharpest usable frame among the
+//!   `sharpness_lookback` frames before it (dropped since the last keep) goes to that sharper
+//!   frame instead: [`Decision::kept_back`] says how many frames back it is, the current frame is
+//!   dropped (reason `score`), and the earlier frame is kept with reason `sharper` and becomes the
+//!   reference. The element holds that many frames to make this possible (its latency grows by as
+//!   many frame durations).
+//! - With [`GateConfig::sharpness_wait`] > 0 as well, the keep settles that many frames later:
+//!   the due frame and the next `sharpness_wait - 1` are dropped with reason `deferred` (whatever
+//!   their utility: the keep was due) and held as candidates, and the frame after them is kept
+//!   unless it is blurrier than [`LOOKBACK_RATIO`] of the sharpest candidate still held, which is
+//!   kept instead (before or after the due frame). So the keep goes to the sharpest frame of a
+//!   window around the due frame. A frame whose utility has reached [`settle_cap`] (halfway to
+//!   a late keep) settles the keep at once, the same way.
+//! - [`GateConfig::sharpness_wait`] alone (no look-back, no buffering): a keep due on a frame
+//!   blurrier than [`SHARPER_RATIO`] of the sharpest of the [`SHARPNESS_HISTORY`] frames before
+//!   it waits, the frame dropped with reason `deferred`, and goes to the first following frame
+//!   that is not that blurry, or to the last one the wait allows.
 //!
-//! Sharpest of the recent frames ([`GateConfig::sharpness_lookback`] > 0): a keep due on score
-//! (rule 5) on a frame blurrier than [`LOOKBACK_RATIO`] of the sharpest usable frame among the
-//! `sharpness_lookback` frames before it (dropped on score since the last keep) goes to that
-//! sharper frame instead: [`Decision::kept_back`] says how many frames back it is, the current
-//! frame is dropped (reason `score`), and the earlier frame is kept with reason `sharper` and
-//! becomes the reference. The element holds that many frames to make this possible (its latency
-//! grows by as many frame durations). It acts before `sharpness_wait`, which applies only when no
-//! earlier frame is sharper.
+//! Keeps for any other reason end a wait.
 //!
 //! Every kept frame becomes the new reference.
 
@@ -115,7 +122,8 @@ pub struct GateConfig {
     pub warmup: u64,
     /// Force a keep after this many consecutive drops; 0 disables.
     pub max_gap: u64,
-    /// Most frames a keep due on a blurred frame waits for a sharper one; 0 = never waits.
+    /// Most frames a keep due on a blurred frame waits for a sharper one (with a look-back: how
+    /// many frames later it settles on the sharpest held); 0 = never waits.
     pub sharpness_wait: u64,
     /// How many frames back a keep due on a blurred frame may go for a sharper one; 0 = none.
     pub sharpness_lookback: u64,
@@ -129,6 +137,17 @@ pub const SHARPNESS_HISTORY: usize = 3;
 /// A keep due on a frame goes back to an earlier frame ([`GateConfig::sharpness_lookback`])
 /// when the due frame's sharpness is below this fraction of that frame's.
 pub const LOOKBACK_RATIO: f64 = 0.9;
+/// MASt3R-SLAM's keyframe threshold on S: a keep whose S with the previous keyframe is below it
+/// came late (its utility tau = 1 − S above 0.667).
+pub const KEYFRAME_S: f64 = 0.333;
+
+/// A keep settling later ([`GateConfig::sharpness_wait`] with a look-back) stops waiting on a
+/// frame whose utility has reached this: halfway from `threshold` to a late keep's utility
+/// (1 − [`KEYFRAME_S`]), so that on fast motion the wait does not run into late keeps.
+pub fn settle_cap(threshold: f64) -> f64 {
+    threshold + (1.0 - KEYFRAME_S - threshold) / 2.0
+}
+
 /// The most frames [`GateConfig::sharpness_lookback`] may hold.
 pub const MAX_LOOKBACK: u64 = 30;
 
@@ -308,38 +327,25 @@ impl Gate {
                 _ => None,
             }
         };
-        // A keep due on score on a frame blurrier than a recent one goes back to that one.
-        if reason == Some(Reason::Score) && self.waited == 0 {
-            let best =
-                self.candidates
-                    .iter()
-                    .copied()
-                    .fold(None, |m: Option<(u64, f64)>, c| match m {
-                        Some(m) if m.1 >= c.1 => Some(m),
-                        _ => Some(c),
-                    });
-            if let (Some(s), Some((p, b))) = (sharpness, best) {
+        // A keep due on score (now, or settling since an earlier frame) with a look-back: it
+        // settles `sharpness_wait` frames later, on the sharpest frame held.
+        let due = reason == Some(Reason::Score) || (reason.is_none() && self.waited > 0);
+        if due && lookback > 0 {
+            if let (Some(s), Some((p, b))) = (sharpness, self.sharpest_candidate()) {
+                let cap = settle_cap(self.cfg.threshold);
+                let near_late = matches!(score, Score::Utility(u) if u >= cap);
+                if self.waited < self.cfg.sharpness_wait && !near_late {
+                    return self.settle_later(position, s);
+                }
                 if s < LOOKBACK_RATIO * b {
-                    self.remember_sharpness(sharpness);
-                    self.frames_since_restart = self.frames_since_restart.saturating_add(1);
-                    self.candidates.clear();
-                    self.force_next = false;
-                    self.since_keyframe = position - p;
-                    self.kept += 1;
-                    return Decision {
-                        keep: false,
-                        reason: Reason::Score,
-                        keyframe_index: self.kept,
-                        frames_since_keyframe: self.since_keyframe,
-                        kept_back: position - p,
-                    };
+                    return self.keep_back(position, p, s);
                 }
             }
+            reason = Some(Reason::Score);
         }
-        // A keep due on score (now, or waiting since an earlier frame) on a blurred frame waits.
+        // Without a look-back, a keep due on a blurred frame waits for a sharper one.
         let mut deferred = false;
-        let due = reason == Some(Reason::Score) || (reason.is_none() && self.waited > 0);
-        if due && self.cfg.sharpness_wait > 0 {
+        if due && lookback == 0 && self.cfg.sharpness_wait > 0 {
             let best = self
                 .sharpness
                 .iter()
@@ -391,6 +397,52 @@ impl Gate {
                     kept_back: 0,
                 }
             }
+        }
+    }
+
+    /// The sharpest candidate of the look-back (the earliest of equals).
+    fn sharpest_candidate(&self) -> Option<(u64, f64)> {
+        self.candidates
+            .iter()
+            .copied()
+            .fold(None, |m: Option<(u64, f64)>, c| match m {
+                Some(m) if m.1 >= c.1 => Some(m),
+                _ => Some(c),
+            })
+    }
+
+    /// The keep due settles on a later frame: this one (sharpness `s`) is dropped as `deferred`
+    /// and held as a candidate.
+    fn settle_later(&mut self, position: u64, s: f64) -> Decision {
+        self.waited += 1;
+        self.remember_sharpness(Some(s));
+        self.frames_since_restart = self.frames_since_restart.saturating_add(1);
+        self.since_keyframe += 1;
+        self.candidates.push_back((position, s));
+        Decision {
+            keep: false,
+            reason: Reason::Deferred,
+            keyframe_index: self.kept,
+            frames_since_keyframe: self.since_keyframe,
+            kept_back: 0,
+        }
+    }
+
+    /// The keep due on this frame (sharpness `s`, dropped) goes to the candidate at `p`.
+    fn keep_back(&mut self, position: u64, p: u64, s: f64) -> Decision {
+        self.remember_sharpness(Some(s));
+        self.frames_since_restart = self.frames_since_restart.saturating_add(1);
+        self.candidates.clear();
+        self.waited = 0;
+        self.force_next = false;
+        self.since_keyframe = position - p;
+        self.kept += 1;
+        Decision {
+            keep: false,
+            reason: Reason::Score,
+            keyframe_index: self.kept,
+            frames_since_keyframe: self.since_keyframe,
+            kept_back: position - p,
         }
     }
 
@@ -593,6 +645,62 @@ mod tests {
         g.decide_with(Score::Utility(0.1), Some(100.0));
         g.forget_candidates();
         assert!(g.decide_with(Score::Utility(0.6), Some(10.0)).keep);
+    }
+
+    #[test]
+    fn with_a_wait_and_a_lookback_a_due_keep_settles_on_the_sharpest_held_frame() {
+        let cfg = GateConfig {
+            sharpness_wait: 2,
+            sharpness_lookback: 4,
+            ..Default::default()
+        };
+        fn step(g: &mut Gate, u: f64, s: f64) -> (bool, Reason, u64, u64) {
+            let d = g.decide_with(Score::Utility(u), Some(s));
+            (d.keep, d.reason, d.kept_back, d.frames_since_keyframe)
+        }
+        let mut g = Gate::new(cfg);
+        assert!(step(&mut g, 0.0, 100.0).0);
+        for s in [50.0, 60.0, 55.0, 40.0] {
+            assert!(!step(&mut g, 0.2, s).0);
+        }
+        // Due on frame 5 (blurred): it and the next frame wait; on frame 7 the keep settles on
+        // the sharpest frame held (frame 6, one back), whatever the utility did meanwhile.
+        assert_eq!(step(&mut g, 0.55, 30.0), (false, Reason::Deferred, 0, 5));
+        assert_eq!(step(&mut g, 0.45, 90.0), (false, Reason::Deferred, 0, 6));
+        assert_eq!(step(&mut g, 0.7, 45.0), (false, Reason::Score, 1, 1));
+        // Frames before frame 3 are out of reach (4 frames back from frame 7): a sharp frame 1
+        // would not have been chosen. A settling frame at least 0.9 as sharp as the sharpest
+        // held keeps itself, even when the due frame was sharp: the wait always runs its length.
+        for s in [100.0, 20.0] {
+            assert!(!step(&mut g, 0.2, s).0);
+        }
+        assert_eq!(step(&mut g, 0.55, 95.0).1, Reason::Deferred);
+        assert_eq!(step(&mut g, 0.55, 30.0).1, Reason::Deferred);
+        assert_eq!(step(&mut g, 0.6, 92.0), (true, Reason::Score, 0, 0));
+        // A frame halfway to a late keep (utility 0.59 against the cap 0.583 at threshold 0.5)
+        // settles at once: here on the sharper frame before it.
+        step(&mut g, 0.2, 100.0);
+        assert_eq!(step(&mut g, 0.55, 30.0).1, Reason::Deferred);
+        assert_eq!(step(&mut g, 0.59, 40.0), (false, Reason::Score, 2, 2));
+        // A keep for another reason (forced) ends the wait at once.
+        step(&mut g, 0.2, 100.0);
+        assert_eq!(step(&mut g, 0.55, 30.0).1, Reason::Deferred);
+        g.force_keyframe();
+        assert_eq!(step(&mut g, 0.6, 30.0), (true, Reason::Forced, 0, 0));
+        // Nothing held to compare with (the due frame follows a keep): kept at once.
+        assert_eq!(step(&mut g, 0.6, 30.0), (true, Reason::Score, 0, 0));
+        // Without a look-back the wait keeps its own rule: the first frame not blurred.
+        let mut w = Gate::new(GateConfig {
+            sharpness_lookback: 0,
+            ..cfg
+        });
+        w.decide(Score::NoReference);
+        w.decide_with(Score::Utility(0.2), Some(100.0));
+        assert_eq!(
+            w.decide_with(Score::Utility(0.6), Some(30.0)).reason,
+            Reason::Deferred
+        );
+        assert!(w.decide_with(Score::Utility(0.6), Some(95.0)).keep);
     }
 
     #[test]

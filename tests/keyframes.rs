@@ -340,6 +340,87 @@ fn a_keep_due_on_a_blurred_frame_goes_back_to_a_sharper_recent_one() {
     assert_eq!(out_pts, kept_pts);
 }
 
+/// `sharpness-wait=2 sharpness-lookback=4` on the first 300 frames of tum_fr1_desk: a keep due
+/// settles two frames later on the sharpest frame held, so every keep that waited lands within
+/// two frames of the frame it was due on, before or after it; the kept frames are sharper than
+/// keeping at once, every frame leaves once and in order, and drop mode lets the same frames
+/// through.
+#[test]
+fn with_a_wait_and_a_lookback_a_keep_settles_on_the_sharpest_frame_around_the_due_one() {
+    let Some(frames) = desk_frames(0, 300) else {
+        return;
+    };
+    let sharp: Vec<f64> = frames.iter().map(|f| frame_sharpness(f)).collect();
+    let run = |props: &str| {
+        let mut h = harness(props, &rgb_caps(W, H));
+        let mut out = Vec::new();
+        for (i, f) in frames.iter().enumerate() {
+            h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
+            out.extend(drain(&mut h));
+        }
+        assert!(h.push_event(gst::event::Eos::new()));
+        out.extend(drain(&mut h));
+        out
+    };
+    let settle = "sharpness-wait=2 sharpness-lookback=4";
+    let at_once = run("mode=annotate");
+    let settled = run(&format!("mode=annotate {settle}"));
+    let pts: Vec<u64> = settled
+        .iter()
+        .map(|b| b.pts().unwrap().mseconds())
+        .collect();
+    assert_eq!(
+        pts,
+        (0..frames.len() as u64).map(|i| i * 33).collect::<Vec<_>>(),
+        "every frame leaves once, in order"
+    );
+    let metas: Vec<_> = settled.iter().map(meta).collect();
+    let (mut waits, mut forward, mut back) = (0, 0, 0);
+    let mut i = 0;
+    while i < metas.len() {
+        if metas[i].reason != Reason::Deferred {
+            i += 1;
+            continue;
+        }
+        // The frame the keep was due on, the first of a run of deferred frames; the keep that
+        // settles it is the next keyframe.
+        let due = i;
+        let index = metas[due].keyframe_index + 1;
+        let k = (0..metas.len())
+            .find(|&j| metas[j].keep && metas[j].keyframe_index == index)
+            .unwrap_or_else(|| panic!("the keep due on frame {due} never came"));
+        assert!(
+            k + 2 >= due && k <= due + 2,
+            "the keep due on frame {due} went to frame {k}"
+        );
+        waits += 1;
+        if k > due {
+            forward += 1;
+        } else if k < due {
+            back += 1;
+        }
+        while i < metas.len() && metas[i].reason == Reason::Deferred {
+            i += 1;
+        }
+    }
+    eprintln!("{waits} keeps settled: {forward} on a later frame, {back} on an earlier one");
+    assert!(forward > 0 && back > 0, "{forward} later, {back} earlier");
+    let keeps = |v: &[gst::Buffer]| v.iter().map(|b| meta(b).keep).collect::<Vec<bool>>();
+    let (k0, ks) = (keeps(&at_once), keeps(&settled));
+    let (m0, ms) = (
+        median_sharpness_ratio(&k0, &sharp),
+        median_sharpness_ratio(&ks, &sharp),
+    );
+    eprintln!("median kept sharpness / sharpest within 3: {m0:.2} at once, {ms:.2} settled");
+    assert!(ms > m0 + 0.05, "{ms:.2} against {m0:.2}");
+    let kept_pts: Vec<u64> = (0..ks.len()).filter(|&i| ks[i]).map(|i| pts[i]).collect();
+    let out_pts: Vec<u64> = run(settle)
+        .iter()
+        .map(|b| b.pts().unwrap().mseconds())
+        .collect();
+    assert_eq!(out_pts, kept_pts, "drop mode: the same frames");
+}
+
 /// Frames held for `sharpness-lookback` across what a stream does: new caps release them first
 /// (in order, before the new-caps frames, which are held in turn), a flush discards them, the property going to 0 while
 /// frames are held lets them out before the next frame. Nothing is lost or reordered otherwise.

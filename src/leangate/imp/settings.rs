@@ -188,8 +188,10 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
                 "When a keep is due on a frame blurrier than 0.8 of the sharpest of the 3 \
                  frames before it (variance of the Laplacian of the model's picture), \
                  drop it (reason deferred) and keep the first of the next frames that is \
-                 not, or the last of this many; no buffering, no added latency. 0 = keep \
-                 at once",
+                 not, or the last of this many; no buffering, no added latency. With \
+                 sharpness-lookback: the keep settles this many frames later (sooner \
+                 once the utility is halfway to a late keep) on the sharpest frame held, \
+                 before or after the due one. 0 = keep at once",
             )
             .maximum(30)
             .default_value(DEFAULT_SHARPNESS_WAIT)
@@ -201,8 +203,9 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
                 "Hold this many frames; when a keep is due on a frame blurrier than 0.9 \
                  of the sharpest of them (dropped since the last keep; variance of the \
                  Laplacian of the model's picture), keep that sharper frame instead \
-                 (reason sharper) and drop the due one. Adds this many frame durations \
-                 of latency (reported in the latency query). 0 = hold nothing",
+                 (reason sharper) and drop the due one (with sharpness-wait: once the \
+                 wait is over). Adds this many frame durations of latency (reported in \
+                 the latency query). 0 = hold nothing",
             )
             .maximum(crate::policy::MAX_LOOKBACK as u32)
             .default_value(DEFAULT_SHARPNESS_LOOKBACK)

@@ -63,7 +63,7 @@ pub const POLICIES: [&str; 6] = [
 /// S below which MASt3R-SLAM's tracking breaks.
 pub const BREAK_S: f64 = 0.05;
 /// MASt3R-SLAM's keyframe threshold on S.
-pub const KEYFRAME_S: f64 = 0.333;
+pub const KEYFRAME_S: f64 = gstleangate::KEYFRAME_S;
 /// Thumbnail size used by `pixel_diff` and `motion`.
 pub const THUMB_W: u32 = 160;
 pub const THUMB_H: u32 = 120;
