@@ -1,7 +1,8 @@
 //! Keyframes worth keeping, with the embedded default gate on real frames of `tum_fr1_desk` (a
 //! fast handheld sweep over office desks): junk never becomes a keyframe (black, white and noise
 //! frames spliced in, a static textureless view), and a keep due on a blurred frame goes to a
-//! sharper one (`sharpness-wait`). Skipped, saying so, when `../shared/data` is absent.
+//! sharper one (`sharpness-wait`, `sharpness-lookback`, and both: the sharpest around the due
+//! frame). Skipped, saying so, when `../shared/data` is absent.
 
 mod common;
 
