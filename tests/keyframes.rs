@@ -376,6 +376,11 @@ fn with_a_wait_and_a_lookback_a_keep_settles_on_the_sharpest_frame_around_the_du
         "every frame leaves once, in order"
     );
     let metas: Vec<_> = settled.iter().map(meta).collect();
+    // Every keep that settles has its picture at hand: the reference is never lost.
+    assert!(
+        metas[1..].iter().all(|m| m.reason != Reason::First),
+        "a keep settled on a frame the element no longer had"
+    );
     let (mut waits, mut forward, mut back) = (0, 0, 0);
     let mut i = 0;
     while i < metas.len() {

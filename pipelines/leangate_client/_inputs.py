@@ -237,9 +237,11 @@ def gate_input(
     plugin_path=None,
     plugin_fallbacks=(),
     max_frames: Optional[int] = None,
+    properties: Optional[Dict[str, Any]] = None,
 ) -> GateResult:
     """Run the input through leangate (drop mode); kept video frames are written as PNG into
-    ``image_dir`` (a sequence's kept frames are used from their files)."""
+    ``image_dir`` (a sequence's kept frames are used from their files). ``properties``: more of
+    the element's properties, by their names (``{"sharpness-lookback": 4}``)."""
     kw = dict(
         model=model,
         threshold=threshold,
@@ -249,6 +251,7 @@ def gate_input(
         execution_provider=execution_provider,
         plugin_path=plugin_path,
         plugin_fallbacks=plugin_fallbacks,
+        properties=properties,
     )
     kept: List[FrameRef] = []
     metas: List[Dict[str, Any]] = []

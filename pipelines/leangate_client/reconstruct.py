@@ -286,8 +286,10 @@ def _listed_twice(frames: Sequence[Any]) -> Optional[int]:
     return None
 
 
-def _integer(lo: int, *, also: Optional[int] = None, meaning: str = "") -> Callable[[str], int]:
-    """An argparse type: an integer >= ``lo`` (or ``also``)."""
+def _integer(
+    lo: int, *, also: Optional[int] = None, meaning: str = "", hi: Optional[int] = None
+) -> Callable[[str], int]:
+    """An argparse type: an integer >= ``lo`` (or ``also``), and <= ``hi`` when given."""
 
     def parse(text: str) -> int:
         try:
@@ -297,6 +299,8 @@ def _integer(lo: int, *, also: Optional[int] = None, meaning: str = "") -> Calla
         if v < lo and v != also:
             alt = f" or {also}{meaning}" if also is not None else ""
             raise argparse.ArgumentTypeError(f"must be at least {lo}{alt}, got {v}")
+        if hi is not None and v > hi:
+            raise argparse.ArgumentTypeError(f"must be at most {hi}, got {v}")
         return v
 
     return parse
@@ -357,6 +361,12 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
     g.add_argument("--threshold", type=_number(0.0, 1.0), default=None, help="tau_keep in [0, 1]")
     g.add_argument("--warmup", type=_integer(0), default=None)
     g.add_argument("--max-gap", type=_integer(0), default=None, help="0: off")
+    g.add_argument("--sharpness-wait", type=_integer(0, hi=30), default=None, metavar="N",
+                   help="the element's sharpness-wait; with --sharpness-lookback, a due keep "
+                   "settles N frames later on the sharpest frame held (2 and 4: sharper "
+                   "keyframes for reconstruction, docs/reconstruction.md)")
+    g.add_argument("--sharpness-lookback", type=_integer(0, hi=30), default=None, metavar="N",
+                   help="the element's sharpness-lookback: frames held to go back to")
     g.add_argument("--max-frames", type=_integer(1), default=None,
                    help="gate only the first N frames of an image sequence / keep at most N of a video")
     g.add_argument("--execution-provider", choices=("auto", "cpu", "cuda", "tensorrt"))
@@ -427,6 +437,14 @@ def main(
             plugin_path=args.plugin_path,
             plugin_fallbacks=plugin_fallbacks,
             max_frames=args.max_frames,
+            properties={
+                name: value
+                for name, value in (
+                    ("sharpness-wait", args.sharpness_wait),
+                    ("sharpness-lookback", args.sharpness_lookback),
+                )
+                if value is not None
+            },
         )
         t = time.monotonic()
         rec = reconstruct(

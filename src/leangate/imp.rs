@@ -501,9 +501,10 @@ impl LeanGate {
             && fs.sharpness_lookback > 0
             && sharpness.is_some()
             && frame_readable
-            && decision.reason == Reason::Score
+            && matches!(decision.reason, Reason::Score | Reason::Deferred)
         {
-            // A candidate for a later keep (the gate took it as one: same conditions).
+            // A candidate for a later keep (the gate took it as one: same conditions; a
+            // deferred frame is one while a keep settles).
             // Entries the gate no longer asks for (older, or before the last keep) are reused.
             let mut tensor = Vec::new();
             while state.recent.len() >= fs.sharpness_lookback as usize {

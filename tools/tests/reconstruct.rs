@@ -171,6 +171,50 @@ fn consumer_gates_an_image_sequence_and_reconstructs_the_kept_frames() {
     assert!(ply_text.starts_with(b"ply"));
 }
 
+/// `--sharpness-wait 2 --sharpness-lookback 4` reach the element: on the first 150 frames of
+/// tum_fr1_desk (a fast sweep) keeps settle on sharper frames held (reason `sharper`), every kept
+/// frame is the picture the gate chose (COLMAP gets each by its index) and the reference is never
+/// lost on the way (no `first` after frame 0).
+#[test]
+fn consumer_passes_the_sharpness_settings_to_the_gate() {
+    let (Some(seq), Some(py), Some(plugins)) =
+        (shared_data("tum_fr1_desk"), sfm_python(), plugin_dir())
+    else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (out_dir, json) = (dir.path().join("rec"), dir.path().join("rec.json"));
+    let out = consumer(
+        &py,
+        &[
+            "--max-frames",
+            "150",
+            "--sharpness-wait",
+            "2",
+            "--sharpness-lookback",
+            "4",
+            "--plugin-path",
+        ],
+        &[
+            &plugins,
+            &seq,
+            Path::new("--out"),
+            &out_dir,
+            Path::new("--json"),
+            &json,
+        ],
+    );
+    assert!(out.status.success());
+    let v = read_json(&json);
+    let gate = v["gate"].as_array().unwrap();
+    let reasons: Vec<&str> = gate.iter().map(|m| m["reason"].as_str().unwrap()).collect();
+    assert_eq!(reasons[0], "first");
+    assert!(reasons.contains(&"sharper"), "{reasons:?}");
+    assert!(!reasons[1..].contains(&"first"), "{reasons:?}");
+    let idx: Vec<u64> = gate.iter().map(|m| m["frame"].as_u64().unwrap()).collect();
+    assert!(idx.windows(2).all(|w| w[0] < w[1]), "{idx:?}");
+}
+
 #[test]
 fn consumer_reconstructs_what_the_gate_keeps_of_a_real_clip() {
     let (Some(clip), Some(py), Some(plugins)) = (
@@ -492,7 +536,11 @@ fn consumer_refuses_bad_arguments_and_inputs_with_a_clear_error() {
             "{args:?}: {err}"
         );
     };
-    let cases: [(&[&str], &str); 12] = [
+    let cases: [(&[&str], &str); 13] = [
+        (
+            &["--sharpness-lookback", "31"],
+            "argument --sharpness-lookback: must be at most 30, got 31",
+        ),
         (
             &[
                 "--frames",
