@@ -364,7 +364,7 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
     g.add_argument("--sharpness-wait", type=_integer(0, hi=30), default=None, metavar="N",
                    help="the element's sharpness-wait; with --sharpness-lookback, a due keep "
                    "settles N frames later on the sharpest frame held (2 and 4: sharper "
-                   "keyframes for reconstruction, docs/reconstruction.md)")
+                   "keyframes on footage that is not fast, docs/reconstruction.md)")
     g.add_argument("--sharpness-lookback", type=_integer(0, hi=30), default=None, metavar="N",
                    help="the element's sharpness-lookback: frames held to go back to")
     g.add_argument("--max-frames", type=_integer(1), default=None,
