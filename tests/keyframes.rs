@@ -259,6 +259,28 @@ fn median_sharpness_ratio(keep: &[bool], sharp: &[f64]) -> f64 {
     r[r.len() / 2]
 }
 
+/// `frames` through the element with `props`, 33 ms apart, then EOS: every buffer out, in order,
+/// and the latency the element reported before EOS. `each(i, out)` sees what left the element
+/// right after frame `i` went in.
+fn through_gate(
+    frames: &[Vec<u8>],
+    props: &str,
+    mut each: impl FnMut(usize, &[gst::Buffer]),
+) -> (Vec<gst::Buffer>, Option<gst::ClockTime>) {
+    let mut h = harness(props, &rgb_caps(W, H));
+    let mut out = Vec::new();
+    for (i, f) in frames.iter().enumerate() {
+        h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
+        let now = drain(&mut h);
+        each(i, &now);
+        out.extend(now);
+    }
+    let latency = h.query_latency();
+    assert!(h.push_event(gst::event::Eos::new()));
+    out.extend(drain(&mut h));
+    (out, latency)
+}
+
 /// `sharpness-lookback=3` on the first 300 frames of tum_fr1_desk, in annotate mode: every frame
 /// leaves exactly once and in order, three frames after it came (the last three at EOS; a keep
 /// used to let every held frame out at once, and the sink of a live pipeline, waiting for the
@@ -274,13 +296,9 @@ fn a_keep_due_on_a_blurred_frame_goes_back_to_a_sharper_recent_one() {
     };
     let sharp: Vec<f64> = frames.iter().map(|f| frame_sharpness(f)).collect();
     let run = |props: &str| {
-        let mut h = harness(props, &rgb_caps(W, H));
-        let mut out = Vec::new();
         let held = if props.contains("lookback=3") { 3 } else { 0 };
         let annotate = props.contains("annotate");
-        for (i, f) in frames.iter().enumerate() {
-            h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
-            let now = drain(&mut h);
+        through_gate(&frames, props, |i, now| {
             // Every frame leaves three frames later, neither sooner nor later: one frame in,
             // one out (annotate mode), as a live pipeline's sink expects them. In drop mode a
             // kept frame leaves then, alone.
@@ -291,12 +309,7 @@ fn a_keep_due_on_a_blurred_frame_goes_back_to_a_sharper_recent_one() {
                 let due = i.checked_sub(held).map(|j| j as u64 * 33);
                 assert_eq!(Some(b.pts().unwrap().mseconds()), due, "frame {i}");
             }
-            out.extend(now);
-        }
-        let latency = h.query_latency();
-        assert!(h.push_event(gst::event::Eos::new()));
-        out.extend(drain(&mut h));
-        (out, latency)
+        })
     };
     let (at_once, _) = run("mode=annotate");
     let (back, latency) = run("mode=annotate sharpness-lookback=3");
@@ -352,17 +365,7 @@ fn with_a_wait_and_a_lookback_a_keep_settles_on_the_sharpest_frame_around_the_du
         return;
     };
     let sharp: Vec<f64> = frames.iter().map(|f| frame_sharpness(f)).collect();
-    let run = |props: &str| {
-        let mut h = harness(props, &rgb_caps(W, H));
-        let mut out = Vec::new();
-        for (i, f) in frames.iter().enumerate() {
-            h.push(buffer(f.clone(), i as u64 * 33)).unwrap();
-            out.extend(drain(&mut h));
-        }
-        assert!(h.push_event(gst::event::Eos::new()));
-        out.extend(drain(&mut h));
-        out
-    };
+    let run = |props: &str| through_gate(&frames, props, |_, _| {}).0;
     let settle = "sharpness-wait=2 sharpness-lookback=4";
     let at_once = run("mode=annotate");
     let settled = run(&format!("mode=annotate {settle}"));

@@ -67,6 +67,33 @@ fn consumer(python: &Path, args: &[&str], extra: &[&Path]) -> Output {
     out
 }
 
+/// The consumer gating `input` through the plugin in `plugins` with `args`, its output in
+/// `dir/rec` and its JSON report at the returned path (`dir/rec.json`).
+fn gated(
+    python: &Path,
+    plugins: &Path,
+    input: &Path,
+    args: &[&str],
+    dir: &Path,
+) -> (Output, PathBuf) {
+    let (out_dir, json) = (dir.join("rec"), dir.join("rec.json"));
+    let mut a = args.to_vec();
+    a.push("--plugin-path");
+    let out = consumer(
+        python,
+        &a,
+        &[
+            plugins,
+            input,
+            Path::new("--out"),
+            &out_dir,
+            Path::new("--json"),
+            &json,
+        ],
+    );
+    (out, json)
+}
+
 fn read_json(p: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
 }
@@ -183,9 +210,10 @@ fn consumer_passes_the_sharpness_settings_to_the_gate() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let (out_dir, json) = (dir.path().join("rec"), dir.path().join("rec.json"));
-    let out = consumer(
+    let (out, json) = gated(
         &py,
+        &plugins,
+        &seq,
         &[
             "--max-frames",
             "150",
@@ -193,16 +221,8 @@ fn consumer_passes_the_sharpness_settings_to_the_gate() {
             "2",
             "--sharpness-lookback",
             "4",
-            "--plugin-path",
         ],
-        &[
-            &plugins,
-            &seq,
-            Path::new("--out"),
-            &out_dir,
-            Path::new("--json"),
-            &json,
-        ],
+        dir.path(),
     );
     assert!(out.status.success());
     let v = read_json(&json);
@@ -225,26 +245,13 @@ fn consumer_reconstructs_what_the_gate_keeps_of_a_real_clip() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let (out_dir, json) = (dir.path().join("rec"), dir.path().join("rec.json"));
-    let out = consumer(
+    let out_dir = dir.path().join("rec");
+    let (out, json) = gated(
         &py,
-        &[
-            "--max-gap",
-            "3",
-            "--max-frames",
-            "8",
-            "--threads",
-            "1",
-            "--plugin-path",
-        ],
-        &[
-            &plugins,
-            &clip,
-            Path::new("--out"),
-            &out_dir,
-            Path::new("--json"),
-            &json,
-        ],
+        &plugins,
+        &clip,
+        &["--max-gap", "3", "--max-frames", "8", "--threads", "1"],
+        dir.path(),
     );
     assert!(out.status.success());
     let v = read_json(&json);
