@@ -176,6 +176,9 @@ pub struct Decision {
     /// this many frames before it (kept, reason [`Reason::Sharper`], the new reference); 0: none.
     /// This frame itself is dropped.
     pub kept_back: u64,
+    /// With [`GateConfig::sharpness_lookback`]: this dropped frame is one a later keep may go
+    /// back to (the caller holds its picture until the look-back passes it or a keep is made).
+    pub candidate: bool,
 }
 
 /// The gate's state machine.
@@ -308,6 +311,7 @@ impl Gate {
                 keyframe_index: self.kept,
                 frames_since_keyframe: self.since_keyframe,
                 kept_back: 0,
+                candidate: false,
             };
         }
         let mut reason = if !self.has_reference || score == Score::NoReference {
@@ -378,11 +382,13 @@ impl Gate {
                     keyframe_index: self.kept,
                     frames_since_keyframe: 0,
                     kept_back: 0,
+                    candidate: false,
                 }
             }
             None => {
                 self.since_keyframe += 1;
-                if let (Some(s), false, true) = (sharpness, deferred, lookback > 0) {
+                let candidate = sharpness.is_some() && !deferred && lookback > 0;
+                if let (Some(s), true) = (sharpness, candidate) {
                     self.candidates.push_back((position, s));
                 }
                 Decision {
@@ -395,6 +401,7 @@ impl Gate {
                     keyframe_index: self.kept,
                     frames_since_keyframe: self.since_keyframe,
                     kept_back: 0,
+                    candidate,
                 }
             }
         }
@@ -425,6 +432,7 @@ impl Gate {
             keyframe_index: self.kept,
             frames_since_keyframe: self.since_keyframe,
             kept_back: 0,
+            candidate: true,
         }
     }
 
@@ -443,6 +451,7 @@ impl Gate {
             keyframe_index: self.kept,
             frames_since_keyframe: self.since_keyframe,
             kept_back: position - p,
+            candidate: false,
         }
     }
 

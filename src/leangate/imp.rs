@@ -497,14 +497,9 @@ impl LeanGate {
                 None => state.gate.drop_reference(),
             }
             self.frames_kept.fetch_add(1, Ordering::Relaxed);
-        } else if !decision.keep
-            && fs.sharpness_lookback > 0
-            && sharpness.is_some()
-            && frame_readable
-            && matches!(decision.reason, Reason::Score | Reason::Deferred)
-        {
-            // A candidate for a later keep (the gate took it as one: same conditions; a
-            // deferred frame is one while a keep settles).
+        } else if decision.candidate && frame_readable && fs.sharpness_lookback > 0 {
+            // A candidate for a later keep (the gate says so: dropped on score, or waited on
+            // while a keep settles).
             // Entries the gate no longer asks for (older, or before the last keep) are reused.
             let mut tensor = Vec::new();
             while state.recent.len() >= fs.sharpness_lookback as usize {
