@@ -731,6 +731,9 @@ pub fn frame_homography(prev: &Pyramid, cur: &Pyramid) -> Option<Mat3> {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Fusion {
     pub w: [f64; 4],
+    /// The largest score `s` the model can give (metadata `leangate.score_max`, 1 when the model
+    /// does not say): what [`Fusion::upper`] assumes of the scores it bounds.
+    pub s_max: f64,
 }
 
 /// The only fusion form understood so far, named first in the metadata value.
@@ -760,7 +763,17 @@ impl Fusion {
         }
         Ok(Fusion {
             w: [v[0], v[1], v[2], v[3]],
+            s_max: 1.0,
         })
+    }
+
+    /// The same fusion for a model whose scores never exceed `s_max` (within [0, 1]): its
+    /// [`Fusion::upper`] is tighter, so the prior alone decides more frames.
+    pub fn with_score_max(self, s_max: f64) -> Fusion {
+        Fusion {
+            s_max: s_max.clamp(0.0, 1.0),
+            ..self
+        }
     }
 
     /// The fused utility; `s` itself when `geo` is None or `s` is not finite. `s` is a utility,
@@ -775,12 +788,12 @@ impl Fusion {
         }
     }
 
-    /// The largest fused utility any finite model score can give with this `tau_geo`: when it is
-    /// below the threshold, the prior alone decides that the frame is dropped (see
-    /// [`crate::Utility::screen`]).
+    /// The largest fused utility any model score up to [`Fusion::s_max`] can give with this
+    /// `tau_geo`: when it is below the threshold, the prior alone decides that the frame is
+    /// dropped (see [`crate::Utility::screen`]).
     pub fn upper(&self, g: f64) -> f64 {
         let w = &self.w;
-        (w[0] + w[1] * g + w[2] * g * g + w[3].max(0.0)).clamp(0.0, 1.0)
+        (w[0] + w[1] * g + w[2] * g * g + (w[3] * self.s_max).max(0.0)).clamp(0.0, 1.0)
     }
 
     pub fn to_metadata(&self) -> String {
@@ -1089,6 +1102,19 @@ mod tests {
                 assert!((max - up).abs() < 1e-12, "{f:?} g {g}: {max} vs {up}");
             }
         }
+        // A model that says its scores stay at or below 0.878 (the embedded student's calibrated
+        // range): the bound holds for every such score, is reached by one, and is tighter.
+        let wide = Fusion::parse("raster-homography-v1: 0.121524, 0.698698, 0, 0.25").unwrap();
+        let f = wide.with_score_max(0.878);
+        for g in [0.0, 0.1, 0.2, 0.25, 1.0] {
+            let up = f.upper(g);
+            let scores = (0..=100).map(|k| 0.878 * k as f64 / 100.0);
+            let max = scores.map(|s| f.fuse(s, Some(g))).fold(f64::MIN, f64::max);
+            assert!((max - up).abs() < 1e-12, "g {g}: {max} vs {up}");
+            assert!(g >= 0.9 || up < wide.upper(g), "g {g}");
+        }
+        // Where the wide bound could not decide and the tight one does (at threshold 0.5).
+        assert!(wide.upper(0.2) >= 0.5 && f.upper(0.2) < 0.5);
         // Scores outside [0, 1] count as its ends.
         let f = Fusion::parse("raster-homography-v1: 0.1, 0.5, 0, 0.25").unwrap();
         assert_eq!(f.fuse(1.7, Some(0.2)), f.fuse(1.0, Some(0.2)));

@@ -1091,6 +1091,16 @@ mod tests {
                         p.run_reference(&frame, &mut slow).unwrap();
                         let d = max_diff(&fast, &slow);
                         assert!(d < 1e-4, "{f:?} {w}x{h} -> {ow}x{oh} {resize:?}: {d}");
+                        // The build without AVX2 (this machine's CPU picks the AVX2 one).
+                        let mut generic = p.clone();
+                        generic.avx2 = false;
+                        let mut plain = vec![0.0; s.len()];
+                        generic.run(&frame, &mut plain).unwrap();
+                        let d = max_diff(&plain, &slow);
+                        assert!(
+                            d < 1e-4,
+                            "generic {f:?} {w}x{h} -> {ow}x{oh} {resize:?}: {d}"
+                        );
                         // Again (the reused buffers give the same result), and from a clone.
                         let mut again = vec![0.0; s.len()];
                         p.clone().run(&frame, &mut again).unwrap();

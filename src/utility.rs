@@ -12,6 +12,10 @@ use crate::quality::{measure, Quality};
 /// The most the consumer's feedback ([`Utility::feedback`]) raises the utility.
 pub const FEEDBACK_LIMIT: f64 = 0.3;
 
+/// How far a score may exceed the model's `leangate.score_max` by rounding (the graph computes in
+/// f32) before the claim counts as broken.
+const SCORE_MAX_SLACK: f64 = 1e-5;
+
 /// How the last observed frame's utility was composed ([`Utility::score_with`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Composed {
@@ -62,6 +66,9 @@ pub struct Utility {
     /// [`Tracker::chain`] after each of the last observed frames (None: not trackable), newest
     /// last, at most [`crate::policy::MAX_LOOKBACK`] + 1: what [`Utility::on_keep_back`] rebases to.
     recent: std::collections::VecDeque<Option<crate::geometry::Mat3>>,
+    /// A score above the fusion's [`Fusion::s_max`] (the model's `leangate.score_max` was
+    /// wrong), with that bound, not yet reported ([`Utility::take_broken_bound`]).
+    broken_bound: Option<(f64, f64)>,
 }
 
 impl Utility {
@@ -78,7 +85,16 @@ impl Utility {
             measure_sharpness: false,
             bins: Vec::new(),
             recent: std::collections::VecDeque::new(),
+            broken_bound: None,
         }
+    }
+
+    /// `Some((score, bound))` once a model score exceeded the bound the model claims for its
+    /// scores (metadata `leangate.score_max`): from that frame on, screening assumes any score
+    /// up to 1, as for a model that claims nothing. Frames screened before it were judged by the
+    /// model's claim. Reported once.
+    pub fn take_broken_bound(&mut self) -> Option<(f64, f64)> {
+        self.broken_bound.take()
     }
 
     /// Check each observed frame for a usable picture (on by default; the element's
@@ -219,6 +235,12 @@ impl Utility {
     /// feedback's offset), and the prior's `tau_geo` when it was used (`None`: the model's score
     /// alone: no fusion, the prior off, or the chain lost until the next keep).
     pub fn compose(&mut self, s: f64, enabled: bool) -> (f64, Option<f64>) {
+        if let Some(f) = self.fusion.as_mut() {
+            if s.is_finite() && s > f.s_max + SCORE_MAX_SLACK {
+                self.broken_bound = Some((s, f.s_max));
+                f.s_max = 1.0;
+            }
+        }
         match self.fusion.filter(|_| enabled) {
             Some(f) => {
                 let g = self.tau_geo();
@@ -469,6 +491,53 @@ mod tests {
             Err("failed")
         );
     }
+    #[test]
+    fn a_model_that_bounds_its_scores_is_screened_on_more_frames_until_it_breaks_the_bound() {
+        let f = "raster-homography-v1: 0.121524, 0.698698, 0, 0.25";
+        let (mut wide, mut tight) = (referenced(f), referenced(f));
+        tight.fusion = tight.fusion.map(|f| f.with_score_max(0.878));
+        let sp = spec();
+        let (mut n_wide, mut n_tight) = (0, 0);
+        for k in 1..=30 {
+            let pic = frame(2.0 * k as f32);
+            wide.observe(Some((&pic, &sp)), true, true);
+            tight.observe(Some((&pic, &sp)), true, true);
+            let (a, b) = (wide.screen(0.5, true), tight.screen(0.5, true));
+            n_wide += a.is_some() as usize;
+            n_tight += b.is_some() as usize;
+            // Tighter, never looser; and no score the model can give reaches the threshold.
+            assert!(a.is_none() || b.is_some(), "step {k}");
+            if let Some(b) = b {
+                assert!(
+                    tight.compose(0.878, true).0 <= b + 1e-12 && b < 0.5,
+                    "step {k}"
+                );
+            }
+        }
+        assert!(n_tight > n_wide, "{n_tight} against {n_wide} screened");
+        // A score above the claim: reported once, and screening goes back to the wide bound.
+        let pic = frame(36.0);
+        tight.observe(Some((&pic, &sp)), true, true);
+        wide.observe(Some((&pic, &sp)), true, true);
+        assert_eq!(tight.take_broken_bound(), None);
+        tight.compose(0.878 + 1e-6, true);
+        assert_eq!(
+            tight.take_broken_bound(),
+            None,
+            "rounding is not a broken claim"
+        );
+        tight.compose(0.95, true);
+        assert_eq!(tight.take_broken_bound(), Some((0.95, 0.878)));
+        assert_eq!(tight.take_broken_bound(), None);
+        assert_eq!(tight.fusion().unwrap().s_max, 1.0);
+        for k in 19..=30 {
+            let pic = frame(2.0 * k as f32);
+            tight.observe(Some((&pic, &sp)), true, true);
+            wide.observe(Some((&pic, &sp)), true, true);
+            assert_eq!(tight.screen(0.5, true), wide.screen(0.5, true), "step {k}");
+        }
+    }
+
     #[test]
     fn feedback_raises_the_utility_by_what_came_late_within_its_limit() {
         let mut u = Utility::new(None);

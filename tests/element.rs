@@ -930,6 +930,44 @@ fn screening_by_the_prior_skips_the_model_and_keeps_every_decision() {
 }
 
 #[test]
+fn a_model_whose_scores_break_its_score_max_is_no_longer_trusted_for_screening() {
+    // mad_claims_low: fused as tau_geo + 0.5 s, and it claims s <= 0.001 (leangate.score_max),
+    // which its MAD breaks on the first frame it scores. At threshold 0.05 on a 2 px/frame pan
+    // the claim lets the prior decide while tau_geo + 0.0005 < 0.05 (frames 1-3); the first
+    // scored frame breaks it: one warning naming the key, and from then on the bound is that of
+    // any score up to 1 (tau_geo + 0.5 >= 0.05: the model runs on every frame).
+    let (w, h) = (160, 120);
+    let props = format!(
+        "mode=annotate model={} threshold=0.05",
+        fixture("mad_claims_low.onnx")
+    );
+    let mut hs = harness(&props, &rgb_caps(w, h));
+    let e = hs.element().unwrap();
+    let bus = gst::Bus::new();
+    e.set_bus(Some(&bus));
+    for k in 0..12u64 {
+        hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
+            .unwrap();
+    }
+    let metas: Vec<_> = drain(&mut hs).iter().map(meta).collect();
+    assert_eq!(metas.len(), 12);
+    let screened: Vec<usize> = (0..12).filter(|&k| metas[k].screened).collect();
+    assert_eq!(screened, vec![1, 2, 3], "{metas:?}");
+    let first_scored = 4;
+    assert!(
+        metas[first_scored].utility > 0.05 && metas[first_scored].keep,
+        "{:?}",
+        metas[first_scored]
+    );
+    let warnings = bus_warnings(&bus);
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert!(
+        warnings[0].contains("leangate.score_max") && warnings[0].contains("0.001"),
+        "{warnings:?}"
+    );
+}
+
+#[test]
 fn a_screened_frame_never_runs_the_model_so_a_failing_model_only_keeps_the_frames_it_scores() {
     // nan_geometry: NaN on every frame it scores (fail open: kept, reason `error`), fused as
     // tau_geo + 0.5 s. At threshold 0.6 a 2 px/frame pan is screened while under 16 px (tau_geo

@@ -43,6 +43,10 @@ fn broken_models_are_refused_at_start_naming_model_and_problem() {
             &["leangate.geometry", "four finite numbers"],
         ),
         (
+            "score_max_bad.onnx",
+            &["leangate.score_max = 1.5", "(0, 1]"],
+        ),
+        (
             "nan_always.onnx",
             &["dry run on a blank frame", "not finite"],
         ),

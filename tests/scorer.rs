@@ -3,7 +3,7 @@
 mod common;
 
 use common::fixture;
-use gstleangate::{ExecutionProvider, ModelSource, Scorer, ScorerError, ScorerOptions};
+use gstleangate::{ExecutionProvider, ModelSource, Precision, Scorer, ScorerError, ScorerOptions};
 use gstleangate::{PixelFormat, Preprocessor, RawFrame, ResizeMode, YuvMatrix};
 
 fn load(name: &str) -> Result<Scorer, ScorerError> {
@@ -202,6 +202,86 @@ fn embedded_default_is_a_split_model_with_its_metadata() {
         same < t && other >= t,
         "same place {same}, another place {other}, threshold {t}"
     );
+}
+
+#[test]
+fn the_embedded_students_scores_stay_within_the_score_max_it_promises() {
+    // The screening bound relies on leangate.score_max: no score of either build exceeds it, on
+    // the most different pictures there are (black, white, noise, stripes, and real frames when
+    // ../shared is there), and it is the calibration's top knot, rounded up.
+    for precision in [Precision::Fp32, Precision::Int8] {
+        let mut s = Scorer::load(
+            &gstleangate::default_model(),
+            &ScorerOptions {
+                execution_provider: ExecutionProvider::Cpu,
+                precision,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let max = s
+            .info()
+            .score_max
+            .expect("the embedded student carries leangate.score_max");
+        assert_eq!(s.info().geometry.unwrap().s_max, max);
+        let cal = s.info().calibration.clone().unwrap();
+        let top: f64 = cal
+            .split_whitespace()
+            .find_map(|k| k.strip_prefix("1:"))
+            .and_then(|v| v.trim_end_matches(',').parse().ok())
+            .unwrap_or_else(|| panic!("no top knot in {cal}"));
+        assert!(
+            top <= max && max < top + 1e-3,
+            "top knot {top}, score_max {max}"
+        );
+        let spec = s.info().spec.clone();
+        let n = spec.len();
+        let mut x = 0x9e37_79b9u32;
+        let mut noise = || {
+            (0..n)
+                .map(|_| {
+                    x ^= x << 13;
+                    x ^= x >> 17;
+                    x ^= x << 5;
+                    (x >> 8) as f32 / (1 << 24) as f32 * 5.0 - 2.5
+                })
+                .collect::<Vec<f32>>()
+        };
+        let mut pics = vec![
+            vec![-2.5f32; n],
+            vec![2.5f32; n],
+            (0..n)
+                .map(|j| if j / 7 % 2 == 0 { -2.5 } else { 2.5 })
+                .collect(),
+            noise(),
+            noise(),
+        ];
+        if let Some(dir) = common::shared_data("tum_fr1_rpy/rgb") {
+            let mut files: Vec<_> = std::fs::read_dir(dir)
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .collect();
+            files.sort();
+            for f in files.iter().step_by(60) {
+                pics.push(picture_tensor(f, &spec));
+            }
+        }
+        let mut highest = f64::MIN;
+        for a in &pics {
+            for b in &pics {
+                highest = highest.max(s.score(a, b).unwrap() as f64);
+                s.on_keep(false);
+            }
+        }
+        assert!(
+            highest <= max,
+            "{precision:?}: score {highest} > score_max {max}"
+        );
+        assert!(
+            highest > 0.5,
+            "{precision:?}: the pictures reach high scores ({highest})"
+        );
+    }
 }
 
 /// Stream `k`'s frames: smooth pictures that drift, with a jump every 9 frames (so that some

@@ -12,7 +12,9 @@ exported ONNX models, so that `threshold` is tau_keep in the teacher's units (de
    every threshold inside the map's range selects a different cut; only the scale moves.
 3. The map is appended to the pair model and the head as ONNX ops after the sigmoid (Unsqueeze,
    Sub, Max, Min, MatMul, Add, Clip); the output is still `utility` [N]. Metadata:
-   `leangate.threshold` = 0.5, `leangate.calibration` = the knots and what they were fitted on.
+   `leangate.threshold` = 0.5, `leangate.calibration` = the knots and what they were fitted on,
+   `leangate.score_max` = the map's top (rounded up): no score exceeds it, so the element's
+   screening can bound the fused utility tighter.
 4. Checks with ONNX Runtime: head(encoder) == pair to 1e-5, calibrated == f(raw) to 1e-5.
 
 Usage: python -m training.calibrate [--models models] [--out-dir models] [--data $DATA_ROOT/cache]
@@ -148,6 +150,14 @@ def bake(path, knots, v0, s, meta):
     onnx.save(m, path)
 
 
+def score_max(vals):
+    """`leangate.score_max` of a map with these knot values: its largest value (the map is
+    monotone, the top knot's), clipped to [0, 1] as the graph clips, rounded up to 4 decimals so
+    that the graph's float32 arithmetic stays below it."""
+    top = min(max(float(np.max(vals)), 0.0), 1.0)
+    return f"{min(np.ceil(top * 1e4 + 1e-6) / 1e4, 1.0):.4f}"
+
+
 def is_calibrated(path):
     return any(o == "utility_raw" for n in onnx.load(path).graph.node for o in n.output)
 
@@ -205,7 +215,10 @@ def main():
             + " ".join(f"{k:g}:{v:.3f}" for k, v in zip(knots, vals))
             + f", clipped to [0,1]; least squares (every slope >= {a.min_slope:g}) to the exact teacher's tau on "
             + fitted_on)
-    meta = {"leangate.threshold": f"{DEFAULT_THRESHOLD:.3f}", "leangate.calibration": desc}
+    # The map's top, rounded up: no score of the calibrated graph exceeds it (the element's
+    # screening relies on it, src/geometry.rs Fusion::s_max).
+    meta = {"leangate.threshold": f"{DEFAULT_THRESHOLD:.3f}", "leangate.calibration": desc,
+            "leangate.score_max": score_max(vals)}
     os.makedirs(out_dir, exist_ok=True)
     for n in names:
         src, dst = os.path.join(a.models, n), os.path.join(out_dir, n)

@@ -456,6 +456,15 @@ impl LeanGate {
                 }
             }
         };
+        if let Some((s, max)) = state.utility.take_broken_bound() {
+            let msg = format!(
+                "the model scored {s:.6}, above the {max} its leangate.score_max promises: \
+                 screening no longer relies on it (frames screened before were judged by it; \
+                 correct or remove the model's leangate.score_max)"
+            );
+            gst::warning!(CAT, imp = self, "{msg}");
+            out.warnings.extend(state.frame_warnings.admit(&msg));
+        }
         let inference_us = t0.elapsed().as_micros().min(u64::MAX as u128) as u64;
         if screened {
             self.frames_screened.fetch_add(1, Ordering::Relaxed);

@@ -393,10 +393,30 @@ pub(super) fn read_metadata(
         ),
         None => None,
     };
+    let score_max = match get("leangate.score_max") {
+        Some(s) => Some(
+            s.trim()
+                .parse::<f64>()
+                .ok()
+                .filter(|m| m.is_finite())
+                .ok_or_else(|| meta_err(format!("leangate.score_max = {s:?} is not a number")))
+                .and_then(|m| {
+                    if m > 0.0 && m <= 1.0 {
+                        Ok(m)
+                    } else {
+                        Err(meta_err(format!(
+                            "leangate.score_max = {m} is outside (0, 1]"
+                        )))
+                    }
+                })?,
+        ),
+        None => None,
+    };
     let geometry = match get("leangate.geometry") {
         Some(s) => Some(
             crate::geometry::Fusion::parse(&s)
-                .map_err(|e| meta_err(format!("leangate.geometry: {e}")))?,
+                .map_err(|e| meta_err(format!("leangate.geometry: {e}")))?
+                .with_score_max(score_max.unwrap_or(1.0)),
         ),
         None => None,
     };
@@ -415,6 +435,7 @@ pub(super) fn read_metadata(
         threshold,
         calibration: get("leangate.calibration"),
         geometry,
+        score_max,
         precision: get("leangate.precision").unwrap_or_else(|| "fp32".to_string()),
     })
 }

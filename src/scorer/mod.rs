@@ -223,6 +223,11 @@ pub struct ModelInfo {
     /// `leangate.geometry`: how the element combines this model's utility with the geometric
     /// prior ([`crate::geometry`]); None: the utility is used alone.
     pub geometry: Option<crate::geometry::Fusion>,
+    /// `leangate.score_max`: the largest utility the graph can output (its calibration's top),
+    /// within (0, 1]; the fusion's screening bound assumes no score above it
+    /// ([`crate::geometry::Fusion::s_max`]), and the element stops assuming it, with a warning,
+    /// if a score ever exceeds it. None: 1.
+    pub score_max: Option<f64>,
     /// `leangate.precision` (`fp32` when absent): the arithmetic of the graph that runs.
     pub precision: String,
 }

@@ -334,7 +334,8 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
             .nick("Screen by the prior")
             .blurb(
                 "With the geometric prior in use: skip the model on a frame when no score \
-                 it could give would lift the fused utility to the threshold (a small \
+                 it could give (up to its leangate.score_max, else 1) would lift the fused \
+                 utility to the threshold (a small \
                  motion since the reference). The decisions are the same wherever the \
                  model scores (a frame it would have failed on, kept by fail open, is \
                  dropped: it is not asked); such a frame reports that bound as \
