@@ -20,7 +20,9 @@
 #       leangate max-gap=30 stats-interval=1000000000 ! \
 #       videoconvert ! autovideosink sync=false
 #
-# (v4l2src often produces YUY2, which leangate does not take: hence the videoconvert before it.)
+# (leangate reads the raw formats cameras give most, YUY2, NV12 and I420, directly; the
+# videoconvert before it covers the others. A camera that gives only MJPEG needs
+# `image/jpeg ! jpegdec` in place of the caps.)
 # Stop with Ctrl-C: gst-launch's -e sends EOS so the final statistics are printed too.
 set -euo pipefail
 . "$(dirname "$0")/common.sh"

@@ -223,3 +223,87 @@ fn walk(dir: &std::path::Path) -> Vec<PathBuf> {
     }
     out
 }
+
+/// Every `gst-launch-1.0` line of the README runs as written, on a real clip: `walk.mp4` stands
+/// for bear.mp4 (../shared), `other.onnx` for the shipped pair model, and the camera line's
+/// `v4l2src` for 30 frames of `videotestsrc` with `autovideosink` as `fakesink` (no camera, no
+/// display here). Each one gates every frame (its `leangate-stats` at EOS counts them); the
+/// debug-log line prints one ` keep ` line per frame.
+#[test]
+fn every_readme_gst_launch_line_runs() {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let clip = common::shared_data("cotracker_clips/bear.mp4");
+    let model = root.join("models/leangate-s.onnx");
+    let mut in_sh = false;
+    let mut ran = 0;
+    for line in readme.lines() {
+        if line.starts_with("```") {
+            in_sh = line == "```sh";
+            continue;
+        }
+        if !in_sh || !line.contains("gst-launch-1.0") {
+            continue;
+        }
+        // The command: from gst-launch-1.0 up to a comment, a redirection or a pipe.
+        let debug = line.starts_with("GST_DEBUG=");
+        let cmd = &line[line.find("gst-launch-1.0").unwrap() + "gst-launch-1.0".len()..];
+        let cmd = cmd.split(" #").next().unwrap();
+        let cmd = cmd
+            .split(" 2>")
+            .next()
+            .unwrap()
+            .split(" | ")
+            .next()
+            .unwrap();
+        let mut args: Vec<String> = Vec::new();
+        let mut frames = None;
+        for t in cmd.split_whitespace() {
+            match t {
+                "location=walk.mp4" => match &clip {
+                    Some(c) => {
+                        args.push(format!("location={}", c.display()));
+                        frames = Some(82);
+                    }
+                    None => break,
+                },
+                "model=other.onnx" => args.push(format!("model={}", model.display())),
+                "v4l2src" => {
+                    args.extend(["videotestsrc", "num-buffers=30"].map(String::from));
+                    frames = Some(30);
+                }
+                "autovideosink" => args.push("fakesink".into()),
+                _ => args.push(t.to_string()),
+            }
+        }
+        let Some(frames) = frames else {
+            eprintln!("SKIPPED without bear.mp4: {line}");
+            continue;
+        };
+        let mut c = gst_cmd("gst-launch-1.0");
+        c.args(&args);
+        if debug {
+            c.env("GST_DEBUG", "leangate:7");
+        }
+        let out = c.output().unwrap();
+        let (stdout, stderr) = (
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr),
+        );
+        assert!(out.status.success(), "{line}\n{stdout}{stderr}");
+        if debug {
+            let keeps = stderr.lines().filter(|l| l.contains(" keep ")).count();
+            assert_eq!(keeps, frames, "{line}: one ` keep ` line per frame");
+        } else {
+            assert!(
+                stdout.contains(&format!("frames-in=(guint64){frames}")),
+                "{line}: every frame gated\n{stdout}"
+            );
+        }
+        ran += 1;
+    }
+    assert!(
+        ran >= 2,
+        "the README's gst-launch lines were found ({ran} ran)"
+    );
+}
