@@ -1814,8 +1814,12 @@ fn save_kept_a_failed_or_interrupted_run_leaves_the_directory_as_it_was() {
     // directory), the earlier run intact and the staging directory gone (SIGTERM left it).
     let plugins = paths::plugin_dir();
     for (signal, code, said) in [("-INT", 130, "interrupted"), ("-TERM", 143, "terminated")] {
-        let mut c = command(PYTHON);
-        c.env("PYTHONPATH", pkg_dir())
+        // A shell's background job starts with SIGINT ignored, and the client rightly keeps an
+        // inherited "ignore" (as `nohup` means it to): run it with the default disposition, as
+        // from a terminal (`env --default-signal`, GNU coreutils).
+        let mut c = command("env");
+        c.args(["--default-signal=INT,TERM", PYTHON])
+            .env("PYTHONPATH", pkg_dir())
             .env("GST_PLUGIN_PATH", plugins.path())
             .args(["-m", "leangate_client"])
             .args([
@@ -1866,6 +1870,15 @@ fn save_kept_a_failed_or_interrupted_run_leaves_the_directory_as_it_was() {
             .status()
             .unwrap();
         assert!(killed.success());
+        let mut child = child;
+        let waited = std::time::Instant::now();
+        while child.try_wait().unwrap().is_none() {
+            if waited.elapsed().as_secs() >= 60 {
+                child.kill().ok();
+                panic!("the client did not end within 60 s of kill {signal}");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
         let out = child.wait_with_output().unwrap();
         eprintln!("interrupted run: {}\n{}", out.status, stderr(&out));
         assert_eq!(out.status.code(), Some(code), "{signal}");
