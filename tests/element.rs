@@ -968,6 +968,34 @@ fn a_model_whose_scores_break_its_score_max_is_no_longer_trusted_for_screening()
 }
 
 #[test]
+fn the_broken_score_max_warning_is_not_swallowed_by_a_frame_warning_just_before() {
+    // An unreadable frame warns (rate-limited, like every per-frame failure); the broken promise
+    // that follows a few frames later is said once per start and must reach the bus as well.
+    let (w, h) = (160, 120);
+    let props = format!(
+        "mode=annotate model={} threshold=0.05",
+        fixture("mad_claims_low.onnx")
+    );
+    let mut hs = harness(&props, &rgb_caps(w, h));
+    let e = hs.element().unwrap();
+    let bus = gst::Bus::new();
+    e.set_bus(Some(&bus));
+    hs.push(buffer(panned(w, h, 0.0), 0)).unwrap();
+    hs.push(buffer(vec![0u8; 100], 33)).unwrap();
+    for k in 2..14u64 {
+        hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
+            .unwrap();
+    }
+    drain(&mut hs);
+    let warnings = bus_warnings(&bus);
+    assert_eq!(warnings.len(), 2, "{warnings:?}");
+    assert!(
+        warnings.iter().any(|w| w.contains("leangate.score_max")),
+        "{warnings:?}"
+    );
+}
+
+#[test]
 fn a_screened_frame_never_runs_the_model_so_a_failing_model_only_keeps_the_frames_it_scores() {
     // nan_geometry: NaN on every frame it scores (fail open: kept, reason `error`), fused as
     // tau_geo + 0.5 s. At threshold 0.6 a 2 px/frame pan is screened while under 16 px (tau_geo

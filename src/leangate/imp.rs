@@ -463,7 +463,9 @@ impl LeanGate {
                  correct or remove the model's leangate.score_max)"
             );
             gst::warning!(CAT, imp = self, "{msg}");
-            out.warnings.extend(state.frame_warnings.admit(&msg));
+            // Once per start (the bound is dropped with it), so never rate-limited: the frames'
+            // own warnings must not swallow it.
+            out.warnings.push(msg);
         }
         let inference_us = t0.elapsed().as_micros().min(u64::MAX as u128) as u64;
         if screened {
