@@ -929,6 +929,18 @@ fn screening_by_the_prior_skips_the_model_and_keeps_every_decision() {
     }
 }
 
+/// mad_claims_low.onnx at threshold 0.05 in annotate mode on 160x120 RGB, its warnings on `bus`.
+fn claims_low() -> (gst_check::Harness, gst::Bus) {
+    let props = format!(
+        "mode=annotate model={} threshold=0.05",
+        fixture("mad_claims_low.onnx")
+    );
+    let hs = harness(&props, &rgb_caps(160, 120));
+    let bus = gst::Bus::new();
+    hs.element().unwrap().set_bus(Some(&bus));
+    (hs, bus)
+}
+
 #[test]
 fn a_model_whose_scores_break_its_score_max_is_no_longer_trusted_for_screening() {
     // mad_claims_low: fused as tau_geo + 0.5 s, and it claims s <= 0.001 (leangate.score_max),
@@ -937,14 +949,7 @@ fn a_model_whose_scores_break_its_score_max_is_no_longer_trusted_for_screening()
     // scored frame breaks it: one warning naming the key, and from then on the bound is that of
     // any score up to 1 (tau_geo + 0.5 >= 0.05: the model runs on every frame).
     let (w, h) = (160, 120);
-    let props = format!(
-        "mode=annotate model={} threshold=0.05",
-        fixture("mad_claims_low.onnx")
-    );
-    let mut hs = harness(&props, &rgb_caps(w, h));
-    let e = hs.element().unwrap();
-    let bus = gst::Bus::new();
-    e.set_bus(Some(&bus));
+    let (mut hs, bus) = claims_low();
     for k in 0..12u64 {
         hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
             .unwrap();
@@ -972,14 +977,7 @@ fn the_broken_score_max_warning_is_not_swallowed_by_a_frame_warning_just_before(
     // An unreadable frame warns (rate-limited, like every per-frame failure); the broken promise
     // that follows a few frames later is said once per start and must reach the bus as well.
     let (w, h) = (160, 120);
-    let props = format!(
-        "mode=annotate model={} threshold=0.05",
-        fixture("mad_claims_low.onnx")
-    );
-    let mut hs = harness(&props, &rgb_caps(w, h));
-    let e = hs.element().unwrap();
-    let bus = gst::Bus::new();
-    e.set_bus(Some(&bus));
+    let (mut hs, bus) = claims_low();
     hs.push(buffer(panned(w, h, 0.0), 0)).unwrap();
     hs.push(buffer(vec![0u8; 100], 33)).unwrap();
     for k in 2..14u64 {

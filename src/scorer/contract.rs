@@ -374,44 +374,25 @@ pub(super) fn read_metadata(
             "leangate.std = {std:?} must be three finite numbers of magnitude at least {MIN_STD}"
         )));
     }
-    let threshold = match get("leangate.threshold") {
-        Some(s) => Some(
-            s.trim()
-                .parse::<f64>()
-                .ok()
-                .filter(|t| t.is_finite())
-                .ok_or_else(|| meta_err(format!("leangate.threshold = {s:?} is not a number")))
-                .and_then(|t| {
-                    if (0.0..=1.0).contains(&t) {
-                        Ok(t)
-                    } else {
-                        Err(meta_err(format!(
-                            "leangate.threshold = {t} is outside [0, 1]"
-                        )))
-                    }
-                })?,
-        ),
-        None => None,
+    // A number in a range, or absent; anything else is refused naming the key.
+    let number = |key: &str, inside: fn(f64) -> bool, range: &str| match get(key) {
+        Some(s) => s
+            .trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| meta_err(format!("{key} = {s:?} is not a number")))
+            .and_then(|v| {
+                if inside(v) {
+                    Ok(Some(v))
+                } else {
+                    Err(meta_err(format!("{key} = {v} is outside {range}")))
+                }
+            }),
+        None => Ok(None),
     };
-    let score_max = match get("leangate.score_max") {
-        Some(s) => Some(
-            s.trim()
-                .parse::<f64>()
-                .ok()
-                .filter(|m| m.is_finite())
-                .ok_or_else(|| meta_err(format!("leangate.score_max = {s:?} is not a number")))
-                .and_then(|m| {
-                    if m > 0.0 && m <= 1.0 {
-                        Ok(m)
-                    } else {
-                        Err(meta_err(format!(
-                            "leangate.score_max = {m} is outside (0, 1]"
-                        )))
-                    }
-                })?,
-        ),
-        None => None,
-    };
+    let threshold = number("leangate.threshold", |t| (0.0..=1.0).contains(&t), "[0, 1]")?;
+    let score_max = number("leangate.score_max", |m| m > 0.0 && m <= 1.0, "(0, 1]")?;
     let geometry = match get("leangate.geometry") {
         Some(s) => Some(
             crate::geometry::Fusion::parse(&s)
