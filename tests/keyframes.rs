@@ -243,6 +243,11 @@ fn a_keep_due_on_a_blurred_frame_goes_to_a_sharper_one() {
     assert!(n2 <= n0, "{n2} keyframes against {n0}");
 }
 
+/// Each buffer's keep flag.
+fn keeps(v: &[gst::Buffer]) -> Vec<bool> {
+    v.iter().map(|b| meta(b).keep).collect()
+}
+
 /// The kept frames' median sharpness as a fraction of the sharpest frame within three of each.
 fn median_sharpness_ratio(keep: &[bool], sharp: &[f64]) -> f64 {
     let n = keep.len();
@@ -336,7 +341,6 @@ fn a_keep_due_on_a_blurred_frame_goes_back_to_a_sharper_recent_one() {
             .find(|&j| metas[j].keyframe_index == metas[i].keyframe_index && !metas[j].keep);
         assert!(due.is_some(), "keep at {i}: no due frame after it");
     }
-    let keeps = |v: &[gst::Buffer]| v.iter().map(|b| meta(b).keep).collect::<Vec<bool>>();
     let (k0, k3) = (keeps(&at_once), keeps(&back));
     let (m0, m3) = (
         median_sharpness_ratio(&k0, &sharp),
@@ -414,7 +418,6 @@ fn with_a_wait_and_a_lookback_a_keep_settles_on_the_sharpest_frame_around_the_du
     }
     eprintln!("{waits} keeps settled: {forward} on a later frame, {back} on an earlier one");
     assert!(forward > 0 && back > 0, "{forward} later, {back} earlier");
-    let keeps = |v: &[gst::Buffer]| v.iter().map(|b| meta(b).keep).collect::<Vec<bool>>();
     let (k0, ks) = (keeps(&at_once), keeps(&settled));
     let (m0, ms) = (
         median_sharpness_ratio(&k0, &sharp),
