@@ -558,9 +558,14 @@ fn section_scoring(reps: usize) {
     // Also where the time goes, stage by stage (seconds): preprocessing, the picture check + the
     // prior's tracking (`observe`), the composition (raster overlap, screening, the student when
     // it runs), the gate.
-    let mut run = |geometry: bool, screen: bool, check: bool| -> (f64, f64, [f64; 4]) {
+    // `step`: the model's leangate.score_step in the screening (`screen-step`, the default), or
+    // none (`screen-step=0`).
+    let mut run = |geometry: bool, screen: bool, check: bool, step: bool| -> (f64, f64, [f64; 4]) {
         let mut utility = Utility::new(info.geometry);
         utility.set_quality_check(check);
+        if !step {
+            utility.set_score_step(None);
+        }
         let mut gate = Gate::new(GateConfig {
             threshold,
             ..Default::default()
@@ -606,13 +611,14 @@ fn section_scoring(reps: usize) {
             stages.map(|t| t * 1e6 / n),
         )
     };
-    let (mut alone, mut fused, mut screened, mut unchecked) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut alone, mut fused, mut exact, mut screened, mut unchecked) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for _ in 0..reps {
-        alone.push(run(false, false, true));
-        fused.push(run(true, false, true));
-        screened.push(run(true, true, true));
-        unchecked.push(run(true, true, false));
+        alone.push(run(false, false, true, true));
+        fused.push(run(true, false, true, true));
+        exact.push(run(true, true, true, false));
+        screened.push(run(true, true, true, true));
+        unchecked.push(run(true, true, false, true));
     }
     type Run = (f64, f64, [f64; 4]);
     let wall = |v: &[Run]| median(&v.iter().map(|x| x.0).collect::<Vec<_>>());
@@ -624,6 +630,7 @@ fn section_scoring(reps: usize) {
         wall(&unchecked),
     );
     let (ac, bc, cc, dc) = (cpu(&alone), cpu(&fused), cpu(&screened), cpu(&unchecked));
+    let (e, ec) = (wall(&exact), cpu(&exact));
     println!(
         "model {} ({}), {} frames {w}x{h}, fusion: {}",
         info.name,
@@ -643,7 +650,11 @@ fn section_scoring(reps: usize) {
         1e3 / b
     );
     println!(
-        "| model + prior, the prior screening (the default) | {c:.0} | {:.2} | {cc:.0} |",
+        "| model + prior, screening only where no score could change the decision (`screen-step=0`) | {e:.0} | {:.2} | {ec:.0} |",
+        1e3 / e
+    );
+    println!(
+        "| model + prior, screening with the model's score step (the default) | {c:.0} | {:.2} | {cc:.0} |",
         1e3 / c
     );
     println!(

@@ -734,6 +734,10 @@ pub struct Fusion {
     /// The largest score `s` the model can give (metadata `leangate.score_max`, 1 when the model
     /// does not say): what [`Fusion::upper`] assumes of the scores it bounds.
     pub s_max: f64,
+    /// How much the model's score rises from one frame to the next against the same reference, as
+    /// a rule (metadata `leangate.score_step`; None: nothing assumed): what [`Fusion::upper_below`]
+    /// adds to the previous frame's score (see [`crate::Utility::screen`]).
+    pub s_step: Option<f64>,
 }
 
 /// The only fusion form understood so far, named first in the metadata value.
@@ -764,6 +768,7 @@ impl Fusion {
         Ok(Fusion {
             w: [v[0], v[1], v[2], v[3]],
             s_max: 1.0,
+            s_step: None,
         })
     }
 
@@ -772,6 +777,15 @@ impl Fusion {
     pub fn with_score_max(self, s_max: f64) -> Fusion {
         Fusion {
             s_max: s_max.clamp(0.0, 1.0),
+            ..self
+        }
+    }
+
+    /// The same fusion for a model whose score rises by at most about `step` from one frame to the
+    /// next against the same reference (metadata `leangate.score_step`, within (0, 1]).
+    pub fn with_score_step(self, step: Option<f64>) -> Fusion {
+        Fusion {
+            s_step: step.map(|s| s.clamp(0.0, 1.0)),
             ..self
         }
     }
@@ -792,8 +806,19 @@ impl Fusion {
     /// `tau_geo`: when it is below the threshold, the prior alone decides that the frame is
     /// dropped (see [`crate::Utility::screen`]).
     pub fn upper(&self, g: f64) -> f64 {
+        self.upper_below(g, self.s_max)
+    }
+
+    /// The largest fused utility any model score up to `s` (and up to [`Fusion::s_max`]) can
+    /// give with this `tau_geo`.
+    pub fn upper_below(&self, g: f64, s: f64) -> f64 {
         let w = &self.w;
-        (w[0] + w[1] * g + w[2] * g * g + (w[3] * self.s_max).max(0.0)).clamp(0.0, 1.0)
+        let s = if s.is_nan() {
+            self.s_max
+        } else {
+            s.clamp(0.0, self.s_max)
+        };
+        (w[0] + w[1] * g + w[2] * g * g + (w[3] * s).max(0.0)).clamp(0.0, 1.0)
     }
 
     pub fn to_metadata(&self) -> String {
@@ -1119,5 +1144,42 @@ mod tests {
         let f = Fusion::parse("raster-homography-v1: 0.1, 0.5, 0, 0.25").unwrap();
         assert_eq!(f.fuse(1.7, Some(0.2)), f.fuse(1.0, Some(0.2)));
         assert_eq!(f.fuse(-0.4, Some(0.2)), f.fuse(0.0, Some(0.2)));
+    }
+
+    #[test]
+    fn the_bound_below_a_score_holds_for_every_score_up_to_it() {
+        for f in [
+            Fusion::parse("raster-homography-v1: 0.121524, 0.698698, 0, 0.25")
+                .unwrap()
+                .with_score_max(0.878),
+            Fusion::parse("raster-homography-v1: 0.1, 0.5, 0.25, -0.3").unwrap(),
+        ] {
+            for g in [0.0, 0.2, 0.3, 0.6] {
+                for cap in [0.0, 0.2, 0.45, 0.878, 1.0, 2.0] {
+                    let up = f.upper_below(g, cap);
+                    let scores: Vec<f64> = (0..=50)
+                        .map(|k| cap.min(f.s_max) * k as f64 / 50.0)
+                        .collect();
+                    let max = scores
+                        .iter()
+                        .map(|&s| f.fuse(s, Some(g)))
+                        .fold(f64::MIN, f64::max);
+                    assert!(
+                        (max - up).abs() < 1e-12,
+                        "{f:?} g {g} cap {cap}: {max} vs {up}"
+                    );
+                    assert!(up <= f.upper(g) + 1e-15);
+                }
+                // No cap (not a number) is the model's whole range.
+                assert_eq!(f.upper_below(g, f64::NAN), f.upper(g));
+            }
+        }
+        // The embedded fusion at tau_geo 0.3: any score could reach 0.5, a score below 0.3 not.
+        let f = Fusion::parse("raster-homography-v1: 0.121524, 0.698698, 0, 0.25")
+            .unwrap()
+            .with_score_max(0.878)
+            .with_score_step(Some(0.15));
+        assert_eq!(f.s_step, Some(0.15));
+        assert!(f.upper(0.3) >= 0.5 && f.upper_below(0.3, 0.3) < 0.5);
     }
 }

@@ -69,6 +69,13 @@ pub struct Utility {
     /// A score above the fusion's [`Fusion::s_max`] (the model's `leangate.score_max` was
     /// wrong), with that bound, not yet reported ([`Utility::take_broken_bound`]).
     broken_bound: Option<(f64, f64)>,
+    /// The model's score of the last observed frame, once composed (against the current
+    /// reference).
+    score: Option<f64>,
+    /// The model's score of the frame observed before the last one, against the same reference
+    /// (None: that frame was not scored, or the reference changed since): what the screening with
+    /// [`Fusion::s_step`] starts from.
+    previous_score: Option<f64>,
 }
 
 impl Utility {
@@ -86,6 +93,8 @@ impl Utility {
             bins: Vec::new(),
             recent: std::collections::VecDeque::new(),
             broken_bound: None,
+            score: None,
+            previous_score: None,
         }
     }
 
@@ -95,6 +104,14 @@ impl Utility {
     /// model's claim. Reported once.
     pub fn take_broken_bound(&mut self) -> Option<(f64, f64)> {
         self.broken_bound.take()
+    }
+
+    /// The score step screening assumes ([`Utility::screen`]): the model's own
+    /// (`leangate.score_step`) until this is called; `None` or 0: none.
+    pub fn set_score_step(&mut self, step: Option<f64>) {
+        if let Some(f) = self.fusion.as_mut() {
+            f.s_step = step.filter(|s| *s > 0.0).map(|s| s.min(1.0));
+        }
     }
 
     /// Check each observed frame for a usable picture (on by default; the element's
@@ -185,6 +202,7 @@ impl Utility {
         has_reference: bool,
         enabled: bool,
     ) {
+        self.previous_score = self.score.take();
         self.observe_frame(frame, has_reference, enabled);
         if self.recent.len() > crate::policy::MAX_LOOKBACK as usize {
             self.recent.pop_front();
@@ -211,6 +229,9 @@ impl Utility {
         if !geometry && self.no_quality_check {
             self.tracker.clear();
             return;
+        }
+        if !has_reference {
+            self.previous_score = None;
         }
         let (w, h) = (spec.width as usize, spec.height as usize);
         let grey = grey_from_tensor(tensor, w, h, spec.mean, spec.std);
@@ -241,6 +262,7 @@ impl Utility {
                 f.s_max = 1.0;
             }
         }
+        self.score = s.is_finite().then_some(s);
         match self.fusion.filter(|_| enabled) {
             Some(f) => {
                 let g = self.tau_geo();
@@ -251,16 +273,29 @@ impl Utility {
         }
     }
 
-    /// Whether the prior alone decides that the last observed frame is dropped: the fusion is in
-    /// use, the chain holds, and no model score could lift the fused utility to `threshold`
-    /// ([`Fusion::upper`] is below it). Then that bound stands for the frame's utility and the
-    /// model need not run: the gate keeps a frame on its score only when the utility reaches the
-    /// threshold, so the decision is the one any score would have given. (A model that would
-    /// have failed on the frame, which keeps it, is not asked.)
+    /// Whether the prior decides that the last observed frame is dropped, without the model: the
+    /// fusion is in use, the chain holds, and
+    /// - no model score could lift the fused utility to `threshold` ([`Fusion::upper`] is below
+    ///   it): the decision is the one any score would have given (the gate keeps a frame on its
+    ///   score only when the utility reaches the threshold); or
+    /// - the model carries a score step ([`Fusion::s_step`], `leangate.score_step`), scored the
+    ///   frame just before this one against the same reference, and that score plus the step
+    ///   could not lift it ([`Fusion::upper_below`]). The step is a rule, not a bound: a score
+    ///   rising more than it on the one frame where the utility crosses the threshold moves that
+    ///   keep one frame later. Never two frames in a row: a frame screened this way has no score,
+    ///   so the next one is scored (or screened by the first rule).
+    ///
+    /// Then the bound stands for the frame's utility and the model need not run. (A model that
+    /// would have failed on the frame, which keeps it, is not asked.)
     pub fn screen(&mut self, threshold: f64, enabled: bool) -> Option<f64> {
         let f = self.fusion.filter(|_| enabled)?;
         let g = self.tau_geo()?;
         let up = self.corrected(f.upper(g));
+        if up < threshold {
+            return Some(up);
+        }
+        let cap = self.previous_score? + f.s_step?;
+        let up = self.corrected(f.upper_below(g, cap));
         (up < threshold).then_some(up)
     }
 
@@ -298,6 +333,7 @@ impl Utility {
     pub fn on_keep(&mut self) {
         self.tracker.set_reference();
         self.tau = None;
+        (self.score, self.previous_score) = (None, None);
         if let Some(last) = self.recent.back_mut() {
             *last = self.tracker.chain();
         }
@@ -313,6 +349,7 @@ impl Utility {
             .flatten();
         self.tracker.rebase(at);
         self.tau = None;
+        (self.score, self.previous_score) = (None, None);
         // What the remembered frames' chains were measured from is gone.
         let n = self.recent.len();
         for (i, h) in self.recent.iter_mut().enumerate() {
@@ -324,6 +361,7 @@ impl Utility {
     pub fn clear(&mut self) {
         self.tracker.clear();
         self.tau = None;
+        (self.score, self.previous_score) = (None, None);
         self.recent.clear();
     }
 }
@@ -536,6 +574,81 @@ mod tests {
             wide.observe(Some((&pic, &sp)), true, true);
             assert_eq!(tight.screen(0.5, true), wide.screen(0.5, true), "step {k}");
         }
+    }
+
+    #[test]
+    fn a_score_step_screens_the_frame_after_a_low_score_never_two_in_a_row() {
+        let f = "raster-homography-v1: 0.121524, 0.698698, 0, 0.25";
+        let (mut exact, mut step) = (referenced(f), referenced(f));
+        exact.fusion = exact.fusion.map(|f| f.with_score_max(0.878));
+        step.fusion = step
+            .fusion
+            .map(|f| f.with_score_max(0.878).with_score_step(Some(0.15)));
+        let sp = spec();
+        let low = || Ok::<_, ()>(0.1);
+        // What each frame of a pan was: e(xactly screened), s(cored), t (screened by the step).
+        let mut pattern = String::new();
+        for k in 1..=44 {
+            let pic = frame(2.0 * k as f32);
+            exact.observe(Some((&pic, &sp)), true, true);
+            step.observe(Some((&pic, &sp)), true, true);
+            let e = exact.score_with(0.5, true, true, low).unwrap();
+            let s = step.score_with(0.5, true, true, low).unwrap();
+            pattern.push(match (e, s) {
+                (Composed::Screened(a), Composed::Screened(b)) => {
+                    assert_eq!(a, b, "step {k}");
+                    'e'
+                }
+                (Composed::Scored { .. }, Composed::Scored { .. }) => 's',
+                (
+                    Composed::Scored {
+                        utility, tau_geo, ..
+                    },
+                    Composed::Screened(b),
+                ) => {
+                    assert!(pattern.ends_with('s'), "step {k}: {pattern}");
+                    // Below the threshold, and above what any score up to 0.1 + 0.15 gives.
+                    let g = tau_geo.unwrap();
+                    let fusion = step.fusion().unwrap();
+                    assert!(b < 0.5 && utility <= b, "step {k}: {utility} vs {b}");
+                    for sc in [0.0, 0.1, 0.2, 0.25] {
+                        assert!(fusion.fuse(sc, Some(g)) <= b + 1e-12, "step {k} score {sc}");
+                    }
+                    assert!(fusion.fuse(0.26, Some(g)) > b, "step {k}: tight");
+                    't'
+                }
+                other => panic!("step {k}: {other:?}"),
+            });
+        }
+        // Small pans are screened exactly; then every other frame by the step, the one after
+        // a scored one; once the prior alone nearly reaches 0.5, every frame is scored.
+        assert!(pattern.starts_with("eeeeeeee"), "{pattern}");
+        assert!(pattern.contains("ststst"), "{pattern}");
+        assert!(!pattern.contains("tt"), "{pattern}");
+        assert!(pattern.ends_with("ss"), "{pattern}");
+        // A score that the step lifts past the model's top (0.75 + 0.15 > 0.878): the step
+        // screens nothing more than the exact bound.
+        let (mut exact, mut high) = (referenced(f), referenced(f));
+        exact.fusion = exact.fusion.map(|f| f.with_score_max(0.878));
+        high.fusion = step.fusion();
+        for k in 1..=36 {
+            let pic = frame(2.0 * k as f32);
+            exact.observe(Some((&pic, &sp)), true, true);
+            high.observe(Some((&pic, &sp)), true, true);
+            let a = exact.score_with(0.5, true, true, || Ok::<_, ()>(0.75));
+            let b = high.score_with(0.5, true, true, || Ok::<_, ()>(0.75));
+            assert_eq!(a, b, "step {k}");
+        }
+        // After a keep, the first frame has no score against the new reference to start from.
+        step.on_keep();
+        let pic = frame(90.0);
+        step.observe(Some((&pic, &sp)), true, true);
+        assert!(step.previous_score.is_none());
+        // An unreadable frame: the frame after it has no previous score either.
+        step.compose(0.1, true);
+        step.observe(None, true, true);
+        step.observe(Some((&pic, &sp)), true, true);
+        assert!(step.previous_score.is_none());
     }
 
     #[test]

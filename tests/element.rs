@@ -872,14 +872,9 @@ fn the_default_element_fuses_the_embedded_student_with_the_prior() {
 fn screening_by_the_prior_skips_the_model_and_keeps_every_decision() {
     // The embedded default on a pan that speeds up: frames whose motion since the reference is
     // too small for any score to reach the threshold are decided by the prior alone (screened),
-    // and every frame's decision, reason and reference are those of the model scoring every frame.
-    let run = |props: &str| {
-        let xs = (0..60).scan(0.0f32, |x, k| {
-            *x += 0.5 + 0.15 * k as f32;
-            Some(*x)
-        });
-        pan_metas(props, xs)
-    };
+    // and every frame's decision, reason and reference are those of the model scoring every frame
+    // (without the score step, which is a rule, not a bound: the next test).
+    let run = |props: &str| pan_metas(&format!("screen-step=0 {props}"), speeding_pan());
     let ((on, n_on), (off, n_off)) = (run(""), run("screen=false"));
     assert_eq!((on.len(), off.len()), (60, 60));
     assert_eq!(n_off, 0);
@@ -912,6 +907,11 @@ fn screening_by_the_prior_skips_the_model_and_keeps_every_decision() {
     }
     let e = element("");
     assert!(e.property::<bool>("screen"), "on by default");
+    assert_eq!(
+        e.property::<f64>("screen-step"),
+        -1.0,
+        "the model's by default"
+    );
     // Keeps forced on screened frames (max-gap): the kept frame was not encoded, so the next
     // scored frame encodes the reference first; still every decision and utility agrees.
     let ((on, n), (off, _)) = (run("max-gap=6"), run("max-gap=6 screen=false"));
@@ -927,6 +927,57 @@ fn screening_by_the_prior_skips_the_model_and_keeps_every_decision() {
             assert!((on[k].utility - off[k].utility).abs() < 1e-9, "frame {k}");
         }
     }
+}
+
+/// 60 frames of a pan that speeds up (0.5 px per frame, 0.15 px faster each frame).
+fn speeding_pan() -> impl Iterator<Item = f32> {
+    (0..60).scan(0.0f32, |x, k| {
+        *x += 0.5 + 0.15 * k as f32;
+        Some(*x)
+    })
+}
+
+#[test]
+fn the_score_step_screens_the_frame_after_a_scored_one_and_can_be_switched_off() {
+    // The embedded default carries leangate.score_step = 0.15: right after a frame the student
+    // scored against the same reference, a frame whose fused utility that score plus 0.15 could
+    // not lift to the threshold is screened too, never two frames in a row. screen-step=0
+    // screens only where no score could change the decision; a step of 1 is that too (the
+    // student's scores stop at 0.878).
+    let (step, n_step) = pan_metas("", speeding_pan());
+    let (exact, n_exact) = pan_metas("screen-step=0", speeding_pan());
+    let (one, n_one) = pan_metas("screen-step=1", speeding_pan());
+    let (off, _) = pan_metas("screen=false", speeding_pan());
+    assert!(n_step > n_exact, "{n_step} against {n_exact} screened");
+    assert_eq!(n_one, n_exact);
+    let keeps = |m: &[gstleangate::GateMeta]| m.iter().filter(|m| m.keep).count();
+    assert_eq!(keeps(&exact), keeps(&off));
+    assert!(
+        keeps(&step).abs_diff(keeps(&off)) <= 1,
+        "{} against {}",
+        keeps(&step),
+        keeps(&off)
+    );
+    for k in 1..60 {
+        assert_eq!(one[k].screened, exact[k].screened, "frame {k}");
+        if step[k].screened && !exact[k].screened {
+            // Only right after a frame the model scored, and never a keep.
+            assert!(
+                !step[k - 1].screened && step[k - 1].utility.is_finite() && !step[k].keep,
+                "frame {k}: {:?} after {:?}",
+                step[k],
+                step[k - 1]
+            );
+            assert!(step[k].utility < 0.5, "frame {k}: {:?}", step[k]);
+        }
+    }
+    // Refused below 0 except -1 (the model's), as the threshold.
+    let e = element("");
+    e.set_property("screen-step", 0.2f64);
+    e.set_property("screen-step", -0.5f64);
+    assert_eq!(e.property::<f64>("screen-step"), 0.2, "refused, unchanged");
+    e.set_property("screen-step", -1.0f64);
+    assert_eq!(e.property::<f64>("screen-step"), -1.0);
 }
 
 /// mad_claims_low.onnx at threshold 0.05 in annotate mode on 160x120 RGB, its warnings on `bus`.

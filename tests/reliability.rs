@@ -47,6 +47,10 @@ fn broken_models_are_refused_at_start_naming_model_and_problem() {
             &["leangate.score_max = 1.5", "(0, 1]"],
         ),
         (
+            "score_step_bad.onnx",
+            &["leangate.score_step = 0", "(0, 1]"],
+        ),
+        (
             "nan_always.onnx",
             &["dry run on a blank frame", "not finite"],
         ),

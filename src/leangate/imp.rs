@@ -413,6 +413,12 @@ impl LeanGate {
             .utility
             .set_sharpness_measure(fs.sharpness_wait > 0 || fs.sharpness_lookback > 0);
         state.utility.observe(frame, has_reference, fs.geometry);
+        let model_step = state.scorer.info().geometry.and_then(|f| f.s_step);
+        state.utility.set_score_step(if fs.screen_step < 0.0 {
+            model_step
+        } else {
+            Some(fs.screen_step)
+        });
         let quality = state.utility.quality();
         let mut screened = false;
         let (score, utility) = match pre {

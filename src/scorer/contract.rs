@@ -393,11 +393,13 @@ pub(super) fn read_metadata(
     };
     let threshold = number("leangate.threshold", |t| (0.0..=1.0).contains(&t), "[0, 1]")?;
     let score_max = number("leangate.score_max", |m| m > 0.0 && m <= 1.0, "(0, 1]")?;
+    let score_step = number("leangate.score_step", |m| m > 0.0 && m <= 1.0, "(0, 1]")?;
     let geometry = match get("leangate.geometry") {
         Some(s) => Some(
             crate::geometry::Fusion::parse(&s)
                 .map_err(|e| meta_err(format!("leangate.geometry: {e}")))?
-                .with_score_max(score_max.unwrap_or(1.0)),
+                .with_score_max(score_max.unwrap_or(1.0))
+                .with_score_step(score_step),
         ),
         None => None,
     };
@@ -417,6 +419,7 @@ pub(super) fn read_metadata(
         calibration: get("leangate.calibration"),
         geometry,
         score_max,
+        score_step,
         precision: get("leangate.precision").unwrap_or_else(|| "fp32".to_string()),
     })
 }

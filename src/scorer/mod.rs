@@ -228,6 +228,11 @@ pub struct ModelInfo {
     /// ([`crate::geometry::Fusion::s_max`]), and the element stops assuming it, with a warning,
     /// if a score ever exceeds it. None: 1.
     pub score_max: Option<f64>,
+    /// `leangate.score_step`: how much the utility rises, as a rule, from one frame to the next
+    /// against the same reference (a high percentile of the rises measured on real video,
+    /// `training/score_step.py`), within (0, 1]; with a fusion, screening bounds a frame's score
+    /// by the previous frame's plus this ([`crate::Utility::screen`]). None: not used.
+    pub score_step: Option<f64>,
     /// `leangate.precision` (`fp32` when absent): the arithmetic of the graph that runs.
     pub precision: String,
 }

@@ -5,6 +5,8 @@ use super::*;
 
 /// `threshold` value meaning "take it from the model's `leangate.threshold` metadata".
 pub(super) const THRESHOLD_FROM_MODEL: f64 = -1.0;
+/// `screen-step` value meaning "take it from the model's `leangate.score_step` metadata".
+pub(super) const SCREEN_STEP_FROM_MODEL: f64 = -1.0;
 /// Threshold used when the property is [`THRESHOLD_FROM_MODEL`] and the model sets none.
 pub(super) const FALLBACK_THRESHOLD: f64 = 0.5;
 
@@ -27,6 +29,7 @@ const DEFAULT_MAX_SESSIONS: u32 = 0;
 const DEFAULT_STATS_INTERVAL: u64 = 0;
 const DEFAULT_GEOMETRY: bool = true;
 const DEFAULT_SCREEN: bool = true;
+const DEFAULT_SCREEN_STEP: f64 = SCREEN_STEP_FROM_MODEL;
 const DEFAULT_REJECT_JUNK: bool = true;
 const DEFAULT_FEEDBACK_RATE: f64 = 0.2;
 const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
@@ -55,6 +58,9 @@ pub(super) struct Settings {
     pub(super) stats_interval: u64,
     pub(super) geometry: bool,
     pub(super) screen: bool,
+    /// [`SCREEN_STEP_FROM_MODEL`] (-1): the model's `leangate.score_step`; 0: none; else in
+    /// (0, 1].
+    pub(super) screen_step: f64,
     pub(super) reject_junk: bool,
     pub(super) feedback_rate: f64,
     /// Remote scoring (crate::remote): the V2 server's URL; None = local ONNX Runtime.
@@ -89,6 +95,7 @@ impl Default for Settings {
             stats_interval: DEFAULT_STATS_INTERVAL,
             geometry: DEFAULT_GEOMETRY,
             screen: DEFAULT_SCREEN,
+            screen_step: DEFAULT_SCREEN_STEP,
             reject_junk: DEFAULT_REJECT_JUNK,
             feedback_rate: DEFAULT_FEEDBACK_RATE,
             server: None,
@@ -112,6 +119,7 @@ pub(super) struct FrameSettings {
     pub(super) stats_interval: u64,
     pub(super) geometry: bool,
     pub(super) screen: bool,
+    pub(super) screen_step: f64,
     pub(super) reject_junk: bool,
 }
 
@@ -127,6 +135,7 @@ impl From<&Settings> for FrameSettings {
             stats_interval: s.stats_interval,
             geometry: s.geometry,
             screen: s.screen,
+            screen_step: s.screen_step,
             reject_junk: s.reject_junk,
         }
     }
@@ -343,6 +352,24 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
                  frames-screened. Off: the model scores every frame",
             )
             .default_value(DEFAULT_SCREEN)
+            .mutable_playing()
+            .build(),
+        glib::ParamSpecDouble::builder("screen-step")
+            .nick("Screening step")
+            .blurb(
+                "With screen: on a frame right after one the model scored against the same \
+                 reference, also skip the model when that score plus this step could not \
+                 lift the fused utility to the threshold (never two frames in a row). A \
+                 rule, not a bound: a score that rises more than the step on the one frame \
+                 where the utility crosses the threshold moves that keep one frame later. \
+                 -1 = the model's leangate.score_step metadata (0.15 for the embedded \
+                 student), none if it has none; 0 = off (screening only by what no score \
+                 could change: the decisions of the model scoring every frame); other \
+                 negative values are refused with a warning",
+            )
+            .minimum(SCREEN_STEP_FROM_MODEL)
+            .maximum(1.0)
+            .default_value(DEFAULT_SCREEN_STEP)
             .mutable_playing()
             .build(),
         glib::ParamSpecBoolean::builder("reject-junk")
@@ -576,6 +603,19 @@ impl LeanGate {
                     settings.screen = value.get().expect("type checked upstream");
                     None
                 }
+                "screen-step" => {
+                    let v: f64 = value.get().expect("type checked upstream");
+                    if v < 0.0 && v != SCREEN_STEP_FROM_MODEL {
+                        Some(format!(
+                            "screen-step {v} refused: the only negative value is -1 (from the \
+                             model); it stays {}",
+                            settings.screen_step
+                        ))
+                    } else {
+                        settings.screen_step = v;
+                        None
+                    }
+                }
                 "reject-junk" => {
                     settings.reject_junk = value.get().expect("type checked upstream");
                     None
@@ -645,6 +685,7 @@ impl LeanGate {
             "stats-interval" => settings.stats_interval.to_value(),
             "geometry" => settings.geometry.to_value(),
             "screen" => settings.screen.to_value(),
+            "screen-step" => settings.screen_step.to_value(),
             "reject-junk" => settings.reject_junk.to_value(),
             "feedback-rate" => settings.feedback_rate.to_value(),
             "feedback-offset" => {
