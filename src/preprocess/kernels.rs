@@ -607,6 +607,8 @@ pub(super) fn hpass<const B: usize>(acc: &[f32], pass: &PlanePass, out: &mut [f3
         6 => hpass_t::<B, 6>(acc, pass, out),
         7 => hpass_t::<B, 7>(acc, pass, out),
         8 => hpass_t::<B, 8>(acc, pass, out),
+        9 => hpass_t::<B, 9>(acc, pass, out),
+        10 => hpass_t::<B, 10>(acc, pass, out),
         _ => hpass_any::<B>(acc, pass, out),
     }
 }
