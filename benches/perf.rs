@@ -11,7 +11,8 @@
 //! LEANGATE_BENCH_REPS (repetitions, default 5; medians, A/B runs interleaved so that the load
 //! of a shared machine hits both alike), LEANGATE_BENCH_FRAMES (frames per synthetic run,
 //! default 200), and for `preprocess` LEANGATE_BENCH_FORMATS (e.g. `I420,Yuy2`) and
-//! LEANGATE_BENCH_SIZES (e.g. `1920x1080>160x120`) to measure only some rows. The model is the
+//! LEANGATE_BENCH_SIZES (e.g. `1920x1080>160x120`) to measure only some rows, and for `pipeline`
+//! LEANGATE_BENCH_PIPELINES (parts of case names, e.g. `tum_fr1_desk,bear`). The model is the
 //! embedded default student `leangate-s`.
 
 use std::path::{Path, PathBuf};
@@ -100,6 +101,40 @@ fn make_clip(dir: &Path, w: u32, h: u32, frames: u64) -> Option<(PathBuf, &'stat
     Some((path, codec))
 }
 
+/// tum_fr1_desk's 572 real frames (30 Hz) encoded by ffmpeg into `dir`: `name`.mkv with the
+/// encoder arguments `codec` after scaling to `w`x`h`; None without ffmpeg, the encoder or the
+/// sequence. The real-footage cases (H.264 at 640x480 and 1080p, 10-bit HEVC at 1080p).
+fn desk_clip(dir: &Path, name: &str, w: u32, h: u32, codec: &[&str]) -> Option<PathBuf> {
+    let rgb = PathBuf::from(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../shared/data/tum_fr1_desk/rgb"
+    ));
+    // ffmpeg's glob needs the extension (a bare `*` matches nothing).
+    let ext = std::fs::read_dir(&rgb)
+        .ok()?
+        .filter_map(|e| e.ok()?.path().extension()?.to_str().map(str::to_string))
+        .next()?;
+    let out = dir.join(format!("{name}.mkv"));
+    let status = std::process::Command::new("ffmpeg")
+        .args([
+            "-v",
+            "error",
+            "-y",
+            "-framerate",
+            "30",
+            "-pattern_type",
+            "glob",
+            "-i",
+        ])
+        .arg(rgb.join(format!("*.{ext}")))
+        .args(["-vf", &format!("scale={w}:{h}")])
+        .args(codec)
+        .arg(&out)
+        .status()
+        .ok()?;
+    (status.success() && out.exists()).then_some(out)
+}
+
 fn bear() -> Option<PathBuf> {
     let p = PathBuf::from(concat!(
         env!("CARGO_MANIFEST_DIR"),
@@ -176,6 +211,56 @@ fn section_pipeline(reps: usize, n: u64, tmp: &Path) {
             None => println!("SKIPPED: no encoder for the {w}x{h} decoded case"),
         }
     }
+    for (name, w, h, codec) in [
+        (
+            "h264 640x480",
+            640u32,
+            480u32,
+            &[
+                "-c:v", "libx264", "-preset", "veryfast", "-pix_fmt", "yuv420p",
+            ][..],
+        ),
+        (
+            "h264 1920x1080",
+            1920,
+            1080,
+            &[
+                "-c:v", "libx264", "-preset", "veryfast", "-pix_fmt", "yuv420p",
+            ][..],
+        ),
+        (
+            "hevc 10-bit 1920x1080",
+            1920,
+            1080,
+            &[
+                "-c:v",
+                "libx265",
+                "-preset",
+                "ultrafast",
+                "-pix_fmt",
+                "yuv420p10le",
+                "-x265-params",
+                "log-level=error",
+            ][..],
+        ),
+    ] {
+        let label = format!("decoded {name} tum_fr1_desk (real, 572 frames)");
+        if !chosen_case(&label) {
+            continue;
+        }
+        match desk_clip(tmp, &name.replace(' ', "_"), w, h, codec) {
+            Some(clip) => cases.push((
+                label,
+                format!(
+                    "filesrc location=\"{}\" ! decodebin ! GATE ! fakesink sync=false",
+                    clip.display()
+                ),
+            )),
+            None => {
+                println!("SKIPPED: {label} (no ffmpeg, encoder or ../shared/data/tum_fr1_desk)")
+            }
+        }
+    }
     if let Some(bear) = bear() {
         cases.push((
             "decoded h264 bear.mp4 854x480 (real)".into(),
@@ -207,6 +292,7 @@ fn section_pipeline(reps: usize, n: u64, tmp: &Path) {
         })
         .collect();
     cases.extend(queued);
+    cases.retain(|(name, _)| chosen_case(name));
     if let Some(why) = encoder {
         println!("note: {why}");
     }
@@ -327,6 +413,15 @@ fn preprocess_us(format: PixelFormat, w: u32, h: u32, out: (u32, u32), reps: usi
 const PREPROCESS_OUT: [(u32, u32); 2] = [(160, 120), (256, 256)];
 
 /// `name` is in the comma-separated list in env `var` (case-insensitive), or `var` is unset.
+/// Whether the pipeline case `name` is wanted: LEANGATE_BENCH_PIPELINES (comma-separated parts of
+/// case names, e.g. `tum_fr1_desk,bear`) unset, or one of them in the name.
+fn chosen_case(name: &str) -> bool {
+    std::env::var("LEANGATE_BENCH_PIPELINES").map_or(true, |v| {
+        v.split(',')
+            .any(|x| !x.trim().is_empty() && name.contains(x.trim()))
+    })
+}
+
 fn chosen(name: &str, var: &str) -> bool {
     std::env::var(var).map_or(true, |v| {
         v.split(',').any(|x| x.trim().eq_ignore_ascii_case(name))
