@@ -782,10 +782,11 @@ impl Fusion {
     }
 
     /// The same fusion for a model whose score rises by at most about `step` from one frame to the
-    /// next against the same reference (metadata `leangate.score_step`, within (0, 1]).
+    /// next against the same reference (metadata `leangate.score_step`, within (0, 1]; above 1
+    /// counts as 1, and `None`, 0 or less as no step).
     pub fn with_score_step(self, step: Option<f64>) -> Fusion {
         Fusion {
-            s_step: step.map(|s| s.clamp(0.0, 1.0)),
+            s_step: step.filter(|s| *s > 0.0).map(|s| s.min(1.0)),
             ..self
         }
     }
@@ -1180,6 +1181,10 @@ mod tests {
             .with_score_max(0.878)
             .with_score_step(Some(0.15));
         assert_eq!(f.s_step, Some(0.15));
+        for none in [None, Some(0.0), Some(-1.0), Some(f64::NAN)] {
+            assert_eq!(f.with_score_step(none).s_step, None, "{none:?}");
+        }
+        assert_eq!(f.with_score_step(Some(3.0)).s_step, Some(1.0));
         assert!(f.upper(0.3) >= 0.5 && f.upper_below(0.3, 0.3) < 0.5);
     }
 }

@@ -110,7 +110,7 @@ impl Utility {
     /// (`leangate.score_step`) until this is called; `None` or 0: none.
     pub fn set_score_step(&mut self, step: Option<f64>) {
         if let Some(f) = self.fusion.as_mut() {
-            f.s_step = step.filter(|s| *s > 0.0).map(|s| s.min(1.0));
+            *f = f.with_score_step(step);
         }
     }
 
