@@ -280,10 +280,12 @@ impl Utility {
     ///   score only when the utility reaches the threshold); or
     /// - the model carries a score step ([`Fusion::s_step`], `leangate.score_step`), scored the
     ///   frame just before this one against the same reference, and that score plus the step
-    ///   could not lift it ([`Fusion::upper_below`]). The step is a rule, not a bound: a score
-    ///   rising more than it on the one frame where the utility crosses the threshold moves that
-    ///   keep one frame later. Never two frames in a row: a frame screened this way has no score,
-    ///   so the next one is scored (or screened by the first rule).
+    ///   could not lift it ([`Fusion::upper_below`]). The step is a rule, not a bound: where the
+    ///   score rises more than it on a frame whose utility reaches the threshold, that frame is
+    ///   dropped and the keep goes to the next frame that reaches it (the next one while the
+    ///   utility keeps rising; later, or not at all, after a short peak). Never two frames in a
+    ///   row: a frame screened this way has no score, so the next one is scored (or screened by
+    ///   the first rule).
     ///
     /// Then the bound stands for the frame's utility and the model need not run. (A model that
     /// would have failed on the frame, which keeps it, is not asked.)

@@ -5,8 +5,9 @@ The element's screening (src/utility.rs, `Utility::screen`) skips the student on
 score it could give would lift the fused utility to the threshold. Without this key it assumes
 any score up to `leangate.score_max`. With it, on a frame right after one the student scored
 against the same reference, it assumes a score up to that score plus `leangate.score_step`, so
-the prior alone decides more frames; the next frame is always scored, so a rise larger than the
-step delays a keep by one frame at most.
+the prior alone decides more frames; the next frame is always scored. A rise larger than the
+step on a frame whose utility reaches the threshold drops that frame, and the keep goes to the next
+frame that reaches it (the next one while the utility keeps rising; later after a short peak).
 
 The step is measured on the parts the fusion was fitted on (`config.FUSION_FIT_PARTS`:
 tum_fr1_rpy's cal part, tum_fr1_desk's fit part): every frame of a part as the reference against

@@ -2266,6 +2266,9 @@ fn eval_set_runs_the_element_with_other_properties_and_refuses_bad_ones() {
         ("frames-in=3", "read-only"),
         ("sharpness-wait=99", "not a valid value"),
         ("mode=drop", "annotate"),
+        // In GLib's range, refused by the element: not run silently with its default.
+        ("threshold=-0.5", "refused it"),
+        ("screen-step=-0.5", "refused it"),
     ] {
         let out = leangate()
             .args(["eval", "--model", &fixture("mad.onnx"), "--sequence"])

@@ -360,8 +360,9 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
                 "With screen: on a frame right after one the model scored against the same \
                  reference, also skip the model when that score plus this step could not \
                  lift the fused utility to the threshold (never two frames in a row). A \
-                 rule, not a bound: a score that rises more than the step on the one frame \
-                 where the utility crosses the threshold moves that keep one frame later. \
+                 rule, not a bound: where the score rises more than the step on a frame \
+                 whose utility reaches the threshold, that frame is dropped and the keep \
+                 goes to the next frame that reaches it. \
                  -1 = the model's leangate.score_step metadata (0.15 for the embedded \
                  student), none if it has none; 0 = off (screening only by what no score \
                  could change: the decisions of the model scoring every frame); other \

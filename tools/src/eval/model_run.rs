@@ -220,7 +220,18 @@ fn set_from_text(gate: &gst::Element, name: &str, value: &str) -> Result<(), Eva
                 pspec.value_type().name()
             ))
         })?;
-    gate.set_property(name, v);
+    gate.set_property(name, &v);
+    // The element refuses some values that GLib's range allows (a negative threshold other
+    // than -1): it keeps its value and warns on a bus the eval has not attached yet.
+    let got = gate.property_value(name);
+    if v.compare(&got) != Some(std::cmp::Ordering::Equal) {
+        return Err(EvalError(format!(
+            "--set {name}={value}: leangate refused it (it keeps {}; gst-inspect-1.0 leangate \
+             says which values it takes)",
+            got.serialize()
+                .map_or_else(|_| "its value".to_string(), |s| s.to_string())
+        )));
+    }
     Ok(())
 }
 
@@ -267,9 +278,9 @@ pub fn run_model(
     gate.set_property_from_str("mode", "annotate");
     // The model scores every frame, so that its utility (RMSE, plots) is judged everywhere. The
     // decisions are those of `screen=true screen-step=0` (the element's tests check this); the
-    // default's score step may move a keep by a frame where the student's score jumps by more
-    // than the step just as the utility crosses the threshold: `--set screen=true` judges the
-    // default itself (models/README.md: the same keeps on every real sequence here).
+    // default's score step may move a keep where the student's score jumps by more than the
+    // step just as the utility reaches the threshold: `--set screen=true` judges the default
+    // itself (models/README.md: the same keeps on every real sequence here at 0.5).
     gate.set_property("screen", false);
     if let Some(t) = threshold {
         gate.set_property("threshold", t);
