@@ -145,6 +145,9 @@ pub struct LeanGate {
     held: Mutex<std::collections::VecDeque<Held>>,
     /// One frame's duration from the caps (ns; 0: unknown), for the latency query.
     frame_ns: AtomicU64,
+    /// Refused property values whose warning found no bus (set before the element was in a
+    /// pipeline: gst-launch sets properties first); posted at the next start. Taken alone.
+    unposted: Mutex<Vec<String>>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -683,6 +686,11 @@ impl BaseTransformImpl for LeanGate {
     const TRANSFORM_IP_ON_PASSTHROUGH: bool = false;
 
     fn start(&self) -> Result<(), gst::ErrorMessage> {
+        // Refusals from before the element had a bus: it has one now.
+        let unposted = std::mem::take(&mut *lock(&self.unposted));
+        for why in unposted {
+            gst::element_imp_warning!(self, gst::CoreError::StateChange, ("{}", why));
+        }
         // Mark the model settings in use before reading them, so that a concurrent change is
         // refused rather than reported but not used.
         let settings = {

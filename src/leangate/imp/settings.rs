@@ -650,7 +650,15 @@ impl LeanGate {
         match refused {
             Some(why) => {
                 gst::warning!(CAT, imp = self, "{why}");
-                gst::element_imp_warning!(self, gst::CoreError::StateChange, ("{}", why));
+                let obj = self.obj();
+                let msg = gst::message::Warning::builder(gst::CoreError::StateChange, &why)
+                    .src(&*obj)
+                    .build();
+                if obj.post_message(msg).is_err() {
+                    // No bus yet (gst-launch sets properties before it builds the pipeline):
+                    // the warning goes out when the element starts.
+                    lock(&self.unposted).push(why);
+                }
             }
             None => gst::debug!(CAT, imp = self, "{name} set to {}", shown(name, value)),
         }
