@@ -23,7 +23,12 @@ import threading
 import time
 
 import numpy as np
-import onnxruntime as ort
+
+# Microsoft's onnxruntime wheels write a device id and queued usage events under
+# ~/.cache/Microsoft as soon as the module loads, unless this is set first (a user's own value is
+# kept), as the element does for its library (src/runtime.rs).
+os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
+import onnxruntime as ort  # noqa: E402
 from pytriton.decorators import batch
 from pytriton.model_config import DynamicBatcher, ModelConfig, Tensor
 from pytriton.triton import Triton, TritonConfig

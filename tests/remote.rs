@@ -143,6 +143,40 @@ fn compare(local: &[gstleangate::GateMeta], remote: &[gstleangate::GateMeta]) {
 /// The scenarios that share one server (CPU is scarce: one server start, and one scenario at a
 /// time so that the server-side request counts are theirs). The server is dropped, and so
 /// stopped, at the end of the test, whatever happens.
+/// The V2 server script loads Microsoft's onnxruntime wheel, which writes a device id and queued
+/// usage events under `~/.cache/Microsoft` when it loads unless `ORT_DISABLE_TELEMETRY` is set
+/// first: the script sets it, so in a fresh HOME it writes nothing there.
+#[test]
+fn the_v2_server_script_leaves_no_onnxruntime_telemetry_in_home() {
+    let py = match v2server::python() {
+        Ok(py) => py,
+        Err(why) => {
+            eprintln!("SKIPPED: {why}");
+            return;
+        }
+    };
+    let home = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(py)
+        .arg(v2server::repo_root().join("scripts/v2_server.py"))
+        .arg("--help")
+        .env("HOME", home.path())
+        .env_remove("ORT_DISABLE_TELEMETRY")
+        .env_remove("XDG_CACHE_HOME")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let left: Vec<_> = std::fs::read_dir(home.path())
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .collect();
+    assert!(left.is_empty(), "left in HOME: {left:?}");
+}
+
 #[test]
 fn against_the_student_on_a_v2_server() {
     let Some(server) = v2server::start_or_skip(&v2server::student_models()) else {

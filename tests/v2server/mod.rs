@@ -32,6 +32,8 @@ pub fn python() -> Result<PathBuf, String> {
     }
     let ok = Command::new(&py)
         .args(["-c", "import pytriton, onnxruntime"])
+        // This probe imports onnxruntime directly: no device id or usage events in HOME.
+        .env("ORT_DISABLE_TELEMETRY", "1")
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .status()
