@@ -19,6 +19,9 @@
 # Safe to run again: each step is skipped when already done.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# The checks below import Microsoft's onnxruntime wheel, which otherwise writes a device id and
+# usage events under ~/.cache/Microsoft when it loads (a value of the user's own is kept).
+export ORT_DISABLE_TELEMETRY=${ORT_DISABLE_TELEMETRY:-1}
 
 ORT_VERSION=1.31.1
 ORT_FLAVOR=${ORT_FLAVOR:-cpu}
