@@ -208,20 +208,8 @@ fn gst_launch_in_a_fresh_home_writes_nothing_there() {
             ]),
     );
     assert!(text.contains("frames-in=(guint64)30"), "{text}");
-    let left: Vec<_> = walk(home.path());
+    let left = common::files_below(home.path());
     assert!(left.is_empty(), "left in HOME: {left:?}");
-}
-
-/// Every file and folder below `dir`.
-fn walk(dir: &std::path::Path) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    for e in std::fs::read_dir(dir).unwrap().flatten() {
-        out.push(e.path());
-        if e.file_type().unwrap().is_dir() {
-            out.extend(walk(&e.path()));
-        }
-    }
-    out
 }
 
 /// Every `gst-launch-1.0` line of the README runs as written, on a real clip: `walk.mp4` stands

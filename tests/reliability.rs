@@ -383,29 +383,16 @@ fn negative_threshold_other_than_minus_one_is_refused() {
 fn a_value_refused_before_the_element_has_a_bus_is_reported_when_it_starts() {
     // gst-launch sets properties before it builds the pipeline: the refusal's warning has no bus
     // then, so it goes out when the element starts, once.
-    let e = element(&format!("model={}", fixture("mad.onnx")));
-    e.set_property("threshold", -0.5f64);
-    e.set_property("screen-step", -0.3f64);
-    let pipeline = gst::Pipeline::new();
-    let src = gst::ElementFactory::make("videotestsrc")
-        .property("num-buffers", 3i32)
-        .build()
-        .unwrap();
-    let sink = gst::ElementFactory::make("fakesink").build().unwrap();
-    pipeline.add_many([&src, &e, &sink]).unwrap();
-    gst::Element::link_many([&src, &e, &sink]).unwrap();
-    let bus = pipeline.bus().unwrap();
-    pipeline.set_state(gst::State::Playing).unwrap();
-    let mut warnings = Vec::new();
-    while let Some(m) = bus.timed_pop(gst::ClockTime::from_seconds(20)) {
-        match m.view() {
-            gst::MessageView::Warning(w) => warnings.push(w.error().to_string()),
-            gst::MessageView::Eos(_) => break,
-            gst::MessageView::Error(err) => panic!("{}", err.error()),
-            _ => {}
-        }
-    }
-    pipeline.set_state(gst::State::Null).unwrap();
+    init();
+    let desc = format!(
+        "videotestsrc num-buffers=3 ! leangate model={} threshold=-0.5 screen-step=-0.3 ! \
+         fakesink",
+        fixture("mad.onnx")
+    );
+    let pipeline = gst::parse::launch(&desc).unwrap();
+    let msgs = run_to_end(&pipeline, &desc, 20);
+    assert_eq!(error_text(&msgs), None);
+    let warnings = warning_texts(&msgs);
     assert_eq!(warnings.len(), 2, "{warnings:?}");
     assert!(
         warnings[0].contains("threshold -0.5 refused"),
@@ -416,18 +403,8 @@ fn a_value_refused_before_the_element_has_a_bus_is_reported_when_it_starts() {
         "{warnings:?}"
     );
     // Started again: nothing left to report.
-    let bus = pipeline.bus().unwrap();
-    pipeline.set_state(gst::State::Playing).unwrap();
-    let mut again = 0;
-    while let Some(m) = bus.timed_pop(gst::ClockTime::from_seconds(20)) {
-        match m.view() {
-            gst::MessageView::Warning(_) => again += 1,
-            gst::MessageView::Eos(_) => break,
-            _ => {}
-        }
-    }
-    pipeline.set_state(gst::State::Null).unwrap();
-    assert_eq!(again, 0);
+    let again = warning_texts(run_to_end(&pipeline, &desc, 20));
+    assert_eq!(again.len(), 0);
 }
 
 #[test]

@@ -169,11 +169,7 @@ fn the_v2_server_script_leaves_no_onnxruntime_telemetry_in_home() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let left: Vec<_> = std::fs::read_dir(home.path())
-        .unwrap()
-        .flatten()
-        .map(|e| e.path())
-        .collect();
+    let left = files_below(home.path());
     assert!(left.is_empty(), "left in HOME: {left:?}");
 }
 

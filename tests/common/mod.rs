@@ -139,6 +139,12 @@ pub fn meta(b: &gst::Buffer) -> gstleangate::GateMeta {
 pub fn run_pipeline(desc: &str, timeout_s: u64) -> Vec<gst::Message> {
     init();
     let pipeline = gst::parse::launch(desc).expect("pipeline parses");
+    run_to_end(&pipeline, desc, timeout_s)
+}
+
+/// Play `pipeline` (described as `desc` in a failure) to EOS or error, then set it to NULL; returns
+/// the bus messages seen (errors included). It may be played again.
+pub fn run_to_end(pipeline: &gst::Element, desc: &str, timeout_s: u64) -> Vec<gst::Message> {
     let bus = pipeline.bus().unwrap();
     let mut msgs = Vec::new();
     if pipeline.set_state(gst::State::Playing).is_err() {
@@ -193,6 +199,18 @@ pub fn warning_texts<M: std::borrow::Borrow<gst::Message>>(
 /// The texts of the warnings waiting on `bus` (popped), in order.
 pub fn bus_warnings(bus: &gst::Bus) -> Vec<String> {
     warning_texts(std::iter::from_fn(|| bus.pop()))
+}
+
+/// Every file and folder below `dir` (what a run left in a fresh HOME).
+pub fn files_below(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        out.push(e.path());
+        if e.file_type().unwrap().is_dir() {
+            out.extend(files_below(&e.path()));
+        }
+    }
+    out
 }
 
 pub fn element_message<'a>(msgs: &'a [gst::Message], name: &str) -> Vec<&'a gst::StructureRef> {
