@@ -277,16 +277,17 @@ def cell(r):
     return f"{r['kept']}/{r['oracle']} ({100 * (r['kept'] / r['oracle'] - 1):+.0f} %), {r['late']} late, {r['rmse']:.3f}"
 
 
-def write_metadata(models, value):
+def write_metadata(models, value, key="leangate.geometry"):
+    """Set `key` = `value` in the files whose metadata the element reads (`FILES`)."""
     for f in FILES:
         p = os.path.join(models, f)
         m = onnx.load(p)
-        props = [x for x in m.metadata_props if x.key != "leangate.geometry"]
+        props = [x for x in m.metadata_props if x.key != key]
         del m.metadata_props[:]
         m.metadata_props.extend(props)
-        m.metadata_props.add(key="leangate.geometry", value=value)
+        m.metadata_props.add(key=key, value=value)
         onnx.save(m, p)
-        print(f"wrote leangate.geometry = {value!r} into {p}")
+        print(f"wrote {key} = {value!r} into {p}")
 
 
 def main():

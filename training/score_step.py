@@ -25,24 +25,13 @@ import argparse
 import os
 
 import numpy as np
-import onnx
 
 from .calibrate import encode, score_pairs
-from .config import FUSION_FIT_PARTS, MODELS_DIR, NAME, REAL_SPLITS, SHARED
+from .config import FUSION_FIT_PARTS, MODELS_DIR, REAL_SPLITS, SHARED
+from .fuse import int8_sessions, write_metadata
 from .preprocess import load_resized, read_list
 
 KEY = "leangate.score_step"
-# the files that carry leangate.geometry (the pair model and both builds' encoders)
-FILES = [f"{NAME}.onnx", f"{NAME}-encoder.onnx", f"{NAME}-int8-encoder.onnx"]
-
-
-def int8_sessions(models):
-    import onnxruntime as ort
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 2
-    mk = lambda n: ort.InferenceSession(os.path.join(models, f"{NAME}{n}.onnx"), so,
-                                        providers=["CPUExecutionProvider"])
-    return mk("-int8-encoder"), mk("-int8-head")
 
 
 def rises(enc, head, files, horizon):
@@ -61,18 +50,6 @@ def step_value(r, percentile):
     """The `percentile` of the rises, rounded up to two decimals (at least 0.01, at most 1)."""
     v = float(np.percentile(r, percentile))
     return f"{min(max(np.ceil(v * 100 - 1e-9) / 100, 0.01), 1.0):.2f}"
-
-
-def write(models, value):
-    for f in FILES:
-        p = os.path.join(models, f)
-        m = onnx.load(p)
-        props = [x for x in m.metadata_props if x.key != KEY]
-        del m.metadata_props[:]
-        m.metadata_props.extend(props)
-        m.metadata_props.add(key=KEY, value=value)
-        onnx.save(m, p)
-        print(f"wrote {KEY} = {value} into {p}")
 
 
 def main():
@@ -97,7 +74,7 @@ def main():
                   f"99th percentile {np.percentile(r, 99):.3f}, 99.9th {np.percentile(r, 99.9):.3f}")
     value = step_value(np.concatenate(fit), a.percentile)
     if a.write:
-        write(a.models, value)
+        write_metadata(a.models, value, KEY)  # the files that carry leangate.geometry
     else:
         print(f"not written (--write): {KEY} = {value}")
 
