@@ -30,6 +30,7 @@ from .calibrate import encode, score_pairs
 from .config import FUSION_FIT_PARTS, MODELS_DIR, REAL_SPLITS, SHARED
 from .fuse import int8_sessions, write_metadata
 from .preprocess import load_resized, read_list
+from .tum import gate_pairs
 
 KEY = "leangate.score_step"
 
@@ -38,9 +39,8 @@ def rises(enc, head, files, horizon):
     """Every rise s(ref, cur + 1) - s(ref, cur), each frame of `files` as the reference against
     its next `horizon` frames."""
     F = encode(enc, np.stack([load_resized(f) for f in files]))
-    n = len(files)
-    ref = np.array([j for j in range(n) for k in range(1, horizon + 1) if j + k < n])
-    cur = np.array([j + k for j in range(n) for k in range(1, horizon + 1) if j + k < n])
+    pairs = np.array(gate_pairs(len(files), horizon))
+    cur, ref = pairs[:, 0], pairs[:, 1]
     s = score_pairs(head, F, cur, ref)
     same = (ref[1:] == ref[:-1]) & (cur[1:] == cur[:-1] + 1)
     return (s[1:] - s[:-1])[same]
