@@ -4,9 +4,11 @@
 use super::*;
 
 /// `threshold` value meaning "take it from the model's `leangate.threshold` metadata".
-pub(super) const THRESHOLD_FROM_MODEL: f64 = -1.0;
+pub(super) const THRESHOLD_FROM_MODEL: f64 = FROM_MODEL;
 /// `screen-step` value meaning "take it from the model's `leangate.score_step` metadata".
-pub(super) const SCREEN_STEP_FROM_MODEL: f64 = -1.0;
+pub(super) const SCREEN_STEP_FROM_MODEL: f64 = FROM_MODEL;
+/// The one negative value of `threshold` and `screen-step`: from the model's metadata.
+const FROM_MODEL: f64 = -1.0;
 /// Threshold used when the property is [`THRESHOLD_FROM_MODEL`] and the model sets none.
 pub(super) const FALLBACK_THRESHOLD: f64 = 0.5;
 
@@ -138,6 +140,20 @@ impl From<&Settings> for FrameSettings {
             screen_step: s.screen_step,
             reject_junk: s.reject_junk,
         }
+    }
+}
+
+/// A double property whose only negative value is -1 (take it from the model's metadata:
+/// `threshold`, `screen-step`): sets `slot`, or says why the value is refused (`slot` unchanged).
+fn from_model_or_set(name: &str, value: &glib::Value, slot: &mut f64) -> Option<String> {
+    let v: f64 = value.get().expect("type checked upstream");
+    if v < 0.0 && v != FROM_MODEL {
+        Some(format!(
+            "{name} {v} refused: the only negative value is -1 (from the model); it stays {slot}"
+        ))
+    } else {
+        *slot = v;
+        None
     }
 }
 
@@ -523,19 +539,7 @@ impl LeanGate {
                     settings.model = value.get().expect("type checked upstream");
                     None
                 }
-                "threshold" => {
-                    let t: f64 = value.get().expect("type checked upstream");
-                    if t < 0.0 && t != THRESHOLD_FROM_MODEL {
-                        Some(format!(
-                            "threshold {t} refused: the only negative value is -1 (from the \
-                             model); it stays {}",
-                            settings.threshold
-                        ))
-                    } else {
-                        settings.threshold = t;
-                        None
-                    }
-                }
+                "threshold" => from_model_or_set(name, value, &mut settings.threshold),
                 "warmup" => {
                     settings.warmup = value.get().expect("type checked upstream");
                     None
@@ -604,19 +608,7 @@ impl LeanGate {
                     settings.screen = value.get().expect("type checked upstream");
                     None
                 }
-                "screen-step" => {
-                    let v: f64 = value.get().expect("type checked upstream");
-                    if v < 0.0 && v != SCREEN_STEP_FROM_MODEL {
-                        Some(format!(
-                            "screen-step {v} refused: the only negative value is -1 (from the \
-                             model); it stays {}",
-                            settings.screen_step
-                        ))
-                    } else {
-                        settings.screen_step = v;
-                        None
-                    }
-                }
+                "screen-step" => from_model_or_set(name, value, &mut settings.screen_step),
                 "reject-junk" => {
                     settings.reject_junk = value.get().expect("type checked upstream");
                     None
