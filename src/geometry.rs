@@ -119,6 +119,9 @@ impl Level {
     }
 }
 
+/// The bilinear sample of `v` at `(x, y)`, clamped to the image: what [`window_rows`] gives
+/// at each pixel of a window (the tests compare them).
+#[cfg(test)]
 fn sample(v: &[f32], w: usize, h: usize, x: f32, y: f32) -> f32 {
     let x = x.clamp(0.0, (w - 1) as f32);
     let y = y.clamp(0.0, (h - 1) as f32);
@@ -241,12 +244,63 @@ pub const LK_PRIOR: Lk = Lk {
 };
 
 /// [`track`] with the settings `lk` (a `half_win` above 4 is taken as 4).
+///
+/// Windows up to 7 wide (the prior's [`LK_PRIOR`]) are held as rows of 8 lanes, the lanes past
+/// the side zero in the gradient windows, so the sums over a window run lane by lane and the
+/// lanes are added at the end (a vector instruction per row instead of one addition per sample);
+/// the samples are those of [`window_rows`]. On x86-64 CPUs with AVX2 the same code is compiled
+/// for AVX2 (the same results: no fused multiply-add, the lanes added in one order). Wider
+/// windows add their sums sample by sample ([`track_lanes`]).
 pub fn track_with(a: &Pyramid, b: &Pyramid, p: (f32, f32), lk: &Lk) -> Option<(f32, f32)> {
     let hw = lk.half_win.min(HALF_WIN as usize);
-    let n = (2 * hw + 1) * (2 * hw + 1);
+    if hw > 3 {
+        return track_lanes::<16, true>(a, b, p, lk, hw);
+    }
+    #[cfg(target_arch = "x86_64")]
+    if crate::preprocess::has_avx2() {
+        // SAFETY: the CPU has AVX2 and FMA (checked just above).
+        return unsafe { track_avx2(a, b, p, lk, hw) };
+    }
+    track_lanes::<8, false>(a, b, p, lk, hw)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn track_avx2(
+    a: &Pyramid,
+    b: &Pyramid,
+    p: (f32, f32),
+    lk: &Lk,
+    hw: usize,
+) -> Option<(f32, f32)> {
+    track_lanes::<8, false>(a, b, p, lk, hw)
+}
+
+/// Rows of a window, `L` lanes each (up to the largest side's rows).
+type Rows<const L: usize> = [[f32; L]; 2 * HALF_WIN as usize + 1];
+
+/// The lanes of `v` added in a fixed order (the same on every CPU).
+#[inline(always)]
+fn lane_sum<const L: usize>(v: &[f32; L]) -> f32 {
+    v.iter().sum()
+}
+
+/// The tracker of [`track_with`] on windows of `L` lanes. `SEQUENTIAL`: each window's sums
+/// added sample by sample in row order instead of lane by lane, as for the wider windows of
+/// [`LK_CLASSIC`] (the `motion` baseline of `leangate eval`, whose budget search moves its keeps
+/// with the last bit of a sum: its documented figures were measured with these sums).
+#[inline(always)]
+fn track_lanes<const L: usize, const SEQUENTIAL: bool>(
+    a: &Pyramid,
+    b: &Pyramid,
+    p: (f32, f32),
+    lk: &Lk,
+    hw: usize,
+) -> Option<(f32, f32)> {
+    let side = 2 * hw + 1;
     let mut d = (0.0f32, 0.0f32);
-    let (mut ti, mut tgx, mut tgy, mut cur) =
-        ([0.0f32; WIN_N], [0.0; WIN_N], [0.0; WIN_N], [0.0; WIN_N]);
+    let zero = [[0.0f32; L]; 2 * HALF_WIN as usize + 1];
+    let (mut ti, mut tgx, mut tgy, mut cur) = (zero, zero, zero, zero);
     for l in (0..a.levels.len().min(b.levels.len())).rev() {
         let la = &a.levels[l];
         let lb = &b.levels[l];
@@ -255,27 +309,62 @@ pub fn track_with(a: &Pyramid, b: &Pyramid, p: (f32, f32), lk: &Lk) -> Option<(f
         if l + 1 < a.levels.len() {
             d = (d.0 * 2.0, d.1 * 2.0);
         }
-        window(&la.img, la.w, la.h, px, py, hw, &mut ti);
-        window(&la.gx, la.w, la.h, px, py, hw, &mut tgx);
-        window(&la.gy, la.w, la.h, px, py, hw, &mut tgy);
-        let (mut gxx, mut gxy, mut gyy) = (0.0f32, 0.0f32, 0.0f32);
-        for k in 0..n {
-            gxx += tgx[k] * tgx[k];
-            gxy += tgx[k] * tgy[k];
-            gyy += tgy[k] * tgy[k];
+        window_rows::<L>(&la.img, la.w, la.h, px, py, hw, &mut ti);
+        window_rows::<L>(&la.gx, la.w, la.h, px, py, hw, &mut tgx);
+        window_rows::<L>(&la.gy, la.w, la.h, px, py, hw, &mut tgy);
+        // Lanes past the side carry no weight: their gradients are zero.
+        for r in 0..side {
+            tgx[r][side..].fill(0.0);
+            tgy[r][side..].fill(0.0);
         }
+        let (gxx, gxy, gyy) = if SEQUENTIAL {
+            let (mut gxx, mut gxy, mut gyy) = (0.0f32, 0.0f32, 0.0f32);
+            for r in 0..side {
+                for c in 0..side {
+                    gxx += tgx[r][c] * tgx[r][c];
+                    gxy += tgx[r][c] * tgy[r][c];
+                    gyy += tgy[r][c] * tgy[r][c];
+                }
+            }
+            (gxx, gxy, gyy)
+        } else {
+            let (mut sxx, mut sxy, mut syy) = ([0.0f32; L], [0.0f32; L], [0.0f32; L]);
+            for r in 0..side {
+                for c in 0..L {
+                    sxx[c] += tgx[r][c] * tgx[r][c];
+                    sxy[c] += tgx[r][c] * tgy[r][c];
+                    syy[c] += tgy[r][c] * tgy[r][c];
+                }
+            }
+            (lane_sum(&sxx), lane_sum(&sxy), lane_sum(&syy))
+        };
         let det = gxx * gyy - gxy * gxy;
         if det.is_nan() || det < 1e-3 * (gxx + gyy).max(1e-6) || gxx + gyy < 1.0 {
             return None;
         }
         for _ in 0..lk.iters {
-            window(&lb.img, lb.w, lb.h, px + d.0, py + d.1, hw, &mut cur);
-            let (mut bx, mut by) = (0.0f32, 0.0f32);
-            for k in 0..n {
-                let diff = ti[k] - cur[k];
-                bx += diff * tgx[k];
-                by += diff * tgy[k];
-            }
+            window_rows::<L>(&lb.img, lb.w, lb.h, px + d.0, py + d.1, hw, &mut cur);
+            let (bx, by) = if SEQUENTIAL {
+                let (mut bx, mut by) = (0.0f32, 0.0f32);
+                for r in 0..side {
+                    for c in 0..side {
+                        let diff = ti[r][c] - cur[r][c];
+                        bx += diff * tgx[r][c];
+                        by += diff * tgy[r][c];
+                    }
+                }
+                (bx, by)
+            } else {
+                let (mut sx, mut sy) = ([0.0f32; L], [0.0f32; L]);
+                for r in 0..side {
+                    for c in 0..L {
+                        let diff = ti[r][c] - cur[r][c];
+                        sx[c] += diff * tgx[r][c];
+                        sy[c] += diff * tgy[r][c];
+                    }
+                }
+                (lane_sum(&sx), lane_sum(&sy))
+            };
             let dx = (gyy * bx - gxy * by) / det;
             let dy = (gxx * by - gxy * bx) / det;
             d = (d.0 + dx, d.1 + dy);
@@ -292,74 +381,71 @@ pub fn track_with(a: &Pyramid, b: &Pyramid, p: (f32, f32), lk: &Lk) -> Option<(f
     (q.0 >= 0.0 && q.1 >= 0.0 && q.0 <= w - 1.0 && q.1 <= h - 1.0).then_some(q)
 }
 
-/// Samples in the largest LK window.
-const WIN_N: usize = ((2 * HALF_WIN + 1) * (2 * HALF_WIN + 1)) as usize;
-
-/// Bilinear samples of `v` on the (2 hw + 1)^2 window centred at `(cx, cy)`, row by row, into
-/// the start of `out`. Every sample of a window shares one fractional offset, so inside the image
-/// the weights are computed once; windows that touch the border are sampled one by one with
-/// clamping.
-fn window(v: &[f32], w: usize, h: usize, cx: f32, cy: f32, hw: usize, out: &mut [f32; WIN_N]) {
+/// Bilinear samples of `v` on the (2 hw + 1)^2 window centred at `(cx, cy)`, into rows of `L`
+/// lanes (`L` > the side): the first `2 hw + 1` lanes of the first `2 hw + 1` rows are the
+/// window's samples, those of [`sample`] at each pixel (inside the image one fractional offset
+/// serves the whole window, so its weights are computed once: the same up to how a pixel's
+/// coordinate rounds).
+/// Inside the image all `L` lanes of a row are interpolated at once (lanes past the side hold
+/// samples of pixels beyond the window, or zero near the right edge; the caller ignores them);
+/// a window that touches the border is sampled with clamping, the clamped columns and rows
+/// computed once per window.
+#[inline(always)]
+fn window_rows<const L: usize>(
+    v: &[f32],
+    w: usize,
+    h: usize,
+    cx: f32,
+    cy: f32,
+    hw: usize,
+    out: &mut Rows<L>,
+) {
     let side = 2 * hw + 1;
     let (x, y) = (cx - hw as f32, cy - hw as f32);
     if x >= 0.0 && y >= 0.0 && (x as usize) + side < w && (y as usize) + side < h {
         let (x0, y0) = (x as usize, y as usize);
         let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-        match side {
-            7 => window_inside::<7>(v, w, x0, y0, fx, fy, out),
-            9 => window_inside::<9>(v, w, x0, y0, fx, fy, out),
-            _ => {
-                // Each of the side + 1 image rows interpolated across once, then the rows down.
-                let mut across = [0.0f32; WIN_N + 2 * HALF_WIN as usize + 1];
-                for r in 0..=side {
-                    let row = &v[(y0 + r) * w + x0..(y0 + r) * w + x0 + side + 1];
-                    for c in 0..side {
-                        across[r * side + c] = row[c] * (1.0 - fx) + row[c + 1] * fx;
-                    }
-                }
-                for r in 0..side {
-                    for c in 0..side {
-                        let (a, b) = (across[r * side + c], across[(r + 1) * side + c]);
-                        out[r * side + c] = a * (1.0 - fy) + b * fy;
-                    }
-                }
+        let mut across = [[0.0f32; L]; 2 * HALF_WIN as usize + 2];
+        let mut near_edge = [0.0f32; 2 * 16 + 1];
+        for (r, acc) in across.iter_mut().enumerate().take(side + 1) {
+            let start = (y0 + r) * w + x0;
+            let src: &[f32] = if x0 + L < w {
+                &v[start..start + L + 1]
+            } else {
+                near_edge[..side + 1].copy_from_slice(&v[start..start + side + 1]);
+                &near_edge[..L + 1]
+            };
+            let left: &[f32; L] = src[..L].try_into().unwrap();
+            let right: &[f32; L] = src[1..L + 1].try_into().unwrap();
+            for c in 0..L {
+                acc[c] = left[c] * (1.0 - fx) + right[c] * fx;
+            }
+        }
+        for r in 0..side {
+            let (a, b) = (&across[r], &across[r + 1]);
+            for c in 0..L {
+                out[r][c] = a[c] * (1.0 - fy) + b[c] * fy;
             }
         }
     } else {
-        for r in 0..side {
-            for c in 0..side {
-                out[r * side + c] = sample(v, w, h, x + c as f32, y + r as f32);
+        // [`sample`] per pixel, its clamping and weights per column and per row.
+        let clamp = |t: f32, n: usize| {
+            let t = t.clamp(0.0, (n - 1) as f32);
+            let i = t as usize;
+            (i, (i + 1).min(n - 1), t - i as f32)
+        };
+        let mut cols = [(0usize, 0usize, 0.0f32); 2 * HALF_WIN as usize + 1];
+        for (c, col) in cols.iter_mut().enumerate().take(side) {
+            *col = clamp(x + c as f32, w);
+        }
+        for (r, row) in out.iter_mut().enumerate().take(side) {
+            let (y0, y1, fy) = clamp(y + r as f32, h);
+            *row = [0.0; L];
+            for (o, &(x0, x1, fx)) in row.iter_mut().zip(&cols[..side]) {
+                let a = v[y0 * w + x0] * (1.0 - fx) + v[y0 * w + x1] * fx;
+                let b = v[y1 * w + x0] * (1.0 - fx) + v[y1 * w + x1] * fx;
+                *o = a * (1.0 - fy) + b * fy;
             }
-        }
-    }
-}
-
-/// [`window`] inside the image for a side `S` known at compile time (the prior's 7, the classic
-/// 9): the same arithmetic, element by element, with the bounds checked once per row so that the
-/// compiler can vectorise it (no fused multiply-add: the result is bit-identical).
-fn window_inside<const S: usize>(
-    v: &[f32],
-    w: usize,
-    x0: usize,
-    y0: usize,
-    fx: f32,
-    fy: f32,
-    out: &mut [f32; WIN_N],
-) {
-    let mut across = [[0.0f32; S]; 2 * HALF_WIN as usize + 2];
-    for (r, acc) in across.iter_mut().enumerate().take(S + 1) {
-        let start = (y0 + r) * w + x0;
-        let left: &[f32; S] = v[start..start + S].try_into().unwrap();
-        let right: &[f32; S] = v[start + 1..start + 1 + S].try_into().unwrap();
-        for c in 0..S {
-            acc[c] = left[c] * (1.0 - fx) + right[c] * fx;
-        }
-    }
-    for r in 0..S {
-        let dst: &mut [f32; S] = (&mut out[r * S..r * S + S]).try_into().unwrap();
-        let (a, b) = (&across[r], &across[r + 1]);
-        for c in 0..S {
-            dst[c] = a[c] * (1.0 - fy) + b[c] * fy;
         }
     }
 }
@@ -532,17 +618,36 @@ pub fn fit_homography(src: &[(f32, f32)], dst: &[(f32, f32)]) -> Option<(Mat3, u
 /// `f_m` = fraction landing inside the reference, `f_u` = fraction of the reference's pixels hit;
 /// returns `(tau, f_m, f_u)` with `tau = 1 - min(f_m, f_u)`. `hit` is scratch space.
 pub fn raster_tau(h_cur_to_ref: &Mat3, w: usize, h: usize, hit: &mut Vec<bool>) -> (f64, f64, f64) {
+    #[cfg(target_arch = "x86_64")]
+    if crate::preprocess::has_avx2() {
+        // SAFETY: the CPU has AVX2 and FMA (checked just above).
+        return unsafe { raster_tau_avx2(h_cur_to_ref, w, h, hit) };
+    }
+    raster_tau_body(h_cur_to_ref, w, h, hit)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn raster_tau_avx2(m: &Mat3, w: usize, h: usize, hit: &mut Vec<bool>) -> (f64, f64, f64) {
+    raster_tau_body(m, w, h, hit)
+}
+
+/// [`raster_tau`]: each row's pixels mapped first (the same arithmetic for every pixel, which
+/// the compiler vectorises), then counted.
+#[inline(always)]
+fn raster_tau_body(m: &Mat3, w: usize, h: usize, hit: &mut Vec<bool>) -> (f64, f64, f64) {
     let total = w * h;
     if total == 0 {
         return (1.0, 0.0, 0.0);
     }
     hit.clear();
     hit.resize(total, false);
-    let m = h_cur_to_ref;
     let (mut inside, mut distinct) = (0usize, 0usize);
     // round(u) lands in 0..w exactly when -0.5 < u < w - 0.5, and is then (u + 0.5) truncated
     // (no libm rounding call per pixel; a NaN fails the comparisons).
     let (wl, hl) = (w as f64 - 0.5, h as f64 - 0.5);
+    let xs: Vec<f64> = (0..w).map(|x| x as f64).collect();
+    let (mut us, mut vs) = (vec![0.0f64; w], vec![0.0f64; w]);
     for y in 0..h {
         let yf = y as f64;
         let (bx, by, bz) = (
@@ -550,15 +655,15 @@ pub fn raster_tau(h_cur_to_ref: &Mat3, w: usize, h: usize, hit: &mut Vec<bool>) 
             m[1][1] * yf + m[1][2],
             m[2][1] * yf + m[2][2],
         );
-        for x in 0..w {
-            let xf = x as f64;
+        for ((&xf, u), v) in xs.iter().zip(us.iter_mut()).zip(vs.iter_mut()) {
             let z = m[2][0] * xf + bz;
-            if z <= 1e-9 {
-                continue;
-            }
             let r = 1.0 / z;
-            let u = (m[0][0] * xf + bx) * r;
-            let v = (m[1][0] * xf + by) * r;
+            // Behind the camera (z <= 1e-9): a NaN, which lands nowhere.
+            let r = if z > 1e-9 { r } else { f64::NAN };
+            *u = (m[0][0] * xf + bx) * r;
+            *v = (m[1][0] * xf + by) * r;
+        }
+        for (&u, &v) in us.iter().zip(&vs) {
             if u > -0.5 && v > -0.5 && u < wl && v < hl {
                 inside += 1;
                 let k = (v + 0.5) as usize * w + (u + 0.5) as usize;
@@ -916,34 +1021,76 @@ mod tests {
         assert!(fit_homography(&src[..5], &dst[..5]).is_none());
     }
 
-    /// Inside the image, every window side (the vectorised 7 and 9 and the general path) gives
-    /// exactly the bilinear sample of each pixel that the border path takes.
+    /// Every window side, inside the image, near its right edge (fewer pixels than lanes left)
+    /// and across the border, gives the bilinear sample of each pixel (up to how the pixel's
+    /// coordinate rounds); the lanes past the side are ignored by the tracker.
     #[test]
-    fn windows_inside_equal_their_bilinear_samples_exactly() {
-        let img = texture(&rot(7.0));
-        let mut out = [0.0f32; WIN_N];
-        for hw in 1..=4usize {
+    fn window_rows_equal_their_bilinear_samples_exactly() {
+        fn check<const L: usize>(img: &[f32], hw: usize) {
             let side = 2 * hw + 1;
+            let mut out = [[0.0f32; L]; 2 * HALF_WIN as usize + 1];
             for &(cx, cy) in &[
                 (20.3f32, 17.71f32),
                 (80.0, 60.0),
                 (141.9, 100.05),
                 (9.5, 9.25),
+                ((W - hw - 2) as f32 + 0.4, 30.6),
+                (2.2, 3.7),
+                (W as f32 - 1.5, H as f32 - 0.2),
+                (-6.0, 50.5),
             ] {
-                window(&img, W, H, cx, cy, hw, &mut out);
+                window_rows::<L>(img, W, H, cx, cy, hw, &mut out);
                 let (x, y) = (cx - hw as f32, cy - hw as f32);
-                for r in 0..side {
-                    for c in 0..side {
-                        let want = sample(&img, W, H, x + c as f32, y + r as f32);
-                        assert_eq!(
-                            out[r * side + c].to_bits(),
-                            want.to_bits(),
-                            "hw {hw} at ({cx}, {cy}), [{r}][{c}]"
+                for (r, row) in out.iter().enumerate().take(side) {
+                    for (c, &got) in row.iter().enumerate().take(side) {
+                        let want = sample(img, W, H, x + c as f32, y + r as f32);
+                        assert!(
+                            (got - want).abs() <= 1e-5 * want.abs().max(1.0),
+                            "hw {hw}, {L} lanes, at ({cx}, {cy}), [{r}][{c}]: {got} against {want}"
                         );
                     }
                 }
             }
         }
+        let img = texture(&rot(7.0));
+        for hw in 1..=3usize {
+            check::<8>(&img, hw);
+        }
+        for hw in 1..=4usize {
+            check::<16>(&img, hw);
+        }
+    }
+
+    /// The AVX2 build of the prior's tracker and the plain one give the same points, bit for bit.
+    #[test]
+    fn the_avx2_tracker_tracks_exactly_as_the_plain_one() {
+        let a = Pyramid::new(texture(&IDENTITY), W, H);
+        let b = Pyramid::new(texture(&rot(3.0)), W, H);
+        let mut n = 0;
+        for p in grid(W, H, 12, 9) {
+            let plain = track_lanes::<8, false>(&a, &b, p, &LK_PRIOR, 3);
+            let q = track_with(&a, &b, p, &LK_PRIOR);
+            let bits = |q: Option<(f32, f32)>| q.map(|q| (q.0.to_bits(), q.1.to_bits()));
+            assert_eq!(bits(plain), bits(q), "{p:?}");
+            n += plain.is_some() as usize;
+        }
+        assert!(n > 80, "{n} of 108 points tracked");
+    }
+
+    /// The AVX2 build of the raster score and the plain one count the same pixels, also for maps
+    /// that put part of the frame behind the camera.
+    #[test]
+    fn the_avx2_raster_score_equals_the_plain_one() {
+        let (mut h1, mut h2) = (Vec::new(), Vec::new());
+        let tilt = [[1.0, 0.05, 3.0], [0.02, 0.97, -2.0], [0.004, -0.003, 1.0]];
+        let behind = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-0.02, 0.0, 1.0]];
+        for m in [IDENTITY, rot(9.0), shift(-7.5, 3.25), tilt, behind] {
+            let a = raster_tau(&m, 80, 60, &mut h1);
+            let b = raster_tau_body(&m, 80, 60, &mut h2);
+            assert_eq!(a, b, "{m:?}");
+        }
+        let (_, fm, _) = raster_tau(&behind, 80, 60, &mut h1);
+        assert!(fm > 0.2 && fm < 0.9, "{fm}");
     }
 
     #[test]

@@ -7,6 +7,7 @@
 //! to [0,1], then `(x - mean) / std` per channel.
 
 mod kernels;
+pub(crate) use kernels::has_avx2;
 use kernels::*;
 
 /// Pixel formats accepted by the element (its caps list exactly these, in this order of

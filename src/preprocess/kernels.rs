@@ -172,7 +172,7 @@ pub(super) fn make_passes(format: PixelFormat, x_taps: &[Taps], y_taps: &[Taps])
     passes
 }
 
-pub(super) fn has_avx2() -> bool {
+pub(crate) fn has_avx2() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
