@@ -313,6 +313,34 @@ fn lane_sum<const L: usize>(v: &[f32; L]) -> f32 {
     v.iter().sum()
 }
 
+/// The sum of `x · y` over a window's first `side` rows and lanes: lane by lane, the lanes added
+/// at the end (lanes past the side must be zero in `x` or `y`), or (`SEQUENTIAL`) sample by
+/// sample in row order.
+#[inline(always)]
+fn window_dot<const L: usize, const SEQUENTIAL: bool>(
+    x: &Rows<L>,
+    y: &Rows<L>,
+    side: usize,
+) -> f32 {
+    if SEQUENTIAL {
+        let mut s = 0.0f32;
+        for (xr, yr) in x.iter().zip(y).take(side) {
+            for (a, b) in xr[..side].iter().zip(&yr[..side]) {
+                s += a * b;
+            }
+        }
+        s
+    } else {
+        let mut s = [0.0f32; L];
+        for (xr, yr) in x.iter().zip(y).take(side) {
+            for c in 0..L {
+                s[c] += xr[c] * yr[c];
+            }
+        }
+        lane_sum(&s)
+    }
+}
+
 /// The tracker of [`track_with`] on windows of `L` lanes. `SEQUENTIAL`: each window's sums
 /// added sample by sample in row order instead of lane by lane, as for the wider windows of
 /// [`LK_CLASSIC`] (the `motion` baseline of `leangate eval`, whose budget search moves its keeps
@@ -328,7 +356,7 @@ fn track_lanes<const L: usize, const SEQUENTIAL: bool>(
     let side = 2 * hw + 1;
     let mut d = (0.0f32, 0.0f32);
     let zero = [[0.0f32; L]; 2 * HALF_WIN as usize + 1];
-    let (mut ti, mut tgx, mut tgy, mut cur) = (zero, zero, zero, zero);
+    let (mut ti, mut tgx, mut tgy, mut cur, mut diff) = (zero, zero, zero, zero, zero);
     for l in (0..a.levels.len().min(b.levels.len())).rev() {
         let la = &a.levels[l];
         let lb = &b.levels[l];
@@ -345,54 +373,24 @@ fn track_lanes<const L: usize, const SEQUENTIAL: bool>(
             tgx[r][side..].fill(0.0);
             tgy[r][side..].fill(0.0);
         }
-        let (gxx, gxy, gyy) = if SEQUENTIAL {
-            let (mut gxx, mut gxy, mut gyy) = (0.0f32, 0.0f32, 0.0f32);
-            for r in 0..side {
-                for c in 0..side {
-                    gxx += tgx[r][c] * tgx[r][c];
-                    gxy += tgx[r][c] * tgy[r][c];
-                    gyy += tgy[r][c] * tgy[r][c];
-                }
-            }
-            (gxx, gxy, gyy)
-        } else {
-            let (mut sxx, mut sxy, mut syy) = ([0.0f32; L], [0.0f32; L], [0.0f32; L]);
-            for r in 0..side {
-                for c in 0..L {
-                    sxx[c] += tgx[r][c] * tgx[r][c];
-                    sxy[c] += tgx[r][c] * tgy[r][c];
-                    syy[c] += tgy[r][c] * tgy[r][c];
-                }
-            }
-            (lane_sum(&sxx), lane_sum(&sxy), lane_sum(&syy))
-        };
+        let dot = window_dot::<L, SEQUENTIAL>;
+        let (gxx, gxy, gyy) = (
+            dot(&tgx, &tgx, side),
+            dot(&tgx, &tgy, side),
+            dot(&tgy, &tgy, side),
+        );
         let det = gxx * gyy - gxy * gxy;
         if det.is_nan() || det < 1e-3 * (gxx + gyy).max(1e-6) || gxx + gyy < 1.0 {
             return None;
         }
         for _ in 0..lk.iters {
             window_rows::<L>(&lb.img, lb.w, lb.h, px + d.0, py + d.1, hw, &mut cur);
-            let (bx, by) = if SEQUENTIAL {
-                let (mut bx, mut by) = (0.0f32, 0.0f32);
-                for r in 0..side {
-                    for c in 0..side {
-                        let diff = ti[r][c] - cur[r][c];
-                        bx += diff * tgx[r][c];
-                        by += diff * tgy[r][c];
-                    }
+            for (dr, (tr, cr)) in diff.iter_mut().zip(ti.iter().zip(&cur)).take(side) {
+                for c in 0..L {
+                    dr[c] = tr[c] - cr[c];
                 }
-                (bx, by)
-            } else {
-                let (mut sx, mut sy) = ([0.0f32; L], [0.0f32; L]);
-                for r in 0..side {
-                    for c in 0..L {
-                        let diff = ti[r][c] - cur[r][c];
-                        sx[c] += diff * tgx[r][c];
-                        sy[c] += diff * tgy[r][c];
-                    }
-                }
-                (lane_sum(&sx), lane_sum(&sy))
-            };
+            }
+            let (bx, by) = (dot(&diff, &tgx, side), dot(&diff, &tgy, side));
             let dx = (gyy * bx - gxy * by) / det;
             let dy = (gxx * by - gxy * bx) / det;
             d = (d.0 + dx, d.1 + dy);
