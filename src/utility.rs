@@ -72,10 +72,11 @@ pub struct Utility {
     /// The model's score of the last observed frame, once composed (against the current
     /// reference).
     score: Option<f64>,
-    /// The model's score of the frame observed before the last one, against the same reference
-    /// (None: that frame was not scored, or the reference changed since): what the screening with
-    /// [`Fusion::s_step`] starts from.
-    previous_score: Option<f64>,
+    /// The model's last score before the last observed frame, against the same reference, and
+    /// how many frames before it that score was given (1: the frame just before). None: no
+    /// frame was scored since the reference was set, or an unreadable frame came since. What the
+    /// screening with [`Fusion::s_step`] starts from.
+    last_score: Option<(f64, u32)>,
 }
 
 impl Utility {
@@ -94,7 +95,7 @@ impl Utility {
             recent: std::collections::VecDeque::new(),
             broken_bound: None,
             score: None,
-            previous_score: None,
+            last_score: None,
         }
     }
 
@@ -202,7 +203,11 @@ impl Utility {
         has_reference: bool,
         enabled: bool,
     ) {
-        self.previous_score = self.score.take();
+        self.last_score = match (self.score.take(), self.last_score) {
+            (Some(s), _) => Some((s, 1)),
+            (None, Some((s, k))) => Some((s, k.saturating_add(1))),
+            (None, None) => None,
+        };
         self.observe_frame(frame, has_reference, enabled);
         if self.recent.len() > crate::policy::MAX_LOOKBACK as usize {
             self.recent.pop_front();
@@ -223,6 +228,7 @@ impl Utility {
         self.sharpness = None;
         let Some((tensor, spec)) = frame else {
             self.tracker.clear();
+            self.last_score = None;
             return;
         };
         let geometry = self.uses_geometry(enabled);
@@ -231,7 +237,7 @@ impl Utility {
             return;
         }
         if !has_reference {
-            self.previous_score = None;
+            self.last_score = None;
         }
         let (w, h) = (spec.width as usize, spec.height as usize);
         let grey = grey_from_tensor(tensor, w, h, spec.mean, spec.std);
@@ -278,14 +284,14 @@ impl Utility {
     /// - no model score could lift the fused utility to `threshold` ([`Fusion::upper`] is below
     ///   it): the decision is the one any score would have given (the gate keeps a frame on its
     ///   score only when the utility reaches the threshold); or
-    /// - the model carries a score step ([`Fusion::s_step`], `leangate.score_step`), scored the
-    ///   frame just before this one against the same reference, and that score plus the step
-    ///   could not lift it ([`Fusion::upper_below`]). The step is a rule, not a bound: where the
-    ///   score rises more than it on a frame whose utility reaches the threshold, that frame is
-    ///   dropped and the keep goes to the next frame that reaches it (the next one while the
-    ///   utility keeps rising; later, or not at all, after a short peak). Never two frames in a
-    ///   row: a frame screened this way has no score, so the next one is scored (or screened by
-    ///   the first rule).
+    /// - the model carries a score step ([`Fusion::s_step`], `leangate.score_step`), scored a
+    ///   frame `k` frames before this one against the same reference, and that score plus `k`
+    ///   steps could not lift it ([`Fusion::upper_below`]): one step per frame since, so the
+    ///   rule loosens each frame until it is the first rule's (the model's top score) and the
+    ///   model runs again. The step is a rule, not a bound: where the score rises more than it
+    ///   on a frame whose utility reaches the threshold, that frame is dropped and the keep goes
+    ///   to the next frame that reaches it (the next one while the utility keeps rising; later,
+    ///   or not at all, after a short peak).
     ///
     /// Then the bound stands for the frame's utility and the model need not run. (A model that
     /// would have failed on the frame, which keeps it, is not asked.)
@@ -296,7 +302,8 @@ impl Utility {
         if up < threshold {
             return Some(up);
         }
-        let cap = self.previous_score? + f.s_step?;
+        let (s, k) = self.last_score?;
+        let cap = s + f.s_step? * f64::from(k);
         let up = self.corrected(f.upper_below(g, cap));
         (up < threshold).then_some(up)
     }
@@ -335,7 +342,7 @@ impl Utility {
     pub fn on_keep(&mut self) {
         self.tracker.set_reference();
         self.tau = None;
-        (self.score, self.previous_score) = (None, None);
+        (self.score, self.last_score) = (None, None);
         if let Some(last) = self.recent.back_mut() {
             *last = self.tracker.chain();
         }
@@ -351,7 +358,7 @@ impl Utility {
             .flatten();
         self.tracker.rebase(at);
         self.tau = None;
-        (self.score, self.previous_score) = (None, None);
+        (self.score, self.last_score) = (None, None);
         // What the remembered frames' chains were measured from is gone.
         let n = self.recent.len();
         for (i, h) in self.recent.iter_mut().enumerate() {
@@ -363,7 +370,7 @@ impl Utility {
     pub fn clear(&mut self) {
         self.tracker.clear();
         self.tau = None;
-        (self.score, self.previous_score) = (None, None);
+        (self.score, self.last_score) = (None, None);
         self.recent.clear();
     }
 }
@@ -579,7 +586,7 @@ mod tests {
     }
 
     #[test]
-    fn a_score_step_screens_the_frame_after_a_low_score_never_two_in_a_row() {
+    fn a_score_step_screens_the_frames_after_a_low_score_one_step_per_frame() {
         let f = "raster-homography-v1: 0.121524, 0.698698, 0, 0.25";
         let (mut exact, mut step) = (referenced(f), referenced(f));
         exact.fusion = exact.fusion.map(|f| f.with_score_max(0.878));
@@ -590,6 +597,8 @@ mod tests {
         let low = || Ok::<_, ()>(0.1);
         // What each frame of a pan was: e(xactly screened), s(cored), t (screened by the step).
         let mut pattern = String::new();
+        // Frames since the step instance's last score.
+        let mut since = 0u32;
         for k in 1..=44 {
             let pic = frame(2.0 * k as f32);
             exact.observe(Some((&pic, &sp)), true, true);
@@ -608,25 +617,31 @@ mod tests {
                     },
                     Composed::Screened(b),
                 ) => {
-                    assert!(pattern.ends_with('s'), "step {k}: {pattern}");
-                    // Below the threshold, and above what any score up to 0.1 + 0.15 gives.
+                    assert!(pattern.contains('s'), "step {k}: {pattern}");
+                    // Below the threshold, and above what any score up to 0.1 plus one step
+                    // per frame since the last score gives.
+                    let cap = 0.1 + 0.15 * f64::from(since + 1);
                     let g = tau_geo.unwrap();
                     let fusion = step.fusion().unwrap();
                     assert!(b < 0.5 && utility <= b, "step {k}: {utility} vs {b}");
-                    for sc in [0.0, 0.1, 0.2, 0.25] {
+                    for sc in [0.0, 0.1, cap - 0.01, cap] {
                         assert!(fusion.fuse(sc, Some(g)) <= b + 1e-12, "step {k} score {sc}");
                     }
-                    assert!(fusion.fuse(0.26, Some(g)) > b, "step {k}: tight");
+                    assert!(fusion.fuse(cap + 0.01, Some(g)) > b, "step {k}: tight");
                     't'
                 }
                 other => panic!("step {k}: {other:?}"),
             });
+            since = match pattern.chars().last() {
+                Some('s') => 0,
+                _ => since + 1,
+            };
         }
-        // Small pans are screened exactly; then every other frame by the step, the one after
-        // a scored one; once the prior alone nearly reaches 0.5, every frame is scored.
+        // Small pans are screened exactly; then by the step, one step more on each frame after
+        // a scored one (two frames in a row here), until the model runs again; once the prior
+        // alone nearly reaches 0.5, every frame is scored.
         assert!(pattern.starts_with("eeeeeeee"), "{pattern}");
-        assert!(pattern.contains("ststst"), "{pattern}");
-        assert!(!pattern.contains("tt"), "{pattern}");
+        assert!(pattern.contains("stts"), "{pattern}");
         assert!(pattern.ends_with("ss"), "{pattern}");
         // A score that the step lifts past the model's top (0.75 + 0.15 > 0.878): the step
         // screens nothing more than the exact bound.
@@ -645,12 +660,12 @@ mod tests {
         step.on_keep();
         let pic = frame(90.0);
         step.observe(Some((&pic, &sp)), true, true);
-        assert!(step.previous_score.is_none());
+        assert!(step.last_score.is_none());
         // An unreadable frame: the frame after it has no previous score either.
         step.compose(0.1, true);
         step.observe(None, true, true);
         step.observe(Some((&pic, &sp)), true, true);
-        assert!(step.previous_score.is_none());
+        assert!(step.last_score.is_none());
     }
 
     #[test]

@@ -3,9 +3,11 @@ against the same reference, and (with --write) put it into the shipped models.
 
 The element's screening (src/utility.rs, `Utility::screen`) skips the student on a frame when no
 score it could give would lift the fused utility to the threshold. Without this key it assumes
-any score up to `leangate.score_max`. With it, on a frame right after one the student scored
-against the same reference, it assumes a score up to that score plus `leangate.score_step`, so
-the prior alone decides more frames; the next frame is always scored. A rise larger than the
+any score up to `leangate.score_max`. With it, k frames after one the student scored against
+the same reference, it assumes a score up to that score plus k times `leangate.score_step`, so
+the prior alone decides more frames, each frame with one step more until the student runs again
+(the step is measured from one frame to the next, and k steps cover any rise over k frames
+that stays within a step per frame). A rise larger than the
 step on a frame whose utility reaches the threshold drops that frame, and the keep goes to the next
 frame that reaches it (the next one while the utility keeps rising; later after a short peak).
 

@@ -373,9 +373,9 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
         glib::ParamSpecDouble::builder("screen-step")
             .nick("Screening step")
             .blurb(
-                "With screen: on a frame right after one the model scored against the same \
-                 reference, also skip the model when that score plus this step could not \
-                 lift the fused utility to the threshold (never two frames in a row). A \
+                "With screen: k frames after one the model scored against the same \
+                 reference, also skip the model when that score plus k times this step could \
+                 not lift the fused utility to the threshold. A \
                  rule, not a bound: where the score rises more than the step on a frame \
                  whose utility reaches the threshold, that frame is dropped and the keep \
                  goes to the next frame that reaches it. \
