@@ -79,6 +79,30 @@ fn broken_models_are_refused_at_start_naming_model_and_problem() {
 }
 
 #[test]
+fn a_model_path_that_is_not_a_regular_file_is_refused_at_start_without_reading_it() {
+    // Opening a FIFO blocks until something writes to it: the element used to hang at start,
+    // beyond the reach of a state change. A device is no model either.
+    let dir = tempfile::tempdir().unwrap();
+    let fifo = dir.path().join("model.onnx");
+    let made = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .expect("mkfifo runs");
+    assert!(made.success());
+    for path in [fifo.display().to_string(), "/dev/zero".to_string()] {
+        let msgs = run_pipeline(
+            &format!(
+                "videotestsrc num-buffers=3 ! video/x-raw,width=32,height=32 ! leangate model=\"{path}\" ! fakesink"
+            ),
+            30,
+        );
+        let e = error_text(&msgs).unwrap_or_else(|| panic!("{path} must be refused at start"));
+        assert!(e.contains(&path), "the error names the path: {e}");
+        assert!(e.contains("not a regular file"), "{path}: {e}");
+    }
+}
+
+#[test]
 fn head_symlink_out_of_the_folder_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let inner = dir.path().join("model");

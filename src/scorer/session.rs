@@ -35,6 +35,13 @@ pub(super) fn check_model_file(p: &Path) -> Result<(), ScorerError> {
     if md.is_dir() {
         return Err(err("it is a directory".into()));
     }
+    // Opening a FIFO blocks until something writes to it, and a device reads as endless or empty
+    // bytes: only a regular file (or a link to one) can be a model.
+    if !md.is_file() {
+        return Err(err(
+            "it is not a regular file (a FIFO, a device or a socket)".into(),
+        ));
+    }
     // Readable? (ONNX Runtime's own message for an unreadable file is less clear.)
     std::fs::File::open(p).map_err(|e| err(e.to_string()))?;
     if md.len() == 0 {
