@@ -1205,3 +1205,18 @@ fn a_flood_of_feedback_from_another_thread_neither_hangs_nor_floods_the_bus() {
     assert!((1..=5).contains(&w), "rate-limited warnings, got {w}");
     assert!(seen.lock().unwrap().iter().all(|o| (0.0..=0.3).contains(o)));
 }
+
+#[test]
+fn caps_the_preprocessing_cannot_take_are_an_error_naming_why() {
+    // Wider than the preprocessing takes: before, only upstream's "not-negotiated" reached the
+    // bus, and the reason stayed in the debug log.
+    let msgs = run_pipeline(
+        "videotestsrc num-buffers=2 ! video/x-raw,format=GRAY8,width=32769,height=2 ! leangate ! fakesink",
+        30,
+    );
+    let e = error_text(&msgs).expect("an error");
+    assert!(
+        e.contains("32769x2") && e.contains("too large") && e.contains("at most 32768"),
+        "{e}"
+    );
+}

@@ -830,14 +830,26 @@ impl BaseTransformImpl for LeanGate {
             .as_mut()
             .ok_or_else(|| gst::loggable_error!(CAT, "caps set before start"))?;
         let yuv = YuvMatrix::from_colorimetry(&info.colorimetry(), info.height());
-        let pre = Preprocessor::new(
+        let pre = match Preprocessor::new(
             format,
             info.width(),
             info.height(),
             yuv,
             state.scorer.info().spec.clone(),
-        )
-        .map_err(|e| gst::loggable_error!(CAT, "{e}"))?;
+        ) {
+            Ok(pre) => pre,
+            Err(e) => {
+                // Said on the bus (the state lock released first), so that the application sees
+                // why, not only upstream's "not-negotiated".
+                drop(guard);
+                gst::element_imp_error!(
+                    self,
+                    gst::StreamError::Format,
+                    ("cannot gate frames of caps {incaps}: {e}")
+                );
+                return Err(gst::loggable_error!(CAT, "{e}"));
+            }
+        };
         gst::debug!(CAT, imp = self, "configured for {incaps}");
         let fps = info.fps();
         let frame_ns = if fps.numer() > 0 && fps.denom() > 0 {
