@@ -332,13 +332,15 @@ impl Gate {
             }
         };
         // A keep due on score (now, or settling since an earlier frame) with a look-back: it
-        // settles `sharpness_wait` frames later, on the sharpest frame held.
+        // settles `sharpness_wait` frames later, on the sharpest frame held. Never past
+        // `max_gap` drops: a keep due then is made now (or goes back), not deferred.
         let due = reason == Some(Reason::Score) || (reason.is_none() && self.waited > 0);
+        let gap_due = self.cfg.max_gap > 0 && self.since_keyframe >= self.cfg.max_gap;
         if due && lookback > 0 {
             if let (Some(s), Some((p, b))) = (sharpness, self.sharpest_candidate()) {
                 let cap = settle_cap(self.cfg.threshold);
                 let near_late = matches!(score, Score::Utility(u) if u >= cap);
-                if self.waited < self.cfg.sharpness_wait && !near_late {
+                if self.waited < self.cfg.sharpness_wait && !near_late && !gap_due {
                     return self.settle_later(position, s);
                 }
                 if s < LOOKBACK_RATIO * b {
@@ -358,7 +360,7 @@ impl Gate {
             let blurred = sharpness
                 .zip(best)
                 .is_some_and(|(s, b)| s < SHARPER_RATIO * b);
-            if blurred && self.waited < self.cfg.sharpness_wait {
+            if blurred && self.waited < self.cfg.sharpness_wait && !gap_due {
                 reason = None;
                 deferred = true;
                 self.waited += 1;
@@ -533,6 +535,45 @@ mod tests {
         let kept: Vec<_> = out.iter().map(|o| o.0).collect();
         assert_eq!(kept, vec![true, false, false, true, false, false, true]);
         assert_eq!(out[3].1, Reason::MaxGap);
+    }
+
+    #[test]
+    fn a_keep_waiting_for_a_sharper_frame_never_outlasts_max_gap() {
+        // max-gap 3 with a long wait, with and without a look-back: a keep due on a blurred
+        // frame is deferred only while fewer than max-gap frames were dropped; at the gap it is
+        // made (or goes back to a sharper held frame), so no run of drops exceeds 3.
+        for lookback in [0, 5] {
+            let mut g = Gate::new(GateConfig {
+                max_gap: 3,
+                sharpness_wait: 5,
+                sharpness_lookback: lookback,
+                ..Default::default()
+            });
+            let (mut run, mut longest) = (0u64, 0u64);
+            for k in 0..60u64 {
+                // Sharp frames that never reach the threshold, then blurred ones that do.
+                let (u, sharp) = if k % 8 < 2 { (0.1, 100.0) } else { (0.9, 10.0) };
+                let score = if k == 0 {
+                    Score::NoReference
+                } else {
+                    Score::Utility(u)
+                };
+                let d = g.decide_with(score, Some(sharp));
+                if d.kept_back > 0 {
+                    // The keep went back: the drops since that frame are the run now.
+                    run = d.kept_back;
+                } else if d.keep {
+                    run = 0;
+                } else {
+                    run += 1;
+                }
+                longest = longest.max(run);
+            }
+            assert!(
+                longest <= 3,
+                "look-back {lookback}: {longest} drops in a row"
+            );
+        }
     }
 
     #[test]
