@@ -368,7 +368,11 @@ impl Gate {
                 reason = Some(Reason::Score);
             }
         }
-        self.remember_sharpness(sharpness);
+        // The frames a keep waits through are not the baseline they are compared with: a run of
+        // blurred frames must not become the measure of what is sharp.
+        if !deferred {
+            self.remember_sharpness(sharpness);
+        }
         self.frames_since_restart = self.frames_since_restart.saturating_add(1);
         match reason {
             Some(reason) => {
@@ -535,6 +539,31 @@ mod tests {
         let kept: Vec<_> = out.iter().map(|o| o.0).collect();
         assert_eq!(kept, vec![true, false, false, true, false, false, true]);
         assert_eq!(out[3].1, Reason::MaxGap);
+    }
+
+    #[test]
+    fn a_long_wait_compares_with_the_frames_before_the_due_keep_not_the_blurred_run() {
+        // sharpness-wait 30: four blurred frames reach the threshold after three sharp ones.
+        // The keep waits through all four (they were the baseline of "sharp" once three of them
+        // had entered it) and goes to the first sharp frame.
+        let mut g = Gate::new(GateConfig {
+            sharpness_wait: 30,
+            ..Default::default()
+        });
+        assert!(g.decide_with(Score::NoReference, Some(100.0)).keep);
+        for _ in 0..3 {
+            assert!(!g.decide_with(Score::Utility(0.1), Some(100.0)).keep);
+        }
+        for k in 0..4 {
+            let d = g.decide_with(Score::Utility(0.9), Some(10.0));
+            assert_eq!(
+                (d.keep, d.reason),
+                (false, Reason::Deferred),
+                "blurred frame {k}"
+            );
+        }
+        let d = g.decide_with(Score::Utility(0.9), Some(100.0));
+        assert_eq!((d.keep, d.reason), (true, Reason::Score));
     }
 
     #[test]
