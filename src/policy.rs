@@ -245,7 +245,13 @@ impl Gate {
         !self.has_reference
             || self.force_next
             || self.frames_since_restart < self.cfg.warmup
-            || (self.cfg.max_gap > 0 && self.since_keyframe >= self.cfg.max_gap)
+            || self.gap_reached()
+    }
+
+    /// Whether `max_gap` drops in a row were made since the last keep: the next frame is kept
+    /// (`max-gap`), or, when a keep is due on its score, kept without waiting for a sharper one.
+    fn gap_reached(&self) -> bool {
+        self.cfg.max_gap > 0 && self.since_keyframe >= self.cfg.max_gap
     }
 
     /// Forget the reference: the next frame is kept as `first`. Warm-up is not restarted.
@@ -325,9 +331,7 @@ impl Gate {
                 Score::Failed => Some(Reason::Error),
                 Score::Utility(u) if !u.is_finite() => Some(Reason::Error),
                 Score::Utility(u) if u >= self.cfg.threshold => Some(Reason::Score),
-                _ if self.cfg.max_gap > 0 && self.since_keyframe >= self.cfg.max_gap => {
-                    Some(Reason::MaxGap)
-                }
+                _ if self.gap_reached() => Some(Reason::MaxGap),
                 _ => None,
             }
         };
@@ -335,7 +339,7 @@ impl Gate {
         // settles `sharpness_wait` frames later, on the sharpest frame held. Never past
         // `max_gap` drops: a keep due then is made now (or goes back), not deferred.
         let due = reason == Some(Reason::Score) || (reason.is_none() && self.waited > 0);
-        let gap_due = self.cfg.max_gap > 0 && self.since_keyframe >= self.cfg.max_gap;
+        let gap_due = self.gap_reached();
         if due && lookback > 0 {
             if let (Some(s), Some((p, b))) = (sharpness, self.sharpest_candidate()) {
                 let cap = settle_cap(self.cfg.threshold);
