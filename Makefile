@@ -46,9 +46,15 @@ bench: release
 # GPU tests and benchmarks within 470 s, writes one figures file (GPU_FIGURES; default
 # $OUT/gpu-figures.md or out/gpu-figures.md). Exits 2 at once, saying so, without a GPU.
 GPU_FIGURES ?=
-.PHONY: gpu-check
+.PHONY: gpu-check gpu-bundle
 gpu-check:
 	bash scripts/gpu-check.sh $(GPU_FIGURES)
+
+# What gpu-check needs on a lent machine without Rust, GStreamer or network (docs/element.md, "The
+# GPU check on a lent machine"): the release builds, the GPU ONNX Runtime (CUDA kernels for sm_90)
+# and a minimal GStreamer, packed into .gpu-bundle/1..K, one part per call.
+gpu-bundle: setup
+	bash scripts/gpu-bundle.sh
 
 # The main job: gate a synthetic flythrough (pauses and bursts) with the element in a real
 # pipeline, print frames in/kept, write the eval plot and a contact sheet of the kept frames.

@@ -8,17 +8,27 @@
 # FIGURES: default $OUT/gpu-figures.md when $OUT is set (a lent machine's output folder), else
 # out/gpu-figures.md. The raw output of every step goes to the same name with .log for .md.
 #
+# Two ways to get what it runs:
+#   built here   (a machine with network access and Rust): setup installs, build builds;
+#   from a bundle (a lent machine: no network, no Rust, no GStreamer): scripts/gpu-bundle.sh, run
+#                where cargo and the network are, packs the builds, the GPU ONNX Runtime and a
+#                minimal GStreamer into .gpu-bundle/1..K; each part travels in one call (`carry`),
+#                and this script unpacks them when it finds .gpu-bundle/ (GPU_CHECK_BUNDLE=0: never).
+#
 # Steps (each under `timeout`, each one's pass/fail/skip written to FIGURES as soon as it ends):
 #   gpu        nvidia-smi answers (else: exit 2 at once, FIGURES says "no GPU")
-#   prereqs    cargo and python3 are there (else: fail at once, nothing else can run)
+#   prereqs    cargo and python3 are there (else: fail at once, nothing else can run); from a
+#              bundle, python3 only
 #   setup      ORT_FLAVOR=gpu scripts/setup.sh: onnxruntime-gpu==1.31.1 into .deps/onnxruntime-gpu,
-#              GStreamer's development files, .venv-triton (PyTriton) for the remote path
+#              GStreamer's development files, .venv-triton (PyTriton) for the remote path; from a
+#              bundle: scripts/gpu-bundle.sh --unpack (all parts there, checksum, unpacked)
 #   cuda-libs  the libraries ONNX Runtime's CUDA and TensorRT providers load (cuBLAS, cuDNN,
 #              cudart, cuRAND; TensorRT 10), looked up in CUDA's folders and in the nvidia-*
 #              Python packages of python3; missing ones pip-installed into .deps/cuda-py
 #              (TensorRT into .deps/trt-py, when NVIDIA's index is reachable: see pip_libs)
 #   build      cargo build (release): the plugin, benches/models.rs, benches/remote.rs,
-#              tests/scorer.rs and tests/gpu_check.rs
+#              tests/scorer.rs and tests/gpu_check.rs; from a bundle, the bundle's builds of
+#              them (and, where the machine has no GStreamer, the bundle's)
 #   tests      tests/gpu_check.rs and tests/scorer.rs on the GPU ONNX Runtime
 #              (LEANGATE_EXPECT_CUDA=1: CUDA must work; LEANGATE_EXPECT_TENSORRT=1 when TensorRT's
 #              libraries are there)
@@ -225,13 +235,25 @@ echo "===== nvidia-smi" >>"$LOG"
 timeout 10 "$SMI" >>"$LOG" 2>&1
 
 # ---- prereqs ------------------------------------------------------------------------------------
+# From a bundle (scripts/gpu-bundle.sh) when its parts are here, or it was unpacked before.
+BUNDLED=0
+if [ "${GPU_CHECK_BUNDLE:-1}" != 0 ] &&
+  { compgen -G "$ROOT/.gpu-bundle/*/index" >/dev/null || [ -f "$ROOT/target/release/gpu-bundle.txt" ]; }; then
+  BUNDLED=1
+fi
 missing=()
-for c in cargo python3 timeout; do command -v "$c" >/dev/null 2>&1 || missing+=("$c"); done
+needed="cargo python3 timeout"
+[ "$BUNDLED" = 1 ] && needed="python3 timeout"
+for c in $needed; do command -v "$c" >/dev/null 2>&1 || missing+=("$c"); done
 if ((${#missing[@]})); then
-  record prereqs fail 0 "not installed: ${missing[*]} (cargo: rustup; the check builds the plugin here)" required
+  record prereqs fail 0 "not installed: ${missing[*]} (cargo: rustup; the check builds the plugin here, or bring a bundle: scripts/gpu-bundle.sh)" required
   skip_rest "prerequisites missing" setup cuda-libs build tests scoring element remote
 fi
-record prereqs pass 0 "$(cargo --version 2>/dev/null | one_line); $(python3 --version 2>&1 | one_line)"
+if [ "$BUNDLED" = 1 ]; then
+  record prereqs pass 0 "from a bundle (.gpu-bundle, scripts/gpu-bundle.sh); $(python3 --version 2>&1 | one_line)"
+else
+  record prereqs pass 0 "$(cargo --version 2>/dev/null | one_line); $(python3 --version 2>&1 | one_line)"
+fi
 
 # ---- setup: the GPU ONNX Runtime and the rest of scripts/setup.sh ---------------------------------
 if [ -n "${LEANGATE_GPU_ORT:-}" ]; then
@@ -239,7 +261,19 @@ if [ -n "${LEANGATE_GPU_ORT:-}" ]; then
 else
   ORT_LIB=$ROOT/.deps/onnxruntime-gpu/libonnxruntime.so.$ORT_VERSION
 fi
-if [ "${GPU_CHECK_SKIP_SETUP:-0}" = 1 ]; then
+if [ "$BUNDLED" = 1 ]; then
+  if compgen -G "$ROOT/.gpu-bundle/*/index" >/dev/null; then
+    run_step setup 120 bash scripts/gpu-bundle.sh --unpack
+    SETUP_NOTE=$(grep -m1 '^gpu-bundle: unpacked' "$TMPD/setup.out" | sed 's/^gpu-bundle: //')
+    [ "$RC" = 0 ] || SETUP_NOTE="the bundle: $(why_rc setup)"
+  else
+    RC=0 DUR=0 SETUP_NOTE="the bundle unpacked before: $(head -n 1 "$ROOT/target/release/gpu-bundle.txt")"
+  fi
+  if [ "$RC" != 0 ]; then
+    record setup fail "$DUR" "$SETUP_NOTE" required
+    skip_rest "the bundle could not be unpacked" cuda-libs build tests scoring element remote
+  fi
+elif [ "${GPU_CHECK_SKIP_SETUP:-0}" = 1 ]; then
   RC=0 DUR=0 SETUP_NOTE="skipped (GPU_CHECK_SKIP_SETUP=1)"
 else
   # Quick failures instead of long retries when a registry cannot be reached.
@@ -253,7 +287,9 @@ if [ ! -f "$ORT_LIB" ]; then
 fi
 ORT_DIR=$(dirname "$ORT_LIB")
 ORT_LINE="$ORT_LIB"
-if [ "${GPU_CHECK_SKIP_SETUP:-0}" = 1 ]; then
+if [ "$BUNDLED" = 1 ]; then
+  record setup pass "$DUR" "$SETUP_NOTE"
+elif [ "${GPU_CHECK_SKIP_SETUP:-0}" = 1 ]; then
   record setup skip 0 "$SETUP_NOTE"
 elif [ "$RC" = 0 ]; then
   record setup pass "$DUR" "$SETUP_NOTE"
@@ -278,10 +314,19 @@ lib_dirs() {
     [ -d "$d" ] && echo "$d"
   done
 }
+# From a bundle on a machine without GStreamer: the bundle's (gst-launch-1.0, two plugins, and
+# the libraries they load, as one set: never mixed with a system GStreamer).
+GST_RT=$ROOT/.deps/gst-runtime GST_LIB=""
+if [ "$BUNDLED" = 1 ] && [ -d "$GST_RT" ] &&
+  { [ "${GPU_CHECK_BUNDLED_GST:-0}" = 1 ] || ! command -v gst-launch-1.0 >/dev/null 2>&1; }; then
+  GST_LIB=$GST_RT/lib
+  export PATH=$GST_RT/bin:$PATH GST_PLUGIN_SYSTEM_PATH_1_0=$GST_RT/plugins
+  export GST_PLUGIN_SCANNER_1_0=$GST_RT/libexec/gst-plugin-scanner
+fi
 set_lib_path() {
   local dirs
   dirs=$(lib_dirs | awk '!seen[$0]++' | paste -sd: -)
-  GPU_LD_PATH=$ORT_DIR${dirs:+:$dirs}${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+  GPU_LD_PATH=$ORT_DIR${GST_LIB:+:$GST_LIB}${dirs:+:$dirs}${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
 }
 # missing_libs PROVIDER: the libraries the provider's .so cannot find (cuDNN too: it is dlopened).
 missing_libs() {
@@ -353,15 +398,48 @@ export LEANGATE_EXPECT_CUDA=1
 # ---- build -----------------------------------------------------------------------------------------
 TARGET=${CARGO_TARGET_DIR:-$ROOT/target}
 case $PROFILE in dev) OUTDIR=$TARGET/debug ;; *) OUTDIR=$TARGET/$PROFILE ;; esac
+[ "$BUNDLED" = 1 ] && OUTDIR=$ROOT/target/release
 export OUTDIR
-# cargo's JSON messages (stdout) to build.json, its diagnostics and progress (stderr) to the log.
-cargo_build() {
-  cargo build --profile "$PROFILE" -p gst-plugin-leangate --lib --bench models --bench remote \
-    --test scorer --test gpu_check --message-format=json-render-diagnostics >"$TMPD/build.json"
-}
-run_step build 300 cargo_build
-# The executables cargo made, one "name path" a line.
-python3 - "$TMPD/build.json" >"$TMPD/exes" 2>/dev/null <<'EOF'
+exe() { awk -v n="$1" '$1 == n {p = $2} END {print p}' "$TMPD/exes"; }
+if [ "$BUNDLED" = 1 ]; then
+  # The bundle's builds. Their tests and benches read the repository (models/, tests/fixtures,
+  # scripts/) where it was when they were built (cargo's CARGO_MANIFEST_DIR): where that path is
+  # free here, it is linked to this checkout for the run.
+  awk -v r="$ROOT" '{print $1, r "/" $2}' "$ROOT/target/release/gpu-bundle-exes" >"$TMPD/exes"
+  BUILD_ROOT=$(awk '$1 == "build_root" {print $2}' "$ROOT/target/release/gpu-bundle.txt")
+  build_note="the bundle's builds ($(head -n 1 "$ROOT/target/release/gpu-bundle.txt" | sed 's/^LeanGate GPU bundle, //'))"
+  if [ -n "$BUILD_ROOT" ] && [ ! -e "$BUILD_ROOT/scripts/gpu-check.sh" ]; then
+    if [ ! -e "$BUILD_ROOT" ] && [ ! -L "$BUILD_ROOT" ] && mkdir -p "$(dirname "$BUILD_ROOT")" &&
+      ln -s "$ROOT" "$BUILD_ROOT"; then
+      LINKED_ROOT=$BUILD_ROOT
+      trap 'rm -rf "$TMPD"; rm -f "$LINKED_ROOT"' EXIT
+      build_note="$build_note; $BUILD_ROOT linked to this checkout for the run"
+    else
+      record build fail 0 "$build_note: their tests read $BUILD_ROOT, which is taken here" required
+      skip_rest "the bundle's builds cannot find the repository" tests scoring element remote
+    fi
+  fi
+  [ -z "$GST_LIB" ] || build_note="$build_note; the bundle's GStreamer (none here)"
+  case $(head -n 1 "$ROOT/target/release/gpu-bundle.txt") in
+    *"commit ${COMMIT%% *}"*) ;;
+    *) build_note="$build_note; NOT built from this checkout's commit $COMMIT" ;;
+  esac
+  missing_exe=""
+  for n in models scorer gpu_check; do [ -x "$(exe $n)" ] || missing_exe="$missing_exe $n"; done
+  if [ ! -f "$OUTDIR/libgstleangate.so" ] || [ -n "$missing_exe" ]; then
+    record build fail 0 "$build_note: missing from it: ${missing_exe:-libgstleangate.so}" required
+    skip_rest "the bundle is incomplete" tests scoring element remote
+  fi
+  record build pass 0 "$build_note"
+else
+  # cargo's JSON messages (stdout) to build.json, its diagnostics and progress (stderr) to the log.
+  cargo_build() {
+    cargo build --profile "$PROFILE" -p gst-plugin-leangate --lib --bench models --bench remote \
+      --test scorer --test gpu_check --message-format=json-render-diagnostics >"$TMPD/build.json"
+  }
+  run_step build 300 cargo_build
+  # The executables cargo made, one "name path" a line.
+  python3 - "$TMPD/build.json" >"$TMPD/exes" 2>/dev/null <<'EOF'
 import json, sys
 for line in open(sys.argv[1], errors="replace"):
     if not line.startswith("{"):
@@ -373,12 +451,12 @@ for line in open(sys.argv[1], errors="replace"):
     if m.get("reason") == "compiler-artifact" and m.get("executable"):
         print(m["target"]["name"], m["executable"])
 EOF
-exe() { awk -v n="$1" '$1 == n {p = $2} END {print p}' "$TMPD/exes"; }
-if [ "$RC" != 0 ] || [ ! -f "$OUTDIR/libgstleangate.so" ] || [ -z "$(exe models)" ]; then
-  record build fail "$DUR" "cargo build --profile $PROFILE: $(why_rc build)" required
-  skip_rest "the build failed" tests scoring element remote
+  if [ "$RC" != 0 ] || [ ! -f "$OUTDIR/libgstleangate.so" ] || [ -z "$(exe models)" ]; then
+    record build fail "$DUR" "cargo build --profile $PROFILE: $(why_rc build)" required
+    skip_rest "the build failed" tests scoring element remote
+  fi
+  record build pass "$DUR" "cargo build --profile $PROFILE (plugin, benches models and remote, tests scorer and gpu_check)"
 fi
-record build pass "$DUR" "cargo build --profile $PROFILE (plugin, benches models and remote, tests scorer and gpu_check)"
 
 # ---- tests ------------------------------------------------------------------------------------------
 run_tests() {

@@ -206,3 +206,285 @@ fn the_element_runs_on_cuda() {
     let last = stats.last().expect("leangate-stats messages");
     assert_eq!(last.execution_provider, "cuda", "{last:?}");
 }
+
+/// A 64-bit ELF file holding the section `name` (`.nv_fatbin` in a CUDA library) = `fatbin` and a
+/// section name table, laid out as `scripts/cuda_fatbin_keep.py` reads it: an ELF header, the
+/// sections' bytes, then the section header table.
+fn elf_with_section(name: &str, fatbin: &[u8]) -> Vec<u8> {
+    let names = [b"\0.shstrtab\0".as_slice(), name.as_bytes(), b"\0"].concat();
+    let mut f = vec![0u8; 64];
+    f[..4].copy_from_slice(b"\x7fELF");
+    f[4] = 2; // 64-bit
+    f[5] = 1; // little-endian
+    f[6] = 1;
+    let names_off = f.len();
+    f.extend_from_slice(&names);
+    while !f.len().is_multiple_of(8) {
+        f.push(0);
+    }
+    let fat_off = f.len();
+    f.extend_from_slice(fatbin);
+    while !f.len().is_multiple_of(8) {
+        f.push(0);
+    }
+    let shoff = f.len();
+    let section = |f: &mut Vec<u8>, name: u32, ty: u32, off: usize, size: usize| {
+        let mut h = [0u8; 64];
+        h[..4].copy_from_slice(&name.to_le_bytes());
+        h[4..8].copy_from_slice(&ty.to_le_bytes());
+        h[24..32].copy_from_slice(&(off as u64).to_le_bytes());
+        h[32..40].copy_from_slice(&(size as u64).to_le_bytes());
+        f.extend_from_slice(&h);
+    };
+    section(&mut f, 0, 0, 0, 0);
+    section(&mut f, 1, 3, names_off, names.len());
+    section(&mut f, 11, 1, fat_off, fatbin.len());
+    f[0x28..0x30].copy_from_slice(&(shoff as u64).to_le_bytes());
+    f[0x3A..0x3C].copy_from_slice(&64u16.to_le_bytes());
+    f[0x3C..0x3E].copy_from_slice(&3u16.to_le_bytes());
+    f[0x3E..0x40].copy_from_slice(&1u16.to_le_bytes());
+    f
+}
+
+/// One fatbin container of kernel images `(sm, payload)`: the 16-byte container header, then per
+/// image a 64-byte header (kind 2 = cubin, header size, payload size, the architecture at byte 28).
+fn fatbin_container(images: &[(u32, Vec<u8>)]) -> Vec<u8> {
+    let mut body = Vec::new();
+    for (sm, payload) in images {
+        let mut h = [0u8; 64];
+        h[..2].copy_from_slice(&2u16.to_le_bytes());
+        h[4..8].copy_from_slice(&64u32.to_le_bytes());
+        h[8..16].copy_from_slice(&(payload.len() as u64).to_le_bytes());
+        h[28..32].copy_from_slice(&sm.to_le_bytes());
+        body.extend_from_slice(&h);
+        body.extend_from_slice(payload);
+    }
+    let mut c = Vec::new();
+    c.extend_from_slice(&0xBA55_ED50u32.to_le_bytes());
+    c.extend_from_slice(&1u16.to_le_bytes());
+    c.extend_from_slice(&16u16.to_le_bytes());
+    c.extend_from_slice(&(body.len() as u64).to_le_bytes());
+    c.extend_from_slice(&body);
+    c
+}
+
+fn run_script(root: &Path, args: &[&std::ffi::OsStr], program: &str) -> std::process::Output {
+    Command::new(program)
+        .args(args)
+        .current_dir(root)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn the_cuda_kernel_cut_keeps_the_chosen_architectures_images_and_zeroes_only_the_others() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let script = root.join("scripts/cuda_fatbin_keep.py");
+    let image =
+        |sm: u32, n: usize| -> Vec<u8> { (0..n).map(|i| (i as u32 * 7 + sm) as u8 | 1).collect() };
+    let mut fatbin = fatbin_container(&[(80, image(80, 40)), (90, image(90, 56))]);
+    fatbin.extend_from_slice(&[0u8; 8]); // padding between containers
+    fatbin.extend_from_slice(&fatbin_container(&[(90, image(91, 24))]));
+    fatbin.extend_from_slice(&fatbin_container(&[(120, image(120, 32))]));
+    let lib = elf_with_section(".nv_fatbin", &fatbin);
+    let dir = tempfile::tempdir().unwrap();
+    let (input, out) = (dir.path().join("lib.so"), dir.path().join("cut.so"));
+    std::fs::write(&input, &lib).unwrap();
+    let o = run_script(
+        root,
+        &[
+            script.as_os_str(),
+            input.as_os_str(),
+            out.as_os_str(),
+            "--arch".as_ref(),
+            "90".as_ref(),
+        ],
+        "python3",
+    );
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(
+        stdout.contains("3 fatbin containers") && stdout.contains("kept sm_90"),
+        "{stdout}"
+    );
+    let cut = std::fs::read(&out).unwrap();
+    assert_eq!(cut.len(), lib.len());
+    // Every sm_90 image and every header byte as they were; the sm_80 and sm_120 images zeroed.
+    let find = |needle: &[u8]| lib.windows(needle.len()).position(|w| w == needle).unwrap();
+    for (sm, n, kept) in [
+        (80, 40, false),
+        (90, 56, true),
+        (91, 24, true),
+        (120, 32, false),
+    ] {
+        let at = find(&image(sm, n));
+        let want = if kept { image(sm, n) } else { vec![0u8; n] };
+        assert_eq!(&cut[at..at + n], &want[..], "image {sm}");
+    }
+    let differs = lib.iter().zip(&cut).filter(|(a, b)| a != b).count();
+    assert_eq!(
+        differs,
+        40 + 32,
+        "only the other architectures' bytes change"
+    );
+
+    // Bad input: one line naming the problem, exit 1, nothing written.
+    let not_elf = dir.path().join("notes.txt");
+    std::fs::write(&not_elf, "not a library").unwrap();
+    let plain = dir.path().join("plain.so");
+    std::fs::write(&plain, elf_with_section(".text", &fatbin)).unwrap();
+    for (input, arch, says) in [
+        (&not_elf, "90", "not a 64-bit little-endian ELF file"),
+        (&plain, "90", "no .nv_fatbin section"),
+        (
+            &input,
+            "70",
+            "no kernels for sm_70 (it has sm_80, sm_90, sm_120)",
+        ),
+    ] {
+        let out = dir.path().join("never.so");
+        let o = run_script(
+            root,
+            &[
+                script.as_os_str(),
+                input.as_os_str(),
+                out.as_os_str(),
+                "--arch".as_ref(),
+                arch.as_ref(),
+            ],
+            "python3",
+        );
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{stderr}");
+        assert!(
+            stderr.contains(says) && stderr.lines().count() == 1,
+            "{stderr}"
+        );
+        assert!(!out.exists() && !dir.path().join("never.so.tmp").exists());
+    }
+}
+
+/// `scripts/gpu-bundle.sh --status` and `--unpack`, as the lent machine runs them: a bundle is
+/// unpacked only when every part is there and they make the archive they were cut from.
+#[test]
+fn a_gpu_bundle_is_unpacked_only_when_every_part_is_there_and_intact() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("repo");
+    std::fs::create_dir_all(repo.join("scripts")).unwrap();
+    std::fs::copy(
+        root.join("scripts/gpu-bundle.sh"),
+        repo.join("scripts/gpu-bundle.sh"),
+    )
+    .unwrap();
+    // An archive like the real one (target/release/gpu-bundle.txt first), packed by Python's
+    // tarfile (xz), cut in two.
+    let stage = dir.path().join("stage");
+    std::fs::create_dir_all(stage.join("target/release")).unwrap();
+    std::fs::write(
+        stage.join("target/release/gpu-bundle.txt"),
+        "LeanGate GPU bundle, commit abc\n",
+    )
+    .unwrap();
+    let payload: Vec<u8> = (0..200_000u32)
+        .map(|i| (i.wrapping_mul(2654435761) >> 11) as u8)
+        .collect();
+    std::fs::write(stage.join("target/release/payload.bin"), &payload).unwrap();
+    let archive = dir.path().join("bundle.tar.xz");
+    let o = Command::new("python3")
+        .args(["-c", "import sys, tarfile\nwith tarfile.open(sys.argv[1], 'w:xz') as t: t.add(sys.argv[2] + '/target', 'target')"])
+        .arg(&archive)
+        .arg(&stage)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let bytes = std::fs::read(&archive).unwrap();
+    let sha = String::from_utf8(
+        Command::new("sha256sum")
+            .arg(&archive)
+            .output()
+            .unwrap()
+            .stdout,
+    )
+    .unwrap();
+    let sha = sha.split_whitespace().next().unwrap().to_string();
+    let half = bytes.len() / 2;
+    let write_part = |n: usize, data: &[u8], sha: &str| {
+        let d = repo.join(format!(".gpu-bundle/{n}"));
+        std::fs::create_dir_all(&d).unwrap();
+        std::fs::write(d.join("part"), data).unwrap();
+        std::fs::write(
+            d.join("index"),
+            format!("part {n} of 2\nsha256 {sha}\ncommit abc\n"),
+        )
+        .unwrap();
+    };
+    let bundle = |arg: &str| {
+        let o = run_script(
+            &repo,
+            &["scripts/gpu-bundle.sh".as_ref(), arg.as_ref()],
+            "bash",
+        );
+        let text = format!(
+            "{}{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        );
+        (o.status.code(), text)
+    };
+    let unpacked = repo.join("target/release/payload.bin");
+
+    write_part(1, &bytes[..half], &sha);
+    let (code, text) = bundle("--status");
+    assert_eq!(code, Some(1), "{text}");
+    assert!(
+        text.contains("part 1 of 2") && text.contains("parts 2 of 2 missing"),
+        "{text}"
+    );
+    let (code, text) = bundle("--unpack");
+    assert_eq!(code, Some(1), "{text}");
+    assert!(
+        text.contains("parts 2 of 2 missing") && !unpacked.exists(),
+        "{text}"
+    );
+
+    // A part of another bundle beside it.
+    write_part(2, &bytes[half..], &"0".repeat(64));
+    let (code, text) = bundle("--unpack");
+    assert_eq!(code, Some(1), "{text}");
+    assert!(
+        text.contains("come from different bundles") && !unpacked.exists(),
+        "{text}"
+    );
+
+    // Damaged on the way.
+    let mut damaged = bytes[half..].to_vec();
+    damaged[10] ^= 0x40;
+    write_part(2, &damaged, &sha);
+    let (code, text) = bundle("--unpack");
+    assert_eq!(code, Some(1), "{text}");
+    assert!(
+        text.contains("sha256 differs") && !unpacked.exists(),
+        "{text}"
+    );
+
+    write_part(2, &bytes[half..], &sha);
+    let (code, text) = bundle("--status");
+    assert_eq!(code, Some(0), "{text}");
+    assert!(text.contains("complete"), "{text}");
+    let (code, text) = bundle("--unpack");
+    assert_eq!(code, Some(0), "{text}");
+    assert!(
+        text.contains("unpacked LeanGate GPU bundle, commit abc"),
+        "{text}"
+    );
+    assert_eq!(std::fs::read(&unpacked).unwrap(), payload);
+    let (code, text) = bundle("--bogus");
+    assert_eq!(code, Some(1), "{text}");
+    assert!(text.contains("unknown argument '--bogus'"), "{text}");
+}
