@@ -420,8 +420,8 @@ if [ "$BUNDLED" = 1 ]; then
     fi
   fi
   [ -z "$GST_LIB" ] || build_note="$build_note; the bundle's GStreamer (none here)"
-  case $(head -n 1 "$ROOT/target/release/gpu-bundle.txt") in
-    *"commit ${COMMIT%% *}"*) ;;
+  case $COMMIT:$(head -n 1 "$ROOT/target/release/gpu-bundle.txt") in
+    unknown:* | *"commit ${COMMIT%% *}"*) ;;
     *) build_note="$build_note; NOT built from this checkout's commit $COMMIT" ;;
   esac
   missing_exe=""
