@@ -6,7 +6,8 @@
 //!   and poses — the oracle that labels training pairs and judges every gate;
 //! - [`synth`]: procedural RGB-D indoor scenes with human-like camera paths;
 //! - [`geometry`]: the element's geometric prior on labelled pairs (for fitting its fusion);
-//! - [`eval`]: runs the real element and the baselines over a sequence and judges them.
+//! - [`eval`]: runs the real element and the baselines over a sequence and judges them;
+//! - [`output`]: the files they write, whole or not at all.
 //!
 //! The `leangate` binary (`synth`, `label`, `eval`) is the command-line face of these modules.
 //! The gate, scorer, preprocessing and meta come from the plugin crate (`gstleangate`), so the
@@ -16,5 +17,6 @@ pub mod args;
 pub mod dataset;
 pub mod eval;
 pub mod geometry;
+pub mod output;
 pub mod synth;
 pub mod teacher;

@@ -36,7 +36,8 @@ enum Command {
     /// Render a synthetic indoor RGB-D sequence (rgb/, depth/, rgb.txt, depth.txt,
     /// groundtruth.txt, intrinsics.txt).
     Synth {
-        /// Output directory (created).
+        /// Output directory: new, empty, or an earlier synth output (replaced when the new one is
+        /// complete); a folder holding anything else is refused.
         #[arg(long)]
         out: PathBuf,
         /// Seed: scene, textures, camera path and noise are determined by it.
@@ -215,22 +216,23 @@ enum Command {
         reconstruct: bool,
         /// The dense reference of --reconstruct keeps every K-th frame.
         #[arg(long, value_name = "K", default_value_t = eval::reconstruct::DENSE_EVERY,
-              value_parser = args::nonzero)]
+              value_parser = args::nonzero, requires = "reconstruct")]
         dense_every: usize,
         /// Python for --reconstruct (default: $LEANGATE_SFM_PYTHON, else .venv-sfm/bin/python of
         /// the checkout, else /usr/bin/python3); needs pycolmap and PyGObject.
-        #[arg(long)]
+        #[arg(long, requires = "reconstruct")]
         sfm_python: Option<PathBuf>,
         /// Keep the databases and sparse models of --reconstruct here (DIR/POLICY/sparse/N);
         /// default: a temporary directory.
-        #[arg(long, value_name = "DIR")]
+        #[arg(long, value_name = "DIR", requires = "reconstruct")]
         sfm_dir: Option<PathBuf>,
         /// COLMAP matcher for --reconstruct: auto (exhaustive up to 40 frames, else
         /// sequential), exhaustive, sequential.
-        #[arg(long, default_value = "auto", value_parser = ["auto", "exhaustive", "sequential"])]
+        #[arg(long, default_value = "auto", value_parser = ["auto", "exhaustive", "sequential"],
+              requires = "reconstruct")]
         sfm_matcher: String,
         /// SIFT features per frame for --reconstruct.
-        #[arg(long, default_value_t = 4096, value_parser = args::nonzero_u32)]
+        #[arg(long, default_value_t = 4096, value_parser = args::nonzero_u32, requires = "reconstruct")]
         sfm_max_features: u32,
         /// With --reconstruct: write each policy's camera trajectory (TUM format, camera-to-world,
         /// the SfM's frame and scale) as DIR/POLICY.txt and the ground truth as
@@ -337,7 +339,14 @@ fn run(cli: Cli) -> Res {
                     RgbFormat::Png
                 },
             };
-            let s = synth::render_sequence(&cfg, &out)?;
+            // Rendered under a temporary name beside `--out` and moved there when complete; an
+            // earlier synth output there is replaced, anything else refused now.
+            let stage = leangate_tools::output::OutputDir::create("--out", &out, |d| {
+                std::fs::read_to_string(d.join("rgb.txt"))
+                    .is_ok_and(|t| t.starts_with(synth::HEADER_PREFIX))
+            })?;
+            let s = synth::render_sequence(&cfg, stage.path())?;
+            stage.commit()?;
             eprintln!(
                 "wrote {} frames {}x{} to {} (render {:.1} frames/s, with writing {:.1} frames/s)",
                 s.frames,
@@ -361,6 +370,7 @@ fn run(cli: Cli) -> Res {
             max_dist,
             out,
         } => {
+            check_csv_out(out.as_deref(), &sequence, pairs.as_deref())?;
             let seq = Sequence::open(&sequence)?;
             let cfg = TeacherConfig {
                 working_width,
@@ -381,8 +391,9 @@ fn run(cli: Cli) -> Res {
             } else {
                 random.map(|n| random_pairs(teacher.len(), n, max_gap, seed))
             };
-            // Created once the input is known to be good: a bad pairs file leaves `--out` as it was.
-            let mut sink = csv_sink(out.as_deref())?;
+            // Written beside `--out` and renamed over it at the end: a bad pairs file, an error
+            // or an interrupt leaves it as it was.
+            let mut sink = CsvSink::open(out.as_deref())?;
             match list {
                 Some(list) => teacher::label_pairs_csv(&teacher, &list, &mut sink)?,
                 None => {
@@ -412,8 +423,7 @@ fn run(cli: Cli) -> Res {
                     );
                 }
             }
-            sink.flush()?;
-            Ok(())
+            sink.finish()
         }
         Command::Geometry {
             sequence,
@@ -426,10 +436,11 @@ fn run(cli: Cli) -> Res {
             let resize = gstleangate::ResizeMode::parse(&resize).ok_or_else(|| {
                 format!("--resize {resize:?}: expected short-side-crop or stretch")
             })?;
+            check_csv_out(out.as_deref(), &sequence, Some(&pairs))?;
             let seq = Sequence::open(&sequence)?;
             let list = read_pairs(&pairs, seq.len(), true)?;
             let rows = leangate_tools::geometry::pair_geometry(&seq, &list, w, h, resize)?;
-            let mut sink = csv_sink(out.as_deref())?;
+            let mut sink = CsvSink::open(out.as_deref())?;
             writeln!(sink, "i,j,tau_geo,f_m,f_u")?;
             for ((i, j), r) in list.iter().zip(&rows) {
                 match r {
@@ -437,7 +448,7 @@ fn run(cli: Cli) -> Res {
                     None => writeln!(sink, "{i},{j},,,")?,
                 }
             }
-            sink.flush()?;
+            sink.finish()?;
             let lost = rows.iter().filter(|r| r.is_none()).count();
             eprintln!("{} pairs, chain lost on {lost}", rows.len());
             Ok(())
@@ -467,6 +478,13 @@ fn run(cli: Cli) -> Res {
             sfm_max_features,
             trajectory_dir,
         } => {
+            if let (Some(t), Some((_, v))) = (threshold, set.iter().find(|(k, _)| k == "threshold"))
+            {
+                return Err(format!(
+                    "--threshold {t} and --set threshold={v} both set the threshold; give one"
+                )
+                .into());
+            }
             if let (Some(m), Some(p)) = (&model, &precision) {
                 if p != "auto" {
                     eprintln!(
@@ -568,6 +586,16 @@ fn eval_cmd(
         }
     }
     if let Some(sfm) = &reconstruct {
+        // Folders the reconstruction writes into: a file there fails only after the long part.
+        let dirs = [
+            ("--trajectory-dir", &sfm.trajectory_dir),
+            ("--sfm-dir", &sfm.work_dir),
+        ];
+        for (flag, dir) in dirs {
+            if let Some(d) = dir.as_deref().filter(|d| d.exists() && !d.is_dir()) {
+                return Err(format!("{flag} `{}`: is a file, not a folder", d.display()).into());
+            }
+        }
         eval::reconstruct::preflight(sfm)?; // before the long part: a missing pycolmap fails now
     }
     // Where the files go, checked before the long part rather than after it.
@@ -582,6 +610,7 @@ fn eval_cmd(
             check_output(flag, p)?;
         }
     }
+
     for s in sequences {
         if !s.exists() {
             return Err(format!(
@@ -628,6 +657,12 @@ fn eval_cmd(
                 )
                 .into());
             }
+        }
+    }
+    // The pictures' format, by the extension: a .txt fails only after the long part otherwise.
+    for (flag, path) in &outputs[1..] {
+        if let Some(p) = path {
+            leangate_tools::output::image_format(flag, p)?;
         }
     }
     if let Some(sfm) = &reconstruct {
@@ -867,19 +902,67 @@ fn eval_cmd(
         serde_json::to_string_pretty(&reports[0])?
     };
     if let Some(p) = &json {
-        std::fs::write(p, &text).map_err(|e| format!("`{}`: {e}", p.display()))?;
+        leangate_tools::output::write(p, text.as_bytes())?;
     }
     stdout_result()
 }
 
-/// Where `label` and `geometry` write their CSV: `--out`, created now, or standard output.
-fn csv_sink(out: Option<&Path>) -> Result<Box<dyn Write>, String> {
-    Ok(match out {
-        Some(p) => Box::new(std::io::BufWriter::new(
-            std::fs::File::create(p).map_err(|e| format!("`{}`: {e}", p.display()))?,
-        )),
-        None => Box::new(std::io::BufWriter::new(std::io::stdout().lock())),
-    })
+/// Where `label` and `geometry` write their CSV: `--out`, whole or not at all (a failed or
+/// interrupted run leaves the file that was there), or standard output.
+enum CsvSink {
+    File(leangate_tools::output::OutputFile),
+    Stdout(std::io::BufWriter<std::io::StdoutLock<'static>>),
+}
+
+impl Write for CsvSink {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        match self {
+            CsvSink::File(f) => f.write(buf),
+            CsvSink::Stdout(o) => o.write(buf),
+        }
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        match self {
+            CsvSink::File(f) => f.flush(),
+            CsvSink::Stdout(o) => o.flush(),
+        }
+    }
+}
+
+impl CsvSink {
+    fn open(out: Option<&Path>) -> Result<CsvSink, String> {
+        Ok(match out {
+            Some(p) => CsvSink::File(leangate_tools::output::OutputFile::create(p)?),
+            None => CsvSink::Stdout(std::io::BufWriter::new(std::io::stdout().lock())),
+        })
+    }
+
+    /// All rows written: the file takes its place.
+    fn finish(self) -> Res {
+        match self {
+            CsvSink::File(f) => f.commit()?,
+            CsvSink::Stdout(mut o) => o.flush()?,
+        }
+        Ok(())
+    }
+}
+
+/// `--out` of `label` and `geometry`, checked before any work: a file in a directory that exists,
+/// and none of the files the command reads (the sequence's lists and images, the pairs file).
+fn check_csv_out(out: Option<&Path>, sequence: &Path, pairs: Option<&Path>) -> Res {
+    let Some(p) = out else { return Ok(()) };
+    check_output("--out", p)?;
+    let inputs = eval::input_files(&[sequence.to_path_buf()], pairs)?;
+    if let Some(i) = inputs.hit(p, false) {
+        return Err(format!(
+            "--out `{}`: is `{}`, an input of this command (it would be overwritten); choose \
+             another path",
+            p.display(),
+            i.display()
+        )
+        .into());
+    }
+    Ok(())
 }
 
 /// An output file `path` can be written: not a directory, in a directory that exists.

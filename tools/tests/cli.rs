@@ -2456,3 +2456,206 @@ fn eval_pictures_carry_their_labels() {
         .count();
     assert!(ink > 200, "caption: {ink} dark pixels");
 }
+
+/// `label` and `geometry` never write over what they read, and `--out` is replaced only by a
+/// complete result: a run that fails leaves the file that was there.
+#[test]
+fn label_and_geometry_outputs_never_replace_their_inputs_or_a_file_on_failure() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 6, "pan", 9);
+    let pairs = dir.path().join("pairs.csv");
+    std::fs::write(&pairs, "i,j\n1,0\n2,0\n").unwrap();
+    let rgb = seq.join("rgb.txt");
+    let frame = seq.join("rgb/000001.png");
+    let saved: Vec<(std::path::PathBuf, Vec<u8>)> = [&rgb, &frame, &pairs]
+        .iter()
+        .map(|p| (p.to_path_buf(), std::fs::read(p).unwrap()))
+        .collect();
+    for cmd in ["label", "geometry"] {
+        for target in [&rgb, &frame, &pairs] {
+            let out = leangate()
+                .args([cmd, "--sequence"])
+                .arg(&seq)
+                .arg("--pairs")
+                .arg(&pairs)
+                .arg("--out")
+                .arg(target)
+                .output()
+                .unwrap();
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert_eq!(out.status.code(), Some(1), "{cmd} --out {target:?}: {err}");
+            assert!(err.contains("an input of this command"), "{err}");
+        }
+    }
+    for (p, bytes) in &saved {
+        assert_eq!(&std::fs::read(p).unwrap(), bytes, "{p:?} changed");
+    }
+    // A previous result stays when the run fails (a pair beyond the sequence), and no temporary
+    // file is left beside it.
+    let result = dir.path().join("labels.csv");
+    std::fs::write(&result, "earlier result\n").unwrap();
+    let bad = dir.path().join("bad.csv");
+    std::fs::write(&bad, "1,0\n99,0\n").unwrap();
+    for cmd in ["label", "geometry"] {
+        let out = leangate()
+            .args([cmd, "--sequence"])
+            .arg(&seq)
+            .arg("--pairs")
+            .arg(&bad)
+            .arg("--out")
+            .arg(&result)
+            .output()
+            .unwrap();
+        assert_eq!(
+            out.status.code(),
+            Some(1),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert_eq!(
+            std::fs::read_to_string(&result).unwrap(),
+            "earlier result\n"
+        );
+    }
+    // A good run replaces it.
+    let out = leangate()
+        .args(["geometry", "--sequence"])
+        .arg(&seq)
+        .arg("--pairs")
+        .arg(&pairs)
+        .arg("--out")
+        .arg(&result)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = std::fs::read_to_string(&result).unwrap();
+    assert!(text.starts_with("i,j,tau_geo,f_m,f_u\n1,0,"), "{text}");
+    let names: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(!names.iter().any(|n| n.contains(".tmp")), "{names:?}");
+}
+
+/// `synth --out` takes a new or empty folder, or replaces an earlier synth output whole; a
+/// folder of anything else (a real sequence, textures) is refused and kept as it was.
+#[test]
+fn synth_replaces_only_its_own_earlier_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 5, "pan", 1);
+    assert!(seq.join("rgb/000004.png").exists());
+    // Again with fewer frames: the folder is the new sequence alone, nothing of the old one.
+    synth(&seq, 2, "pan", 2);
+    let mut frames: Vec<String> = std::fs::read_dir(seq.join("rgb"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    frames.sort();
+    assert_eq!(frames, ["000000.png", "000001.png"]);
+    // Someone's folder: refused before anything is written, the replay source included.
+    let theirs = dir.path().join("theirs");
+    std::fs::create_dir(&theirs).unwrap();
+    let gt = std::fs::read(seq.join("groundtruth.txt")).unwrap();
+    std::fs::write(theirs.join("groundtruth.txt"), &gt).unwrap();
+    let out = leangate()
+        .args([
+            "synth", "--frames", "2", "--width", "32", "--height", "24", "--out",
+        ])
+        .arg(&theirs)
+        .arg(format!(
+            "--motion=replay:{}",
+            theirs.join("groundtruth.txt").display()
+        ))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("holds other files"), "{err}");
+    assert_eq!(std::fs::read(theirs.join("groundtruth.txt")).unwrap(), gt);
+    assert_eq!(std::fs::read_dir(&theirs).unwrap().count(), 1);
+    assert_eq!(
+        std::fs::read_dir(dir.path()).unwrap().count(),
+        2,
+        "no staging folder left"
+    );
+}
+
+/// What `eval` can refuse from its options alone it refuses before the run: a picture format it
+/// cannot write, a file where a folder goes, SfM settings without `--reconstruct`, two
+/// thresholds. And `--precision` works with the plugin on GStreamer's path (its enum type is
+/// registered by the plugin file, not by this binary: setting it typed panicked).
+#[test]
+fn eval_refuses_what_its_options_cannot_do_before_the_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 6, "pan", 3);
+    let afile = dir.path().join("afile");
+    std::fs::write(&afile, "x").unwrap();
+    let json = dir.path().join("r.json");
+    let run = |extra: &[&str]| {
+        let mut c = leangate();
+        c.args(["eval", "--sequence"]).arg(&seq).args(extra);
+        let t = std::time::Instant::now();
+        let out = output_within(c, std::time::Duration::from_secs(60));
+        (out, t.elapsed())
+    };
+    let json_s = json.to_str().unwrap();
+    let afile_s = afile.to_str().unwrap();
+    let cases: [(&[&str], i32, &str); 6] = [
+        (
+            &["--json", json_s, "--plot", "p.txt"],
+            1,
+            "cannot write a .txt picture",
+        ),
+        (&["--contact-sheet", "sheet"], 1, "has no extension"),
+        (
+            &["--reconstruct", "--sfm-dir", afile_s],
+            1,
+            "is a file, not a folder",
+        ),
+        (
+            &["--reconstruct", "--trajectory-dir", afile_s],
+            1,
+            "is a file, not a folder",
+        ),
+        (&["--dense-every", "5"], 2, "--reconstruct"),
+        (
+            &["--threshold", "0.3", "--set", "threshold=0.9"],
+            1,
+            "give one",
+        ),
+    ];
+    for (extra, code, says) in cases {
+        let (out, took) = run(extra);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(code), "{extra:?}: {err}");
+        assert!(err.contains(says), "{extra:?}: {err}");
+        assert!(out.stdout.is_empty(), "{extra:?}: refused before the run");
+        assert!(
+            took < std::time::Duration::from_secs(10),
+            "{extra:?}: {took:?}"
+        );
+    }
+    assert!(!json.exists());
+    let plugins = paths::plugin_dir();
+    for p in ["fp32", "int8"] {
+        let mut c = leangate();
+        c.env("GST_PLUGIN_PATH", plugins.path())
+            .args(["eval", "--precision", p, "--sequence"])
+            .arg(&seq);
+        let out = output_within(c, std::time::Duration::from_secs(120));
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success(),
+            "{p}: {text}{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(text.contains(&format!("({p}, cpu)")), "{text}");
+    }
+}

@@ -482,7 +482,8 @@ pub fn kept_label(i: usize, run: &ModelRun) -> String {
 
 /// Every file an eval of `sequences` with `model` reads, as canonical paths: the video file, or
 /// the sequence's lists (`rgb.txt`, `depth.txt`, ground truth, `intrinsics.txt`) and every image
-/// they name; and the model. What must never be an output.
+/// they name; and the model (for `label` and `geometry`: the pairs file). What must never be an
+/// output.
 pub fn input_files(sequences: &[PathBuf], model: Option<&Path>) -> Result<Inputs, EvalError> {
     let mut files: Vec<PathBuf> = model.into_iter().map(Path::to_path_buf).collect();
     for s in sequences {

@@ -273,7 +273,14 @@ pub fn run_model(
         gate.set_property("model", m.display().to_string());
     }
     if let Some(p) = model.precision {
-        gate.set_property("precision", p);
+        // By its name: the element may come from the plugin file on GStreamer's path, which
+        // registered the enum type itself (this binary's copy of it must not register again).
+        let nick = match p {
+            gstleangate::PrecisionChoice::Fp32 => "fp32",
+            gstleangate::PrecisionChoice::Int8 => "int8",
+            _ => "auto",
+        };
+        gate.set_property_from_str("precision", nick);
     }
     gate.set_property_from_str("mode", "annotate");
     // The model scores every frame, so that its utility (RMSE, plots) is judged everywhere. The

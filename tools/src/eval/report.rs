@@ -264,10 +264,10 @@ pub fn contact_sheet(
     save(&sheet, out)
 }
 
-/// Write a picture (format by the extension of `out`); an error names the file.
+/// Write a picture (format by the extension of `out`), whole or not at all; an error names the
+/// file.
 fn save(img: &image::RgbImage, out: &Path) -> Result<(), EvalError> {
-    img.save(out)
-        .map_err(|e| EvalError(format!("`{}`: {e}", out.display())))
+    crate::output::save_image(img, out).map_err(EvalError)
 }
 
 type Canvas<'a> = DrawingArea<BitMapBackend<'a>, Shift>;

@@ -69,7 +69,8 @@ pub use materials::load_textures;
 pub use motion::{camera_path, pose_from_angles, MotionProfile, Segment};
 pub use noise::SplitMix64;
 pub use render::{
-    render_sequence, try_camera_path, SynthConfig, SynthSummary, MAX_FRAMES, MAX_SIDE,
+    render_sequence, try_camera_path, SynthConfig, SynthSummary, HEADER_PREFIX, MAX_FRAMES,
+    MAX_SIDE,
 };
 pub use replay::{MotionSpec, Replay, ReplayEnd, Trajectory};
 pub use scene::{Lighting, Scene};

@@ -354,6 +354,10 @@ pub const MAX_FRAMES: usize = 1_000_000;
 
 /// Renders a whole sequence into `out` (TUM layout, depth_scale 1000, camera-to-world
 /// ground truth) plus `synth.json` describing the configuration and segments.
+/// How the text files of a rendered sequence begin (`rgb.txt`'s first line): what tells an
+/// earlier synth output from someone else's folder.
+pub const HEADER_PREFIX: &str = "# LeanGate synthetic sequence:";
+
 pub fn render_sequence(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
     let side = 2..=MAX_SIDE;
     if !(1..=MAX_FRAMES).contains(&cfg.frames)
@@ -411,8 +415,12 @@ pub fn render_sequence(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, Sy
         String::new()
     };
     writer.set_header(&format!(
-        "LeanGate synthetic sequence: seed {} motion {motion} {}x{} at {} fps{sensor_note}",
-        cfg.seed, cfg.width, cfg.height, cfg.fps
+        "{} seed {} motion {motion} {}x{} at {} fps{sensor_note}",
+        &HEADER_PREFIX[2..],
+        cfg.seed,
+        cfg.width,
+        cfg.height,
+        cfg.fps
     ));
     let (mut render_s, mut write_s) = (0.0, 0.0);
     let chunk = 8;
