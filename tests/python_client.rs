@@ -1788,7 +1788,7 @@ fn save_kept_a_failed_or_interrupted_run_leaves_the_directory_as_it_was() {
     assert_eq!(others(), ["key frames 100%"], "no staging directory left");
 
     // A DIR that does not exist yet (nor its parent): not left behind by a failed run, whether
-    // the pipeline fails or the CSV cannot be opened before it starts.
+    // the pipeline fails or the CSV cannot be written.
     let fresh = tmp.path().join("new/deep dir");
     let out = client_module(&[
         noise.to_str().unwrap(),
@@ -1805,8 +1805,17 @@ fn save_kept_a_failed_or_interrupted_run_leaves_the_directory_as_it_was() {
         "--save-kept",
         fresh.to_str().unwrap(),
     ]);
+    // (The CSV is checked before anything is made: DIR is never created.)
     assert_eq!(out.status.code(), Some(2));
-    nothing_saved(&out, &fresh);
+    assert!(
+        stderr(&out).contains(
+            "leangate-client: error: --csv /nonexistent/scores.csv: the directory /nonexistent \
+             does not exist"
+        ),
+        "{}",
+        stderr(&out)
+    );
+    assert!(!fresh.exists());
     assert_eq!(others(), ["key frames 100%"], "new/ is removed again");
 
     // Ctrl-C (SIGINT) or a SIGTERM (a service stopped, `timeout`) in the middle of a long run
@@ -2346,4 +2355,229 @@ print(f"{len(graph)} modules, {edges} imports, no cycle")
         "{text}{}",
         String::from_utf8_lossy(&out.stderr)
     );
+}
+
+/// The names in `dir` that look like a leftover temporary output file (`.NAME.XXXXXXXX.tmp*`).
+fn temp_files(dir: &Path) -> Vec<String> {
+    dir_names(dir)
+        .into_iter()
+        .filter(|n| n.starts_with('.') && n.contains(".tmp"))
+        .collect()
+}
+
+/// `--csv OUT` loses nothing. Checked before anything is opened: OUT the input video itself
+/// (it used to be truncated to a CSV header), a path inside the --save-kept DIR (the saver's own
+/// keyframes.csv replaced it), a directory that does not exist: one line naming it, exit 2, the
+/// file untouched. Written to a temporary file beside OUT that replaces it only when the run
+/// succeeds: a run that fails (not a video) or is interrupted (SIGINT, SIGTERM midway) leaves
+/// an earlier OUT byte for byte and no temporary file. A write error (`/dev/full`) is one
+/// line, not a traceback; a special file (/dev/stdout) is written directly.
+#[test]
+fn csv_output_is_checked_up_front_and_replaced_only_by_a_successful_run() {
+    if !python_ok() {
+        return;
+    }
+    let Some(clip) = paths::shared_data("cotracker_clips/apple.mp4") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let ball = "test://ball?num-buffers=12&width=160&height=120";
+    let refused = |o: &Output, expect: &str| {
+        let err = stderr(o);
+        assert_eq!(o.status.code(), Some(2), "{err}");
+        assert!(
+            err.starts_with("leangate-client: error: ") && err.contains(expect),
+            "expected {expect:?} in {err}"
+        );
+        assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+        assert!(!err.contains("Traceback"), "{err}");
+    };
+
+    // The input as the CSV.
+    let video = dir.join("clip.mp4");
+    std::fs::copy(&clip, &video).unwrap();
+    let original = std::fs::read(&video).unwrap();
+    let v = video.to_str().unwrap();
+    refused(
+        &client_module(&[v, "--quiet", "--csv", v]),
+        &format!("--csv {v} is the input, which would be overwritten"),
+    );
+    assert!(
+        std::fs::read(&video).unwrap() == original,
+        "the input is untouched"
+    );
+    // Also through another name (a symbolic link) and a file:// URI.
+    let alias = dir.join("alias.csv");
+    std::os::unix::fs::symlink(&video, &alias).unwrap();
+    let uri = format!("file://{v}");
+    refused(
+        &client_module(&[&uri, "--quiet", "--csv", alias.to_str().unwrap()]),
+        "is the input",
+    );
+    assert!(std::fs::read(&video).unwrap() == original);
+
+    // Inside the --save-kept DIR (its keyframes.csv, or any other name): refused, DIR not made.
+    let kf = dir.join("kf");
+    for name in ["keyframes.csv", "scores.csv"] {
+        let csv = kf.join(name);
+        refused(
+            &client_module(&[
+                ball,
+                "--quiet",
+                "--save-kept",
+                kf.to_str().unwrap(),
+                "--overwrite",
+                "--csv",
+                csv.to_str().unwrap(),
+            ]),
+            &format!("lies in the --save-kept directory {}", kf.display()),
+        );
+        assert!(!kf.exists());
+    }
+    // A directory that does not exist, and a directory as OUT.
+    let missing = dir.join("nodir/x.csv");
+    refused(
+        &client_module(&[ball, "--quiet", "--csv", missing.to_str().unwrap()]),
+        &format!(
+            "the directory {} does not exist",
+            dir.join("nodir").display()
+        ),
+    );
+    refused(
+        &client_module(&[ball, "--quiet", "--csv", dir.to_str().unwrap()]),
+        "is a directory",
+    );
+
+    // An earlier CSV survives a failed run.
+    let prev = dir.join("prev.csv");
+    std::fs::write(&prev, "an earlier run's rows\n").unwrap();
+    let p = prev.to_str().unwrap();
+    let [noise, _] = paths::not_videos(dir);
+    let out = client_module(&[noise.to_str().unwrap(), "--quiet", "--csv", p]);
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    assert_eq!(std::fs::read(&prev).unwrap(), b"an earlier run's rows\n");
+    assert!(temp_files(dir).is_empty(), "{:?}", dir_names(dir));
+
+    // ... and an interrupted one (Ctrl-C, SIGTERM), caught while its rows are being written.
+    let plugins = paths::plugin_dir();
+    for (signal, code) in [("-INT", 130), ("-TERM", 143)] {
+        let mut c = command("env");
+        c.args(["--default-signal=INT,TERM", PYTHON])
+            .env("PYTHONPATH", pkg_dir())
+            .env("GST_PLUGIN_PATH", plugins.path())
+            .args(["-m", "leangate_client"])
+            .args([
+                "test://ball?num-buffers=1000000&width=160&height=120",
+                "--quiet",
+                "--mode",
+                "annotate",
+                "--csv",
+                p,
+            ])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped());
+        let mut child = c.spawn().expect("spawn");
+        let start = std::time::Instant::now();
+        loop {
+            let written = temp_files(dir)
+                .iter()
+                .any(|n| std::fs::metadata(dir.join(n)).map(|m| m.len()).unwrap_or(0) > 0);
+            if written {
+                break;
+            }
+            assert!(
+                start.elapsed().as_secs() < 60,
+                "no temporary CSV beside {p} after 60 s: {:?}",
+                dir_names(dir)
+            );
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(500));
+        assert_eq!(std::fs::read(&prev).unwrap(), b"an earlier run's rows\n");
+        let killed = Command::new("kill")
+            .args([signal, &child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+        let waited = std::time::Instant::now();
+        while child.try_wait().unwrap().is_none() {
+            if waited.elapsed().as_secs() >= 60 {
+                child.kill().ok();
+                panic!("the client did not end within 60 s of kill {signal}");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        let out = child.wait_with_output().unwrap();
+        assert_eq!(out.status.code(), Some(code), "{signal}: {}", stderr(&out));
+        assert_eq!(
+            std::fs::read(&prev).unwrap(),
+            b"an earlier run's rows\n",
+            "{signal}: the earlier CSV is as it was"
+        );
+        assert!(temp_files(dir).is_empty(), "{signal}: {:?}", dir_names(dir));
+    }
+
+    // A run that succeeds replaces it (rows for every frame), leaving no temporary file.
+    let out = client_module(&[ball, "--quiet", "--mode", "annotate", "--csv", p]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(read_csv(&prev).len(), 12);
+    assert!(temp_files(dir).is_empty(), "{:?}", dir_names(dir));
+
+    // A write error is one line, exit 2 (it used to be a traceback from a `finally`).
+    if Path::new("/dev/full").exists() {
+        let out = client_module(&[ball, "--quiet", "--csv", "/dev/full"]);
+        refused(&out, "--csv /dev/full: No space left on device");
+    }
+    // A special file is written directly.
+    let out = client_module(&[ball, "--quiet", "--csv", "/dev/stdout"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(
+        stdout(&out).starts_with("frame,pts_ns,utility,keep,"),
+        "{}",
+        stdout(&out)
+    );
+}
+
+/// `LeanGateSource` takes a `pathlib.Path` (any os.PathLike) as its source, as it does for
+/// `model=` and `save_kept=` (it raised AttributeError: 'PosixPath' object has no attribute
+/// 'startswith'); anything else that is not a str is a SetupError naming its type, not an
+/// AttributeError.
+#[test]
+fn library_source_takes_a_path_object_and_names_a_wrong_type() {
+    if !python_ok() {
+        return;
+    }
+    let Some(clip) = paths::shared_data("cotracker_clips/apple.mp4") else {
+        return;
+    };
+    let script = r#"
+import json, pathlib, sys
+from leangate_client import LeanGateSource, SetupError
+src = LeanGateSource(pathlib.Path(sys.argv[1]), mode="annotate", arrays=False, max_frames=3)
+with src:
+    n = sum(1 for _ in src)
+errors = []
+for bad in (42, b"clip.mp4", None):
+    try:
+        LeanGateSource(bad)
+        errors.append("accepted")
+    except SetupError as e:
+        errors.append(str(e))
+print(json.dumps({"source": src.source, "received": n, "errors": errors}))
+"#;
+    let out = client_script(script, &[clip.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert_eq!(v["source"], clip.to_str().unwrap());
+    assert_eq!(v["received"], 3, "{v}");
+    let errors = v["errors"].as_array().unwrap();
+    for (e, kind) in errors.iter().zip(["int", "bytes", "NoneType"]) {
+        let e = e.as_str().unwrap();
+        assert!(
+            e.starts_with("source must be a file path (str or os.PathLike)")
+                && e.contains(&format!("not {kind} ")),
+            "{e}"
+        );
+    }
 }

@@ -20,7 +20,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 from . import _gst
 from .errors import PipelineError, SetupError
 
-from ._outdir import _make_owned_dir, check_output_subdir
+from ._outdir import AtomicFile, _make_owned_dir, check_output_subdir
 
 log = logging.getLogger("leangate_client.reconstruct")
 
@@ -183,9 +183,18 @@ def run_sfm(
     package_parent = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_parent, env.get("PYTHONPATH")) if p)
-    # pycolmap first: see import_pycolmap.
+    # pycolmap first: see import_pycolmap. The child ends with this process (SIGKILL when it
+    # dies, even killed), and runs in a process group of its own: a signal meant for this
+    # process (Ctrl-C, SIGTERM) is this process's to act on, and it stops the whole group.
     code = (
-        "import sys, pycolmap\n"
+        "import ctypes, os, signal, sys\n"
+        "try:\n"
+        "    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG\n"
+        "except (OSError, AttributeError):\n"
+        "    pass\n"
+        "if os.getppid() != int(sys.argv[2]):\n"
+        "    sys.exit(1)  # the parent is already gone\n"
+        "import pycolmap\n"
         "from leangate_client._colmap import _sfm_child\n"
         "sys.exit(_sfm_child(sys.argv[1]))\n"
     )
@@ -194,13 +203,14 @@ def run_sfm(
     colmap_errors: List[str] = []
     with open(log_path, "w") as colmap_file:
         proc = subprocess.Popen(
-            [sys.executable, "-c", code, request],
+            [sys.executable, "-c", code, request, str(os.getpid())],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             env=env,
             text=True,
             errors="replace",
+            start_new_session=True,
         )
         try:
             for line in proc.stderr:  # type: ignore[union-attr]
@@ -219,8 +229,10 @@ def run_sfm(
                     colmap_errors.append(line.split("what():", 1)[1].strip())
                 if colmap_log:
                     sys.stderr.write(line)
-        finally:
-            rc = proc.wait()
+        except BaseException:  # Ctrl-C, SIGTERM (cli._Terminated), an error here: COLMAP stops too
+            _stop_group(proc, colmap_file)
+            raise
+        rc = proc.wait()
     outcome = None
     if os.path.exists(response):
         with open(response) as f:
@@ -239,6 +251,30 @@ def run_sfm(
     r["centres"] = {k: tuple(v) for k, v in r["centres"].items()}
     r["rotations"] = {k: tuple(v) for k, v in r["rotations"].items()}
     return SfmResult(**r)
+
+
+def _stop_group(proc: "subprocess.Popen[str]", sink=None, grace_s: float = 3.0) -> None:
+    """End ``proc``, which leads a process group of its own: SIGTERM to the group, what it still
+    writes to stderr into ``sink`` (COLMAP's log), then SIGKILL if it has not ended after
+    ``grace_s`` seconds; waited for."""
+    try:
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+        except (ProcessLookupError, PermissionError):
+            pass
+        try:
+            rest = proc.communicate(timeout=grace_s)[1]
+            if sink is not None and rest:
+                sink.write(rest)
+        except subprocess.TimeoutExpired:
+            pass
+    finally:
+        if proc.returncode is None:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+            proc.wait()
 
 
 def _sfm_child(request_path: str) -> int:
@@ -421,8 +457,16 @@ def _run_sfm_here(
 
 
 def export_ply(model_dir: str, path: str) -> None:
+    """The points of the model in ``model_dir`` as a PLY file at ``path``, written beside it and
+    moved over it when complete (an earlier file is replaced only then)."""
     pycolmap = import_pycolmap()
-    pycolmap.Reconstruction(model_dir).export_PLY(path)
+    out = AtomicFile(path, open_file=False)
+    try:
+        pycolmap.Reconstruction(model_dir).export_PLY(out.writes_to)
+    except BaseException:
+        out.discard()
+        raise
+    out.commit()
 
 
 # -- trajectory error --------------------------------------------------------------------------

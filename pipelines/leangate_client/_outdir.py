@@ -1,9 +1,22 @@
-"""Whose output directory it is: :mod:`leangate_client.reconstruct` replaces ``OUT/images`` and
-``OUT/sparse`` only when a run of it made them (a marker file inside); anything else is refused."""
+"""Outputs that lose nothing.
+
+Whose output directory it is: :mod:`leangate_client.reconstruct` replaces ``OUT/images`` and
+``OUT/sparse`` only when a run of it made them (a marker file inside); anything else is refused.
+
+Output files (``leangate-client --csv``, ``reconstruct.py --json`` and ``--ply``):
+``check_output_file`` refuses, before any work, a path that is an input, lies where the run
+writes otherwise, is a directory or has no directory to go in; ``AtomicFile`` writes it to a
+temporary file beside it and moves that over it (``os.replace``) only when the run succeeded, so
+a failed or interrupted run leaves the previous file as it was."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import secrets
+import signal
+import threading
+from typing import Iterable, Iterator, List, Optional, Tuple
 
 from .errors import SetupError
 
@@ -49,3 +62,191 @@ def check_output_subdir(out_dir: str, sub: str) -> None:
             f"--out {out_dir}: {p} is not empty and was not made by reconstruct.py (no "
             f"{OUTPUT_MARKER} in it), so it is not replaced; choose another --out or remove it"
         )
+
+
+@contextlib.contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C (SIGINT) back until the block is done (the few renames that swap a run's
+    output into place), then deliver it. Only the main thread can do that; elsewhere a no-op."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: List[int] = []
+    try:
+        old = signal.signal(signal.SIGINT, lambda sig, frame: got.append(sig))
+    except (ValueError, OSError):
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+        if got:
+            if callable(old):
+                old(signal.SIGINT, None)
+            elif old == signal.SIG_DFL:
+                os.kill(os.getpid(), signal.SIGINT)
+
+
+# -- output files ------------------------------------------------------------------------------
+def _same_file(a: str, b: str) -> bool:
+    """Whether ``a`` and ``b`` name one file (links followed, hard links too)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist (yet)
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def _special(path: str) -> bool:
+    """An existing output that is not a regular file (/dev/stdout, a FIFO): written directly."""
+    return os.path.exists(path) and not os.path.isfile(path) and not os.path.isdir(path)
+
+
+def check_output_file(
+    path: str,
+    option: str,
+    inputs: Iterable[Tuple[str, str]] = (),
+    inside: Iterable[Tuple[str, str]] = (),
+) -> None:
+    """Raise SetupError (naming ``option`` and ``path``) unless ``path`` can take an output file:
+    it is not a directory, its directory exists and can be written, it is not one of ``inputs``
+    (``(what, path)`` pairs: the same file, also through a link) and does not lie in one of
+    ``inside`` (``(what, directory)`` pairs: where the run writes otherwise). Nothing is
+    written; call before any work."""
+    p = os.fspath(path)
+    if not p:
+        raise SetupError(f"{option}: the path is empty")
+    if os.path.isdir(p):
+        raise SetupError(f"{option} {p}: is a directory; give a file name")
+    for what, q in inputs:
+        if q and _same_file(p, q):
+            raise SetupError(
+                f"{option} {p} is {what}, which would be overwritten; choose another file"
+            )
+    real = os.path.realpath(p)
+    for what, d in inside:
+        top = os.path.realpath(d)
+        if real == top or real.startswith(top + os.sep):
+            raise SetupError(f"{option} {p} lies in {what}; choose a file elsewhere")
+    if _special(p):
+        if not os.access(p, os.W_OK):
+            raise SetupError(f"{option} {p}: cannot be written (permission denied)")
+        return
+    parent = os.path.dirname(real)
+    if not os.path.isdir(parent):
+        shown = os.path.dirname(p) or "."
+        raise SetupError(f"{option} {p}: the directory {shown} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise SetupError(f"{option} {p}: cannot write to the directory {parent}")
+
+
+def check_distinct_outputs(outputs: Iterable[Tuple[str, Optional[str]]]) -> None:
+    """SetupError when two of ``outputs`` (``(option, path)``; None: not given) are one file."""
+    given = [(o, p) for o, p in outputs if p]
+    for i, (o1, p1) in enumerate(given):
+        for o2, p2 in given[i + 1:]:
+            if _same_file(p1, p2):
+                raise SetupError(f"{o1} and {o2} are the same file ({p2}): give each its own")
+
+
+class AtomicFile:
+    """An output file that is replaced only when the run succeeded: the data goes to a
+    temporary file beside ``path`` (``.NAME.XXXXXXXX.tmp``, same directory, same filesystem)
+    and ``commit`` moves it over ``path`` (``os.replace``); ``discard`` (a failed or
+    interrupted run) deletes it, leaving an earlier ``path`` as it was. ``path`` a link: its
+    target is replaced. An existing ``path`` that is not a regular file (/dev/stdout, a FIFO)
+    is written directly. ``file``: the open file (None with ``open_file=False``: ``temp`` is
+    then the path to give a writer that takes a path, such as pycolmap's PLY export)."""
+
+    def __init__(self, path: str, mode: str = "w", newline: Optional[str] = None,
+                 open_file: bool = True):
+        self.path = os.fspath(path)
+        self.file = None
+        self.temp: Optional[str] = None
+        if _special(self.path):
+            self.target = self.path
+            self.temp = None
+            if open_file:
+                self.file = open(self.path, mode, newline=newline)
+            return
+        self.target = os.path.realpath(self.path)
+        head, base = os.path.split(self.target)
+        ext = os.path.splitext(base)[1]
+        while True:
+            temp = os.path.join(head, f".{base}.{secrets.token_hex(4)}.tmp{ext}")
+            try:
+                fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # umask applies
+                break
+            except FileExistsError:
+                continue
+        self.temp = temp
+        try:
+            try:
+                os.chmod(temp, os.stat(self.target).st_mode & 0o7777)  # the earlier file's mode
+            except FileNotFoundError:
+                pass
+            if open_file:
+                self.file = os.fdopen(fd, mode, newline=newline)
+                fd = -1
+        except BaseException:
+            self.discard()
+            raise
+        finally:
+            if fd >= 0:
+                os.close(fd)
+
+    @property
+    def writes_to(self) -> str:
+        """Where the data goes until ``commit``: the temporary file, or ``path`` itself."""
+        return self.temp or self.path
+
+    def close(self) -> None:
+        """Flush the data to disk and close the file (OSError when it cannot be written, e.g.
+        ENOSPC); ``path`` is not replaced yet."""
+        f, self.file = self.file, None
+        if f is None:
+            return
+        try:
+            f.flush()
+            if self.temp is not None:
+                os.fsync(f.fileno())
+        finally:
+            f.close()
+
+    def commit(self) -> None:
+        """``close``, then move the temporary file over ``path``. On OSError (the data could
+        not be written) the temporary file is deleted and ``path`` left as it was."""
+        try:
+            self.close()
+            if self.temp is not None:
+                with _sigint_deferred():
+                    os.replace(self.temp, self.target)
+                    self.temp = None
+        except BaseException:
+            self.discard()
+            raise
+
+    def discard(self) -> None:
+        """Drop what was written: ``path`` is left as it was (a special file keeps what reached
+        it). Never raises."""
+        f, self.file = self.file, None
+        if f is not None:
+            try:
+                f.close()
+            except OSError:
+                pass
+        if self.temp is not None:
+            try:
+                os.unlink(self.temp)
+            except OSError:
+                pass
+            self.temp = None
+
+    def __enter__(self) -> "AtomicFile":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.discard()

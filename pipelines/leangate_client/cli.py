@@ -8,16 +8,20 @@ stdout is the product: one line per received frame (unless --quiet) and a ``summ
 With ``--save-kept DIR`` every kept frame is also written to DIR as an image (``--format jpg|png``)
 with ``keyframes.csv`` and ``keyframes.json`` of their meta, and a progress line goes to stderr.
 The run is staged beside DIR and moved into it only when it succeeds: a run that fails or is
-interrupted leaves DIR as it was.
+interrupted leaves DIR as it was. ``--csv OUT`` likewise: checked before the run (not the input,
+not inside the --save-kept DIR, its directory exists), written beside OUT and moved over it only
+when the run succeeds.
 
 Diagnostics go through ``logging`` to stderr (warnings by default; -v info, -vv debug).
 Exit status: 0 on success, 1 on a pipeline error, 2 on a usage/setup error (missing file,
-missing plugin, missing Python bindings), 130 when interrupted.
+missing plugin, missing Python bindings, an output that cannot be written), 130 when
+interrupted (Ctrl-C), 143 on SIGTERM.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import logging
 import math
@@ -26,8 +30,10 @@ import signal
 import sys
 import threading
 import time
-from typing import Iterable, List, Optional, Sequence
+from typing import Iterable, Iterator, List, Optional, Sequence
+from urllib.parse import unquote, urlparse
 
+from ._outdir import AtomicFile, check_output_file
 from .argtypes import non_negative_int, non_negative_seconds, uint32, unit_interval
 from .errors import PipelineError, SetupError
 from .keyframes import CSV_NAME, FORMATS, JSON_NAME
@@ -144,7 +150,10 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
                     "INT8 on the CPU)")
     ap.add_argument("--stats-interval", type=non_negative_seconds, default=None, metavar="SECONDS",
                     help="have the element post leangate-stats this often (logged at -v)")
-    ap.add_argument("--csv", metavar="OUT", help="write one row per received frame to OUT")
+    ap.add_argument("--csv", metavar="OUT",
+                    help="write one row per received frame to OUT (checked before the run: "
+                    "not the input, not in the --save-kept DIR; written to a temporary file "
+                    "beside OUT that replaces it only when the run succeeds)")
     ap.add_argument("--save-kept", metavar="DIR",
                     help="write every kept frame to DIR as kf_000000.jpg, ... with "
                     f"{CSV_NAME} and {JSON_NAME} of their meta (frame, pts_ns, utility, reason, "
@@ -187,16 +196,9 @@ def main(
 
     # SIGTERM and SIGHUP (a service stopped, `timeout`, a closed terminal) end the run the way
     # Ctrl-C does: the pipeline is stopped and a --save-kept run leaves DIR as it was and its
-    # staging folder removed. (Signals can be handled in the main thread only.)
-    handlers = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGTERM, signal.SIGHUP):
-            handlers[sig] = signal.signal(sig, _terminate)
-    try:
+    # staging folder removed.
+    with terminated_like_ctrl_c():
         return _run(ap, args)
-    finally:
-        for sig, h in handlers.items():
-            signal.signal(sig, h)
 
 
 class _Terminated(KeyboardInterrupt):
@@ -205,6 +207,30 @@ class _Terminated(KeyboardInterrupt):
 
 def _terminate(signum, _frame):
     raise _Terminated(signum)
+
+
+@contextlib.contextmanager
+def terminated_like_ctrl_c() -> Iterator[None]:
+    """In the block, SIGTERM and SIGHUP raise ``_Terminated`` (a KeyboardInterrupt) as Ctrl-C
+    raises KeyboardInterrupt; the earlier handlers come back after it. Signals can be handled
+    in the main thread only (elsewhere a no-op). Install it after importing pycolmap: its glog
+    replaces the SIGTERM handler with a stack dump."""
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            handlers[sig] = signal.signal(sig, _terminate)
+    try:
+        yield
+    finally:
+        for sig, h in handlers.items():
+            signal.signal(sig, h)
+
+
+def _local_path(src: str) -> Optional[str]:
+    """The file a source names (a path or a file:// URI), else None."""
+    if src.startswith("file://"):
+        return unquote(urlparse(src).path)
+    return None if "://" in src else src
 
 
 def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
@@ -218,8 +244,20 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         ap.error("INPUT is required (or --source videotestsrc)")
     if args.overwrite and not args.save_kept:
         ap.error("--overwrite applies to --save-kept DIR")
+    if args.csv:  # before anything is opened, created or run
+        try:
+            check_output_file(
+                args.csv,
+                "--csv",
+                inputs=[("the input", _local_path(src) or ""), ("the model", args.model or "")],
+                inside=[(f"the --save-kept directory {args.save_kept}", args.save_kept)]
+                if args.save_kept else [],
+            )
+        except SetupError as e:
+            log.error("%s", e)
+            return 2
 
-    out = None
+    out: Optional[AtomicFile] = None
     progress = None
     writer = None
     kept = forced = 0
@@ -245,8 +283,8 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             overwrite=args.overwrite,
         )
         if args.csv:
-            out = open(args.csv, "w", newline="")
-            writer = csv.writer(out)
+            out = AtomicFile(args.csv, newline="")
+            writer = csv.writer(out.file)
             writer.writerow(CSV_COLUMNS)
         saver = source.saver
         progress = _Progress(ap.prog) if saver is not None else None
@@ -273,10 +311,14 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                         source.force_keyframe()
                     if progress:
                         progress.update(_saving(source))
+                if out:  # flushed while a write error (ENOSPC) can still fail the whole run
+                    out.close()
         finally:
             if progress:  # the last counts; it also ends the line before any error message
                 progress.update(_saving(source), final=True)
         stats = source.stats
+        if out:
+            out.commit()  # the finished CSV replaces an earlier one only now
     except SetupError as e:
         log.error("%s", e)
         return _failed(source, 2)
@@ -290,11 +332,14 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         log.error("interrupted")
         return _failed(source, 130)
     except OSError as e:  # the CSV file
-        log.error("%s", e)
+        if args.csv:
+            log.error("--csv %s: %s", args.csv, e.strerror or e)
+        else:
+            log.error("%s", e)
         return _failed(source, 2)
     finally:
         if out:
-            out.close()
+            out.discard()  # a failed or interrupted run: an earlier CSV is left as it was
 
     stats_txt = ""
     if stats:

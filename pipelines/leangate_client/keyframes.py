@@ -14,20 +14,19 @@ has closed (``post-messages``), and the tables list exactly those files.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import json
 import logging
 import os
 import re
 import shutil
-import signal
 import tempfile
 import threading
-from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Set, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
 
 from . import _gst
 from ._gst import PathLike, _make, _set
+from ._outdir import _sigint_deferred
 from .errors import PipelineError, SetupError
 from .meta import ROW_COLUMNS, csv_value, json_value, meta_dict, meta_row
 
@@ -161,30 +160,6 @@ def prepare_dir(directory: PathLike, overwrite: bool = False) -> str:
             _shown(others),
         )
     return d
-
-
-@contextlib.contextmanager
-def _sigint_deferred() -> Iterator[None]:
-    """Hold a Ctrl-C (SIGINT) back until the block is done (the few renames that swap a run's
-    output into place), then deliver it. Only the main thread can do that; elsewhere a no-op."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    got: List[int] = []
-    try:
-        old = signal.signal(signal.SIGINT, lambda sig, frame: got.append(sig))
-    except (ValueError, OSError):
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, old)
-        if got:
-            if callable(old):
-                old(signal.SIGINT, None)
-            elif old == signal.SIG_DFL:
-                os.kill(os.getpid(), signal.SIGINT)
 
 
 class KeptFrameSaver:

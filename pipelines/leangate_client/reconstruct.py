@@ -68,6 +68,7 @@ from ._colmap import (  # noqa: F401 (the public names stay importable from here
     umeyama_sim3,
 )
 from ._outdir import OUTPUT_MARKER, OUTPUT_SUBDIRS, _make_owned_dir, check_output_subdir  # noqa: F401
+from ._outdir import AtomicFile, check_distinct_outputs, check_output_file
 from ._inputs import (  # noqa: F401
     FrameRef,
     GT_MAX_DIFFERENCE_S,
@@ -188,10 +189,8 @@ def reconstruct(
             opts = SfmOptions(**{**opts.__dict__, "intrinsics": inp.intrinsics})
         else:
             log.info("camera model %s: the PINHOLE intrinsics.txt is not used", opts.camera_model)
-    extra = []  # files given with --frames @FILE
-    for f in frames or []:
-        if isinstance(f, (tuple, list)) and f[1]:
-            extra.append(f[1] if os.path.isabs(f[1]) else os.path.join(inp.path, f[1]))
+    extra = _frame_files(inp, frames)
+    check_output_files(inp, out_dir, [("--ply", ply)], extra)
     check_output_dir(inp, out_dir, extra)
     os.makedirs(out_dir, exist_ok=True)
     fresh_image_dir(inp, out_dir, extra)
@@ -240,6 +239,57 @@ def reconstruct(
     return Reconstruction(
         inp, list(chosen), names, result, gate_result, ate, os.path.abspath(out_dir)
     )
+
+
+def _frame_files(inp: InputSequence, frames: Optional[Sequence[Any]]) -> List[str]:
+    """The files ``frames`` names (``(index, path)`` pairs: --frames @FILE), as paths."""
+    out = []
+    for f in frames or []:
+        if isinstance(f, (tuple, list)) and f[1]:
+            out.append(f[1] if os.path.isabs(f[1]) else os.path.join(inp.path, f[1]))
+    return out
+
+
+#: Files a run writes into OUT itself (besides OUT/images and OUT/sparse).
+RUN_FILES = ("database.db", "colmap.log", "sfm_request.json", "sfm_result.json")
+
+
+def check_output_files(
+    inp: InputSequence,
+    out_dir: str,
+    outputs: Sequence[Tuple[str, Optional[str]]],
+    extra: Sequence[str] = (),
+) -> None:
+    """Raise SetupError, before any work, unless each ``(option, path)`` of ``outputs`` (None: not
+    given; ``--json``, ``--ply``) can be written without losing anything: not two of them one
+    file, none an input (the video; a sequence's list files and images, or any file already in
+    its directory; ``extra``), none a file the run writes itself (OUT/images, OUT/sparse,
+    OUT/colmap.log, ...), not a directory, and in a directory that exists and can be written."""
+    given = [(o, p) for o, p in outputs if p]
+    check_distinct_outputs(given)
+    if not given:
+        return
+    inputs = [("the input", inp.path)] if inp.kind == "video" else []
+    if inp.kind != "video":
+        for name in ("rgb.txt", "intrinsics.txt", "groundtruth.txt", "groundtruth_tum.txt"):
+            inputs.append((f"the input's {name}", os.path.join(inp.path, name)))
+        inputs += [("an image of the input", f.path) for f in inp.frames if f.path]
+    inputs += [("a frame given with --frames", p) for p in extra]
+    inputs += [(f"a file the run writes ({os.path.join(out_dir, n)})", os.path.join(out_dir, n))
+               for n in RUN_FILES]
+    inside = [(f"{os.path.join(out_dir, sub)}, which the run replaces", os.path.join(out_dir, sub))
+              for sub in OUTPUT_SUBDIRS]
+    if inp.kind != "video":  # any file already in the sequence's folder (links there too)
+        tops = {os.path.realpath(inp.path), os.path.abspath(inp.path)}
+        for option, path in given:
+            names = {os.path.realpath(path), os.path.abspath(path)}
+            if os.path.lexists(path) and any(n.startswith(t + os.sep) for n in names for t in tops):
+                raise SetupError(
+                    f"{option} {path} is a file of the input {inp.path}, which would be "
+                    "overwritten; choose another file"
+                )
+    for option, path in given:
+        check_output_file(path, option, inputs, inside)
 
 
 # -- command line ------------------------------------------------------------------------------
@@ -405,7 +455,7 @@ def main(
     prog: Optional[str] = None,
     plugin_fallbacks: Iterable[str] = (),
 ) -> int:
-    from .cli import configure_logging
+    from .cli import configure_logging, terminated_like_ctrl_c
 
     ap = build_parser(prog)
     args = ap.parse_args(argv)
@@ -416,6 +466,22 @@ def main(
     if args.intrinsics and args.camera_model not in (None, "PINHOLE"):
         ap.error(f"--intrinsics are PINHOLE parameters; --camera-model {args.camera_model} "
                  "takes others")
+    # pycolmap before the signal handlers: importing it installs glog's, which answers SIGTERM
+    # with a stack dump and leaves COLMAP's child process running. (Missing: reported below.)
+    try:
+        import_pycolmap()
+    except SetupError:
+        pass
+    # SIGTERM and SIGHUP (`kill PID`, systemd, `timeout`) end the run as Ctrl-C does: COLMAP's
+    # child process group is stopped too.
+    with terminated_like_ctrl_c():
+        return _run(args, plugin_fallbacks)
+
+
+def _run(args: argparse.Namespace, plugin_fallbacks: Iterable[str]) -> int:
+    """``main``'s run, once the arguments are read."""
+    from .cli import _Terminated
+
     try:
         opts = SfmOptions(
             matcher=args.matcher,
@@ -446,6 +512,10 @@ def main(
                 if value is not None
             },
         )
+        # The output files, before any work: not an input, not one file twice, a directory to go in.
+        inp = open_input(args.input)
+        check_output_files(inp, args.out, [("--json", args.json), ("--ply", args.ply)],
+                           _frame_files(inp, args.frames))
         t = time.monotonic()
         rec = reconstruct(
             args.input,
@@ -459,8 +529,11 @@ def main(
         )
         elapsed = time.monotonic() - t
         if args.json:
-            with open(args.json, "w") as f:
-                json.dump(rec.to_dict(), f, indent=1)
+            try:
+                with AtomicFile(args.json) as out:  # replaces an earlier file only when complete
+                    json.dump(rec.to_dict(), out.file, indent=1)
+            except OSError as e:
+                raise SetupError(f"--json {args.json}: {e.strerror or e}") from None
     except SetupError as e:
         log.error("%s", e)
         return 2
@@ -470,6 +543,9 @@ def main(
     except OSError as e:
         log.error("%s", e)
         return 2
+    except _Terminated as e:
+        log.error("terminated")
+        return 128 + int(e.args[0])
     except KeyboardInterrupt:
         log.error("interrupted")
         return 130

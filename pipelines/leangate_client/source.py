@@ -124,7 +124,7 @@ class _FrameIndex:
 class LeanGateSource:
     """Iterate over the frames that leave `leangate` as ``(rgb_array, meta_dict)``.
 
-    ``source``: a video file path, a URI (file://, rtsp://, http://, ...: ``uridecodebin``) or
+    ``source``: a video file path (a str or an os.PathLike such as ``pathlib.Path``), a URI (file://, rtsp://, http://, ...: ``uridecodebin``) or
     ``test://PATTERN?num-buffers=N&width=W&height=H&fps=F`` (``videotestsrc``; ``"videotestsrc"``
     alone means ``test://ball``).
 
@@ -175,7 +175,7 @@ class LeanGateSource:
 
     def __init__(
         self,
-        source: str,
+        source: PathLike,
         model: Optional[PathLike] = None,
         threshold: Optional[float] = None,
         mode: str = "drop",
@@ -195,6 +195,13 @@ class LeanGateSource:
         save_format: str = "jpg",
         overwrite: bool = False,
     ):
+        if isinstance(source, os.PathLike):
+            source = os.fspath(source)
+        if not isinstance(source, str):
+            raise SetupError(
+                "source must be a file path (str or os.PathLike), a URI or \"videotestsrc\", "
+                f"not {type(source).__name__} {source!r}"
+            )
         self.plugin = ensure_plugin(plugin_path, plugin_fallbacks)
         if mode not in MODES:
             raise SetupError(f"mode must be drop or annotate, not {mode!r}")
@@ -759,7 +766,7 @@ class LeanGateSource:
 
 
 def save_kept(
-    source: str,
+    source: PathLike,
     directory: PathLike,
     format: str = "jpg",
     overwrite: bool = False,

@@ -873,3 +873,243 @@ fn consumer_never_deletes_the_input_or_folders_it_did_not_make() {
         "{text}"
     );
 }
+
+/// A TUM-layout copy of the shared kitchen in `dir/name`: its list files and `depth/000000.png`
+/// copied (so that nothing under the shared data is ever in reach of a write), `rgb/` linked.
+fn sequence_copy(seq: &Path, dir: &Path, name: &str) -> PathBuf {
+    let input = dir.join(name);
+    std::fs::create_dir_all(input.join("depth")).unwrap();
+    std::os::unix::fs::symlink(seq.join("rgb"), input.join("rgb")).unwrap();
+    for f in ["rgb.txt", "intrinsics.txt", "groundtruth.txt"] {
+        std::fs::copy(seq.join(f), input.join(f)).unwrap();
+    }
+    std::fs::write(input.join("depth/000000.png"), b"a depth image").unwrap();
+    input
+}
+
+/// The names in `dir` that look like a leftover temporary output (`.NAME.XXXXXXXX.tmp*`).
+fn temp_files(dir: &Path) -> Vec<String> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with('.') && n.contains(".tmp"))
+        .collect()
+}
+
+/// `--json` and `--ply` lose nothing. Checked before any work (no COLMAP run, OUT not even
+/// made): an input as the output (the sequence's rgb.txt, a file of its folder, one of its
+/// images: they used to be overwritten, exit 0), one path for both, a file the run writes
+/// itself, a directory, a directory that does not exist (these used to fail only after the whole
+/// run): exit 2, one line naming it, the file untouched. Both are written beside the path and
+/// moved over it when complete: a failed run leaves an earlier file as it was, and a write error
+/// (/dev/full) is one line, not a traceback.
+#[test]
+fn consumer_checks_its_output_files_up_front_and_writes_them_whole() {
+    let (Some(seq), Some(py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let input = sequence_copy(&seq, root, "seq");
+    let before = tree(&input);
+    let out_dir = root.join("rec");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let refused = |args: &[String], expect: &str| {
+        let mut a: Vec<&str> = vec!["--every", "12", "--out"];
+        let od = s(&out_dir);
+        a.push(&od);
+        a.extend(args.iter().map(|x| x.as_str()));
+        let o = consumer(&py, &a, &[&input]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {err}");
+        assert!(
+            err.starts_with("reconstruct: error: ") && err.contains(expect),
+            "{args:?}: expected {expect:?} in {err}"
+        );
+        assert_eq!(err.trim().lines().count(), 1, "{args:?}: one line: {err}");
+        assert!(!out_dir.exists(), "{args:?}: refused before any work");
+        assert_eq!(tree(&input), before, "{args:?}: the input is untouched");
+    };
+    let j = |p: PathBuf| vec!["--json".to_string(), s(&p)];
+    refused(&j(input.join("rgb.txt")), "is a file of the input");
+    refused(&j(input.join("depth/000000.png")), "is a file of the input");
+    refused(
+        &["--ply".to_string(), s(&input.join("rgb/000000.jpg"))],
+        "would be overwritten",
+    );
+    let same = s(&root.join("same.out"));
+    refused(
+        &["--json".into(), same.clone(), "--ply".into(), same],
+        "--json and --ply are the same file",
+    );
+    refused(&j(out_dir.join("colmap.log")), "a file the run writes");
+    refused(
+        &["--ply".to_string(), s(&out_dir.join("sparse/points.ply"))],
+        "which the run replaces",
+    );
+    refused(&j(root.join("nodir/r.json")), "does not exist");
+    refused(&j(root.to_path_buf()), "is a directory");
+
+    // An earlier JSON survives a run that fails; one that succeeds replaces it, PLY too.
+    let json = root.join("r.json");
+    let ply = root.join("r.ply");
+    std::fs::write(&json, "earlier").unwrap();
+    std::fs::write(&ply, "earlier").unwrap();
+    let o = consumer(
+        &py,
+        &["--frames", "0,60", "--out"],
+        &[
+            &out_dir,
+            Path::new("--json"),
+            &json,
+            Path::new("--ply"),
+            &ply,
+            &input,
+        ],
+    );
+    assert_eq!(o.status.code(), Some(2));
+    assert_eq!(std::fs::read(&json).unwrap(), b"earlier");
+    assert_eq!(std::fs::read(&ply).unwrap(), b"earlier");
+    let o = consumer(
+        &py,
+        &["--every", "12", "--out"],
+        &[
+            &out_dir,
+            Path::new("--json"),
+            &json,
+            Path::new("--ply"),
+            &ply,
+            &input,
+        ],
+    );
+    assert!(o.status.success());
+    assert_eq!(read_json(&json)["kept"], 5);
+    assert!(std::fs::read(&ply).unwrap().starts_with(b"ply\n"));
+    assert!(temp_files(root).is_empty(), "{:?}", temp_files(root));
+    assert_eq!(tree(&input), before);
+
+    // A write error at the end: one line, exit 2.
+    if Path::new("/dev/full").exists() {
+        let o = consumer(
+            &py,
+            &["--every", "12", "--out"],
+            &[
+                &out_dir,
+                Path::new("--json"),
+                Path::new("/dev/full"),
+                &input,
+            ],
+        );
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{err}");
+        assert!(
+            err.contains("reconstruct: error: --json /dev/full: No space left on device"),
+            "{err}"
+        );
+        assert!(!err.contains("Traceback"), "{err}");
+    }
+}
+
+/// SIGTERM (`kill PID`, systemd) or SIGINT sent to the consumer's process alone while COLMAP
+/// runs stops the run: COLMAP's child process (its own process group) is stopped too, one line
+/// says so, exit 143 / 130, within seconds. SIGTERM used to end in glog's C stack dump ("***
+/// Aborted at") with the child left running and writing into OUT; SIGINT waited for COLMAP to
+/// finish.
+#[test]
+fn a_signal_to_the_consumer_stops_colmap_too() {
+    let (Some(seq), Some(py)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let children = |pid: u32| -> Vec<u32> {
+        let o = Command::new("pgrep")
+            .args(["-P", &pid.to_string()])
+            .output()
+            .unwrap();
+        String::from_utf8_lossy(&o.stdout)
+            .split_whitespace()
+            .filter_map(|x| x.parse().ok())
+            .collect()
+    };
+    // Gone, or a zombie nobody reaps (PID 1 of a container may not).
+    let alive = |pid: u32| match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        Ok(stat) => stat
+            .rsplit_once(')')
+            .map(|(_, rest)| !rest.trim_start().starts_with('Z'))
+            .unwrap_or(false),
+        Err(_) => false,
+    };
+    for (signal, code, said) in [("-TERM", 143, "terminated"), ("-INT", 130, "interrupted")] {
+        // The default disposition for both (a background job starts with SIGINT ignored), and
+        // a process group of its own, so that the signal reaches the consumer alone.
+        use std::os::unix::process::CommandExt;
+        let out_dir = dir.path().join(format!("rec{code}"));
+        let mut c = Command::new("env");
+        c.arg("--default-signal=INT,TERM")
+            .arg(&py)
+            .arg(repo_root().join("pipelines/reconstruct.py"))
+            .args(["--every", "1", "--out"])
+            .arg(&out_dir)
+            .arg(&seq)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .process_group(0);
+        let mut child = c.spawn().unwrap();
+        let pid = child.id();
+        let start = std::time::Instant::now();
+        let colmap = loop {
+            if let Some(&k) = children(pid).first() {
+                break k;
+            }
+            if child.try_wait().unwrap().is_some() || start.elapsed().as_secs() > 60 {
+                let _ = child.kill();
+                panic!("COLMAP's child process did not start within 60 s");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        };
+        std::thread::sleep(std::time::Duration::from_millis(1500)); // COLMAP at work
+        assert!(alive(colmap), "COLMAP still runs before the signal");
+        let killed = Command::new("kill")
+            .args([signal, &pid.to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+        let sent = std::time::Instant::now();
+        while child.try_wait().unwrap().is_none() {
+            if sent.elapsed().as_secs() >= 20 {
+                let _ = child.kill();
+                panic!("kill {signal}: the consumer did not end within 20 s");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        let out = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        eprintln!(
+            "kill {signal}: {} after {:?}\n{err}",
+            out.status,
+            sent.elapsed()
+        );
+        assert!(
+            sent.elapsed().as_secs() < 10,
+            "{signal}: {:?}",
+            sent.elapsed()
+        );
+        assert_eq!(out.status.code(), Some(code), "{signal}: {err}");
+        assert!(
+            err.contains(&format!("reconstruct: error: {said}")),
+            "{signal}: {err}"
+        );
+        assert!(
+            !err.contains("*** Aborted at") && !err.contains("SIGTERM received"),
+            "{signal}: no stack dump: {err}"
+        );
+        let waited = std::time::Instant::now();
+        while alive(colmap) && waited.elapsed().as_secs() < 5 {
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        assert!(
+            !alive(colmap),
+            "{signal}: COLMAP's process {colmap} is left running"
+        );
+    }
+}
