@@ -69,11 +69,14 @@ inspect: release
 # Only copies what `make release` built (no cargo, no setup): `make release && sudo make install
 # PREFIX=/usr/local` works although root has no Rust toolchain. Writes a manifest that `make
 # uninstall` follows (scripts/install.sh).
+# $(call shell_word,VAR): VAR as one shell word, exactly as given (spaces, quotes and $ kept): a
+# value from the command line or the environment unexpanded, single-quoted, each ' as '\''.
+shell_word = '$(subst ','\'',$(if $(filter command line environment,$(origin $(1))),$(value $(1)),$($(1))))'
 install:
-	PREFIX='$(PREFIX)' GST_LINK_DIR='$(GST_LINK_DIR)' bash scripts/install.sh
+	PREFIX=$(call shell_word,PREFIX) GST_LINK_DIR=$(call shell_word,GST_LINK_DIR) bash scripts/install.sh
 
 uninstall:
-	PREFIX='$(PREFIX)' GST_LINK_DIR='$(GST_LINK_DIR)' bash scripts/install.sh --uninstall
+	PREFIX=$(call shell_word,PREFIX) GST_LINK_DIR=$(call shell_word,GST_LINK_DIR) bash scripts/install.sh --uninstall
 
 clean:
 	$(CARGO) clean

@@ -36,9 +36,15 @@ CAPS="${CAPS:-video/x-raw,width=640,height=480}"
 MAX_GAP="${MAX_GAP:-30}"
 leangate_require_plugin
 
-PIPELINE="v4l2src device=$DEVICE ! $CAPS ! videoconvert ! \
-leangate $MODEL_PROP ${THRESHOLD:+threshold=$THRESHOLD} max-gap=$MAX_GAP stats-interval=1000000000 ! \
-$SINK"
+# The pipeline's words (CAPS and SINK split as gst-launch would; the device and the model quoted
+# as one word each), and the same as one description for --check.
+set -f
+# shellcheck disable=SC2206
+WORDS=(v4l2src "device=$(gst_quote "$DEVICE")" ! $CAPS ! videoconvert !
+    leangate ${MODEL_PROP:+"$MODEL_PROP"} ${THRESHOLD:+threshold=$THRESHOLD} max-gap="$MAX_GAP"
+    stats-interval=1000000000 ! $SINK)
+set +f
+PIPELINE="${WORDS[*]}"
 
 if [ "$CHECK" = 1 ]; then
     exec /usr/bin/python3 - "$PIPELINE" <<'PY'
@@ -58,7 +64,5 @@ PY
 fi
 
 [ -e "$DEVICE" ] || { echo "error: no camera at $DEVICE (pass another device as the first argument)" >&2; exit 2; }
-set -f
-# shellcheck disable=SC2086
-gst-launch-1.0 -e -m $PIPELINE | leangate_summarise
+gst-launch-1.0 -e -m "${WORDS[@]}" | leangate_summarise
 exit "${PIPESTATUS[0]}"

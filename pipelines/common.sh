@@ -4,8 +4,11 @@
 # - Makes `leangate` findable: when gst-inspect-1.0 cannot find it, prepends the repository's
 #   target/release and target/debug to GST_PLUGIN_PATH; fails with a clear message if the
 #   plugin is still missing (build it with `cargo build`).
-# - MODEL / MODEL_PROP: the model file, from $LEANGATE_MODEL. Empty means the element's default:
-#   the student embedded in the plugin (leangate-s).
+# - MODEL / MODEL_PROP: the model file, from $LEANGATE_MODEL, and the one pipeline word that sets
+#   it (quoted with gst_quote). Empty means the element's default: the student embedded in the
+#   plugin (leangate-s).
+# - gst_quote VALUE: VALUE as a gst-launch property value (in double quotes, `\` and `"` escaped),
+#   so that a path with spaces, quotes or backslashes reaches the element as it is.
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
@@ -29,20 +32,29 @@ leangate_require_plugin() {
     fi
 }
 
+gst_quote() {
+    local v=${1//\\/\\\\}
+    v=${v//\"/\\\"}
+    printf '"%s"' "$v"
+}
+
 MODEL="${LEANGATE_MODEL:-}"
 if [ -n "$MODEL" ]; then
     if [ ! -f "$MODEL" ]; then
         echo "error: model not found: $MODEL" >&2
         exit 2
     fi
-    MODEL_PROP="model=$MODEL"
+    MODEL_PROP="model=$(gst_quote "$MODEL")"
 else
     MODEL_PROP=""
 fi
 
 # Print the frames in/kept figures from `gst-launch-1.0 -m` output on stdin (the element's
-# `leangate-stats` message, posted at EOS), passing every line through.
-leangate_summarise() {
+# `leangate-stats` message, posted at EOS), passing every line through. Ctrl-C reaches the whole
+# foreground group: this reader ignores it, so that gst-launch can finish (-e: EOS, the final
+# statistics) and its last lines still get through.
+leangate_summarise() (
+    trap '' INT
     awk '
         { print }
         /leangate-stats/ {
@@ -61,4 +73,4 @@ leangate_summarise() {
             }
             print line
         }'
-}
+)

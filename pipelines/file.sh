@@ -35,7 +35,7 @@ MODE="${MODE:-drop}"
 set -f # no globbing: the pipeline words below are passed as they are
 # shellcheck disable=SC2086
 gst-launch-1.0 -m \
-    filesrc location="$VIDEO" ! decodebin ! queue max-size-buffers=2 ! \
-    leangate $MODEL_PROP ${THRESHOLD:+threshold=$THRESHOLD} mode="$MODE" ! \
+    filesrc location="$(gst_quote "$VIDEO")" ! decodebin ! queue max-size-buffers=2 ! \
+    leangate ${MODEL_PROP:+"$MODEL_PROP"} ${THRESHOLD:+threshold=$THRESHOLD} mode="$MODE" ! \
     $SINK | leangate_summarise
 exit "${PIPESTATUS[0]}"

@@ -6,9 +6,16 @@
 #   THRESHOLD=0.6 scripts/demo.sh        another tau_keep (default: the model's)
 # Writes OUT_DIR/eval.json, OUT_DIR/eval.png (teacher vs predicted utility, kept frames per
 # policy) and OUT_DIR/kept.png (contact sheet of the kept frames).
+# Relative paths (OUT_DIR, VIDEO, MODEL) are taken from where it is run; the default OUT_DIR is the
+# checkout's out/demo.
 set -euo pipefail
-cd "$(dirname "$0")/.."
-OUT=${1:-out/demo}
+HERE=$PWD
+REPO=$(cd "$(dirname "$0")/.." && pwd)
+abs() { case $1 in /*) printf '%s\n' "$1" ;; *) printf '%s\n' "$HERE/$1" ;; esac; }
+OUT=$(abs "${1:-$REPO/out/demo}")
+[ -z "${VIDEO:-}" ] || VIDEO=$(abs "$VIDEO")
+[ -z "${MODEL:-}" ] || MODEL=$(abs "$MODEL")
+cd "$REPO"
 BIN=target/release/leangate
 mkdir -p "$OUT"
 
@@ -28,5 +35,5 @@ ARGS=()
 echo "== gating $SEQ with leangate (annotate mode, real pipeline) and judging it"
 "$BIN" eval --sequence "$SEQ" ${ARGS[@]+"${ARGS[@]}"} --json "$OUT/eval.json" --plot "$OUT/eval.png" \
   --contact-sheet "$OUT/kept.png"
-echo "== frames in / kept: $(python3 -c "import json;d=json.load(open('$OUT/eval.json'));m=d['policies']['model'];print(d['frames'],'/',m['kept'])" 2>/dev/null || echo see above)"
+echo "== frames in / kept: $(python3 -c 'import json, sys; d = json.load(open(sys.argv[1])); print(d["frames"], "/", d["policies"]["model"]["kept"])' "$OUT/eval.json" 2>/dev/null || echo see above)"
 echo "== wrote $OUT/eval.json, $OUT/eval.png, $OUT/kept.png"

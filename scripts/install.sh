@@ -205,12 +205,16 @@ OWN=() # LeanGate's own directories, created now or before (by an install withou
 rollback() {
   local i
   for ((i = ${#PLACED[@]} - 1; i >= 0; i--)); do rm -f -- "${PLACED[i]}"; done
-  for ((i = ${#BACKUPS[@]} - 1; i >= 0; i--)); do mv -fT -- "${BACKUPS[i]}.leangate-old.$$" "${BACKUPS[i]}"; done
+  # (A backup is recorded before its rename: one that an interrupt kept from happening is not there.)
+  for ((i = ${#BACKUPS[@]} - 1; i >= 0; i--)); do
+    if exists "${BACKUPS[i]}.leangate-old.$$"; then mv -fT -- "${BACKUPS[i]}.leangate-old.$$" "${BACKUPS[i]}"; fi
+  done
   for ((i = ${#CREATED[@]} - 1; i >= 0; i--)); do rmdir -- "${CREATED[i]}" 2>/dev/null || true; done
   warn "failed: undone, nothing of this install is left (what it replaced is restored)"
 }
 on_exit() {
   local rc=$?
+  trap '' INT TERM HUP # a second Ctrl-C must not cut the rollback short
   if [ "$STATE" = placing ] && [ "$rc" != 0 ]; then rollback; fi
   rm -rf -- "$tmp"
   exit "$rc"
@@ -264,12 +268,34 @@ place() { # SRC DEST (a file, or a symlink copied as one)
   mkdirs "$(dirname -- "$dest")"
   if [ -d "$dest" ] && [ ! -L "$dest" ]; then die "cannot install $dest: a directory is in the way"; fi
   if exists "$dest"; then
-    mv -fT -- "$dest" "$dest.leangate-old.$$" 2>"$err" || die "cannot replace $dest: $(cat "$err")"
     BACKUPS+=("$dest")
+    mv -fT -- "$dest" "$dest.leangate-old.$$" 2>"$err" || die "cannot replace $dest: $(cat "$err")"
   fi
   PLACED+=("$dest")
   cp -P --preserve=mode -- "$src" "$dest" 2>"$err" || die "cannot write $dest: $(cat "$err")"
 }
+
+# Nothing of the user's is replaced: a file already where this install writes must be LeanGate's,
+# from an earlier install (in its manifest, in LeanGate's own folders, or, for an install made
+# before the manifest existed, recognisably LeanGate's own file). Checked before anything moves.
+ours() { # DEST
+  printf '%s\n' "$old_entries" | awk -F'\t' -v p="$1" '$3 == p {f = 1} END {exit !f}' && return 0
+  case $1 in "$LIB_DIR"/* | "$PREFIX"/share/doc/leangate/*) return 0 ;; esac
+  case $1 in
+    */bin/leangate-client) grep -qs "installed by LeanGate" -- "$1" ;;
+    */bin/leangate) grep -qsF "LeanGate: geometric-utility frame gating" -- "$1" ;;
+    */libgstleangate.so) grep -qsF "GstLeanGate" -- "$1" ;;
+    *) return 1 ;;
+  esac
+}
+theirs=()
+while IFS= read -r -d '' rel; do
+  dest=$PREFIX/$rel
+  if [ ! -d "$stage/$rel" ] && exists "$dest" && ! ours "$dest"; then theirs+=("$dest"); fi
+done < <(cd "$stage" && find lib/leangate lib/gstreamer-1.0 share bin -print0)
+if ((${#theirs[@]})); then
+  die "refusing to install: ${theirs[*]} $([ ${#theirs[@]} = 1 ] && echo is || echo are) not from a LeanGate install and would be replaced; move $([ ${#theirs[@]} = 1 ] && echo it || echo them) away, or install into another PREFIX"
+fi
 
 declare -A NEW=()
 entries=()

@@ -733,3 +733,114 @@ fn concurrent_installs_into_one_prefix_take_turns() {
     assert!(o.status.success(), "{}", text(&o));
     assert_eq!(tree(&outside), before, "{}", text(&o));
 }
+
+/// A user's own files where install would write (`bin/leangate-client`, a plugin of the same name
+/// not from LeanGate) are refused before anything moves, and kept; a re-install interrupted just
+/// after it moved a file aside puts it back (the rollback used to miss a backup recorded only
+/// after its rename, leaving the earlier install without `__init__.py`).
+#[test]
+fn install_never_replaces_a_users_file_and_an_interrupted_reinstall_restores_the_old_one() {
+    let (tmp, home, outside) = dirs();
+    let prefix = outside.join("prefix");
+    for (rel, mine) in [
+        ("bin/leangate-client", "#!/bin/sh\necho my own script\n"),
+        ("lib/gstreamer-1.0/libgstleangate.so", "someone's own build"),
+    ] {
+        let path = prefix.join(rel);
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(&path, mine).unwrap();
+        let before = tree(tmp.path());
+        let o = installer(&home, &prefix, false, &[]);
+        let t = text(&o);
+        assert!(!o.status.success(), "{rel}: {t}");
+        assert!(
+            t.contains("refusing to install")
+                && t.contains(&path.display().to_string())
+                && t.contains("not from a LeanGate install"),
+            "{t}"
+        );
+        assert_eq!(tree(tmp.path()), before, "{rel}: install wrote something");
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), mine);
+        std::fs::remove_file(&path).unwrap();
+    }
+
+    // Ctrl-C while a re-install moves the old package's __init__.py aside: a `mv` that renames,
+    // then interrupts its caller, as a Ctrl-C arriving at that moment would (and again when the
+    // rollback moves it back: a second Ctrl-C must not cut the rollback short).
+    install(&home, &prefix, false);
+    let shim = outside.join("shim");
+    std::fs::create_dir_all(&shim).unwrap();
+    std::fs::write(
+        shim.join("mv"),
+        "#!/bin/bash\n/bin/mv \"$@\"; rc=$?\ncase \"$*\" in *__init__.py.leangate-old.*) \
+         kill -INT $PPID ;; esac\nexit $rc\n",
+    )
+    .unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(shim.join("mv"), std::fs::Permissions::from_mode(0o755)).unwrap();
+    let path = format!(
+        "{}:{}",
+        shim.display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let o = installer(&home, &prefix, false, &[("PATH", OsStr::new(&path))]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(130), "{t}");
+    assert!(t.contains("undone"), "{t}");
+    let package = prefix.join("lib/leangate/python/leangate_client");
+    assert!(
+        package.join("__init__.py").is_file(),
+        "{:?}",
+        tree(&package)
+    );
+    let left: Vec<String> = tree(&prefix)
+        .into_iter()
+        .filter(|p| p.contains("leangate-old"))
+        .collect();
+    assert!(left.is_empty(), "{left:?}");
+    let o = Command::new(prefix.join("bin/leangate-client"))
+        .arg("--version")
+        .env_clear()
+        .env("HOME", &home)
+        .env("PATH", "/usr/bin:/bin")
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "the earlier install works: {}",
+        text(&o)
+    );
+    install(&home, &prefix, true);
+}
+
+/// `make install PREFIX=...` passes the prefix exactly as given: spaces, quotes and `$` (make
+/// used to expand `$H` and the shell to choke on a `'`).
+#[test]
+fn make_install_takes_any_prefix_spelling() {
+    let (_tmp, home, outside) = dirs();
+    let (plugin, cli) = built();
+    let prefix = outside.join("it's \"q\" $HOME_x");
+    let make = |target: &str| {
+        Command::new("make")
+            .current_dir(root())
+            .env_clear()
+            .env("HOME", &home)
+            .env("PATH", "/usr/bin:/bin")
+            .env("PLUGIN", &plugin)
+            .env("CLI", &cli)
+            .args(["-s", target])
+            .arg(format!("PREFIX={}", prefix.display()))
+            .output()
+            .unwrap()
+    };
+    let o = make("install");
+    assert!(o.status.success(), "make install: {}", text(&o));
+    assert!(
+        prefix.join("bin/leangate").is_file(),
+        "{:?}",
+        tree(&outside)
+    );
+    let o = make("uninstall");
+    assert!(o.status.success(), "make uninstall: {}", text(&o));
+    assert!(!prefix.exists(), "{:?}", tree(&outside));
+}

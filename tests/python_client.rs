@@ -2581,3 +2581,85 @@ print(json.dumps({"source": src.source, "received": n, "errors": errors}))
         );
     }
 }
+
+/// The example scripts take any file name (spaces, quotes, backslashes; a model path with a
+/// space), and Ctrl-C to a `gst-launch -e ... | leangate_summarise` run (the foreground process
+/// group, as a terminal sends it) still ends with the final statistics and the summary: the
+/// reader used to die of the same SIGINT before gst-launch's last lines. scripts/demo.sh takes
+/// relative paths from where it is run.
+#[test]
+fn example_scripts_take_any_path_and_a_ctrl_c_keeps_the_summary() {
+    if !python_ok() {
+        return;
+    }
+    let Some(clip) = paths::shared_data("cotracker_clips/apple.mp4") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let model_dir = dir.path().join("m dir");
+    std::fs::create_dir(&model_dir).unwrap();
+    let model_copy = model_dir.join("model.onnx");
+    std::fs::copy(model(), &model_copy).unwrap();
+    for name in ["a\"b c.mp4", "back\\slash.mp4", "it's $x!.mp4"] {
+        let video = dir.path().join(name);
+        std::fs::copy(&clip, &video).unwrap();
+        let mut c = command("bash");
+        c.arg("pipelines/file.sh")
+            .arg(&video)
+            .env("LEANGATE_MODEL", &model_copy);
+        let out = run(c);
+        assert!(out.status.success(), "{name}: {}", stderr(&out));
+        let s = summary(&out);
+        assert_eq!(num(&s, "frames-in"), 50, "{name}");
+    }
+
+    // Ctrl-C: a live source, SIGINT to the whole process group after a second.
+    let script = format!(
+        ". pipelines/common.sh; gst-launch-1.0 -e -m videotestsrc is-live=true ! \
+         video/x-raw,width=160,height=120,framerate=30/1 ! leangate model=\"{}\" ! fakesink \
+         | leangate_summarise",
+        model()
+    );
+    let mut c = command("setsid");
+    c.args(["bash", "-c", &script])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped());
+    let plugins = paths::plugin_dir();
+    c.env("GST_PLUGIN_PATH", plugins.path());
+    let child = c.spawn().unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let group = format!("-{}", child.id());
+    let killed = Command::new("kill")
+        .args(["-INT", "--", &group])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let out = child.wait_with_output().unwrap();
+    let text = stdout(&out);
+    assert!(
+        text.contains("EOS") && text.contains("summary: frames-in="),
+        "{text}{}",
+        stderr(&out)
+    );
+
+    // demo.sh: OUT_DIR and VIDEO relative to the working directory, a quote in OUT_DIR.
+    let cwd = dir.path().join("work");
+    std::fs::create_dir(&cwd).unwrap();
+    std::fs::copy(&clip, cwd.join("clip.mp4")).unwrap();
+    let release = repo().join("target/release/leangate");
+    if !release.exists() {
+        eprintln!("SKIPPED: demo.sh part: no target/release/leangate (make release)");
+        return;
+    }
+    let mut c = Command::new("bash");
+    c.arg(repo().join("scripts/demo.sh"))
+        .arg("it's out")
+        .current_dir(&cwd)
+        .env("VIDEO", "clip.mp4")
+        .env("MODEL", &model_copy);
+    let out = run(c);
+    let text = stdout(&out);
+    assert!(out.status.success(), "{text}{}", stderr(&out));
+    assert!(cwd.join("it's out/eval.json").is_file());
+    assert!(text.contains("== frames in / kept: 50 / "), "{text}");
+}
