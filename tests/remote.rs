@@ -693,22 +693,33 @@ fn push_frames(h: &mut gst_check::Harness, n: usize, gap: Duration) -> Vec<gstle
 /// Every log line of the `leangate*` categories (down to DEBUG) from the first call on, for the
 /// whole test process; the default stderr log goes, or DEBUG lines would flood it.
 fn leangate_logs() -> Vec<String> {
-    static LOGS: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+    logs_at(None)
+}
+
+/// [`leangate_logs`], the WARNING lines alone (`Some(Warning)`) or all of them.
+fn logs_at(level: Option<gst::DebugLevel>) -> Vec<String> {
+    static LOGS: std::sync::Mutex<Vec<(gst::DebugLevel, String)>> =
+        std::sync::Mutex::new(Vec::new());
     static ONCE: std::sync::Once = std::sync::Once::new();
     ONCE.call_once(|| {
         init();
         gst::log::remove_default_log_function();
-        gst::log::add_log_function(|cat, _, _, _, _, _, msg| {
+        gst::log::add_log_function(|cat, level, _, _, _, _, msg| {
             if cat.name().starts_with("leangate") {
                 if let Some(m) = msg.get() {
-                    LOGS.lock().unwrap().push(m.to_string());
+                    LOGS.lock().unwrap().push((level, m.to_string()));
                 }
             }
         });
         gst::log::set_active(true);
         gst::log::set_threshold_for_name("leangate*", gst::DebugLevel::Debug);
     });
-    LOGS.lock().unwrap().clone()
+    LOGS.lock()
+        .unwrap()
+        .iter()
+        .filter(|(l, _)| level.is_none_or(|want| *l == want))
+        .map(|(_, m)| m.clone())
+        .collect()
 }
 
 #[test]
@@ -1076,5 +1087,94 @@ fn an_inference_redirect_is_an_error_not_a_get() {
     assert!(
         !server.seen().iter().any(|r| r.path.ends_with("/elsewhere")),
         "the redirect was followed"
+    );
+}
+
+/// What a hostile probe found (each fails without its fix): a password holding `/` sent the
+/// secret to the host its user name named while every message showed the real host; a 401 read
+/// as "no model"; a JSON answer of hundreds of MiB parsed whole (gigabytes of memory); unusable
+/// answers not counted as failed requests; one WARNING log line per failed frame.
+#[test]
+fn hostile_servers_and_urls_found_by_a_probe() {
+    let _ = leangate_logs();
+    let mad = fixture("mad.onnx");
+    // An unencoded `/` in the password: refused, nothing sent anywhere, the secret never shown.
+    let decoy = Scripted::start(|_, _| Reply::json(500, &json!({"error": "never asked"})));
+    let server = Scripted::start(|req, _| {
+        let served = Served::mad();
+        served.route(req, || served.answer(0.9))
+    });
+    for url in [
+        format!("http://user:s3cret/PW@127.0.0.1:{}", server.port()),
+        format!(
+            "http://127.0.0.1:{}/tok3n@127.0.0.1:{}",
+            decoy.port(),
+            server.port()
+        ),
+    ] {
+        let e = error_of(&format!("model={mad} server={url}"));
+        assert!(
+            e.contains("percent-encoded") && !e.contains("s3cret") && !e.contains("tok3n"),
+            "{e}"
+        );
+    }
+    assert!(decoy.seen().is_empty(), "{:?}", decoy.seen().len());
+    assert!(server.seen().is_empty());
+
+    // Credentials refused: said so, not "no model".
+    let locked = Scripted::start(|_, _| Reply::json(401, &json!({"error": "unauthorized"})));
+    let e = error_of(&format!("model={mad} server={}", locked.url()));
+    assert!(
+        e.contains("refused access") && !e.contains("has no model"),
+        "{e}"
+    );
+
+    // After the dry run: a 9 MiB JSON answer, a utility out of range, then 500s.
+    let served = Served::mad();
+    let huge = json!({"outputs": [{"name": "utility", "datatype": "FP32", "shape": [1],
+        "data": vec![0.0f32; 3_000_000]}]});
+    let server = Scripted::start(move |req, n| {
+        served.route(req, || match n {
+            0 => served.answer(0.9),
+            1 => Reply::json(200, &huge),
+            2 => served.answer(7.0),
+            _ => Reply::json(500, &json!({"error": "down"})),
+        })
+    });
+    init();
+    let bus = gst::Bus::new();
+    let e = element(&format!(
+        "mode=annotate model={mad} server={} sharpness-wait=0",
+        server.url()
+    ));
+    e.set_bus(Some(&bus));
+    let mut h = started(&e);
+    // 150 ms apart for the first three (past the backoff), then 30 frames at once.
+    let mut metas = push_frames(&mut h, 3, Duration::from_millis(150));
+    metas.extend(push_frames(&mut h, 30, Duration::from_millis(2)));
+    assert!(metas.iter().all(|m| m.keep), "fail open: {metas:?}");
+    let port = format!("127.0.0.1:{}", server.port());
+    let logged: Vec<String> = leangate_logs()
+        .into_iter()
+        .filter(|l| l.contains(&port))
+        .collect();
+    assert!(
+        logged
+            .iter()
+            .any(|l| l.contains("more than the 8388608 allowed")),
+        "{logged:?}"
+    );
+    let warned: Vec<String> = logs_at(Some(gst::DebugLevel::Warning))
+        .into_iter()
+        .filter(|l| l.contains(&port))
+        .collect();
+    assert!(warned.len() <= 2, "rate-limited like the bus: {warned:?}");
+    let stats = stats_now(&e, &bus);
+    let server_stats = stats.server.expect("server stats");
+    // The huge answer, the bad utility, then 500s (as many as the backoff lets through): every
+    // request failed, and is counted so.
+    assert!(
+        server_stats.requests >= 3 && server_stats.failed_requests == server_stats.requests,
+        "{server_stats:?}"
     );
 }

@@ -214,12 +214,17 @@ impl LeanGate {
             .store(0f64.to_bits(), Ordering::Relaxed);
     }
 
-    /// Log a run-time failure on a frame (which is kept, fail open), and queue it for the bus
-    /// at most every WARN_EVERY.
+    /// A run-time failure on a frame (which is kept, fail open): on the bus and in the debug log
+    /// at WARNING at most every WARN_EVERY (with how many were suppressed), every one at DEBUG.
     fn warn_rate_limited(&self, state: &mut State, out: &mut Outbox, msg: &str) {
-        gst::warning!(CAT, imp = self, "{msg}");
         let msg = format!("{msg}; the frame was kept (fail open)");
-        out.warnings.extend(state.frame_warnings.admit(&msg));
+        match state.frame_warnings.admit(&msg) {
+            Some(admitted) => {
+                gst::warning!(CAT, imp = self, "{admitted}");
+                out.warnings.push(admitted);
+            }
+            None => gst::debug!(CAT, imp = self, "{msg}"),
+        }
     }
 
     /// The `leangate-stats` structure; starts a new interval.

@@ -31,12 +31,17 @@ pub enum ClientError {
     Redirect { code: u16, location: String },
     /// The server answered something that is not a valid V2 response.
     Protocol(String),
+    /// No (whole) answer within the request's time limit (`server-timeout`).
+    Timeout(Duration),
 }
 
 impl std::fmt::Display for ClientError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             ClientError::Transport(e) => write!(f, "{e}"),
+            ClientError::Timeout(t) => {
+                write!(f, "no answer within {} ms (server-timeout)", t.as_millis())
+            }
             ClientError::Status { code, message } => {
                 write!(f, "HTTP status {}", status_text(*code))?;
                 if !message.is_empty() {
@@ -109,6 +114,7 @@ pub struct V2Client {
     agent: Canceller,
     base: String,
     authorization: Option<String>,
+    timeout: Duration,
 }
 
 impl std::fmt::Debug for V2Client {
@@ -178,6 +184,24 @@ impl Canceller {
     }
 }
 
+/// A ureq failure as a client error: a timeout says how long was waited, an answer over the size
+/// limit is the server's answer (not "no answer").
+fn transport(e: ureq::Error, timeout: Duration) -> ClientError {
+    match e {
+        ureq::Error::Timeout(_) => ClientError::Timeout(timeout),
+        ureq::Error::BodyExceedsLimit(n) => {
+            ClientError::Protocol(format!("an answer larger than the {n} bytes allowed"))
+        }
+        e => ClientError::Transport(e.to_string()),
+    }
+}
+
+/// The most bytes of JSON an inference answer may carry: utilities and features as JSON numbers
+/// take far less (8 MiB is a million values); parsed, JSON takes about 16 times its size, so a
+/// hostile 256 MiB answer of `0,0,...` would take gigabytes. Tensors that large come as binary
+/// data.
+pub(crate) const MAX_JSON_BYTES: usize = 8 << 20;
+
 impl V2Client {
     /// `timeout` bounds each whole request (connect, send, wait, receive).
     pub fn new(server: &ServerUrl, timeout: Duration) -> V2Client {
@@ -194,6 +218,7 @@ impl V2Client {
             agent: Canceller::new(config),
             base: server.base(),
             authorization: server.authorization(),
+            timeout,
         }
     }
 
@@ -207,9 +232,7 @@ impl V2Client {
         if let Some(a) = &self.authorization {
             req = req.header("Authorization", a);
         }
-        let resp = req
-            .call()
-            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        let resp = req.call().map_err(|e| transport(e, self.timeout))?;
         refuse_redirect(resp)
     }
 
@@ -225,7 +248,7 @@ impl V2Client {
             .with_config()
             .limit(16 << 20)
             .read_to_vec()
-            .map_err(|e| ClientError::Transport(e.to_string()))?;
+            .map_err(|e| transport(e, self.timeout))?;
         if status >= 400 {
             return Err(status_error(status, &body));
         }
@@ -269,7 +292,7 @@ impl V2Client {
         }
         let resp = req
             .send(&body[..])
-            .map_err(|e| ClientError::Transport(e.to_string()))?;
+            .map_err(|e| transport(e, self.timeout))?;
         let mut resp = refuse_redirect(resp)?;
         let status = resp.status().as_u16();
         let header_len = resp
@@ -284,7 +307,7 @@ impl V2Client {
             .with_config()
             .limit(MAX_RESPONSE_BYTES)
             .read_to_vec()
-            .map_err(|e| ClientError::Transport(e.to_string()))?;
+            .map_err(|e| transport(e, self.timeout))?;
         if status >= 400 {
             return Err(status_error(status, &body));
         }
@@ -405,6 +428,12 @@ pub(crate) fn decode_response(
     wanted: &[&str],
 ) -> Result<Vec<OutputTensor>, ClientError> {
     let json_len = header_len.unwrap_or(body.len());
+    if json_len > MAX_JSON_BYTES {
+        return Err(ClientError::Protocol(format!(
+            "a JSON answer of {json_len} bytes, more than the {MAX_JSON_BYTES} allowed (send large \
+             tensors as binary data)"
+        )));
+    }
     if json_len > body.len() {
         return Err(ClientError::Protocol(format!(
             "{HEADER_LEN} {json_len} exceeds the body ({} bytes)",

@@ -77,6 +77,22 @@ pub enum RemoteError {
     Url { url: String, reason: String },
     #[error("server `{url}` is unreachable: {reason}")]
     Unreachable { url: String, reason: String },
+    /// Connected, but no whole answer in time (an `https://` URL on a plain-HTTP port waits so).
+    #[error(
+        "server `{url}` did not answer the {what} request within {ms} ms (server-timeout){hint}"
+    )]
+    NoAnswer {
+        url: String,
+        what: String,
+        ms: u128,
+        hint: String,
+    },
+    /// 401 or 403: the server refused the credentials (or their absence).
+    #[error(
+        "server `{url}` refused access ({reason}): check the user name and password or token in \
+         the URL (`http://user:password@host:port`)"
+    )]
+    Refused { url: String, reason: String },
     /// The server answered, but not with what was asked for.
     #[error("server `{url}` answered the {what} request for `{model}` with {reason}")]
     Answered {
@@ -211,19 +227,23 @@ impl Limiter {
 }
 
 impl LimiterUse {
-    /// Wait up to `timeout` for a slot; otherwise the bound that was full.
-    fn acquire(&self, timeout: Duration) -> Result<Permit, usize> {
+    /// Wait up to `timeout` for a slot; otherwise the bound that was full. A stop or flush
+    /// (`canceller`) ends the wait within [`CANCEL_POLL`] (None then).
+    fn acquire(&self, timeout: Duration, canceller: &Canceller) -> Result<Permit, Option<usize>> {
         let l = &self.limiter;
         let deadline = Instant::now() + timeout;
         let mut st = l.state.lock().unwrap_or_else(|e| e.into_inner());
         while let Some(max) = st.max().filter(|&m| st.in_flight >= m) {
             let now = Instant::now();
+            if canceller.is_cancelled() {
+                return Err(None);
+            }
             if now >= deadline {
-                return Err(max);
+                return Err(Some(max));
             }
             st = l
                 .freed
-                .wait_timeout(st, deadline - now)
+                .wait_timeout(st, (deadline - now).min(CANCEL_POLL))
                 .unwrap_or_else(|e| e.into_inner())
                 .0;
         }
@@ -231,6 +251,9 @@ impl LimiterUse {
         Ok(Permit(l.clone()))
     }
 }
+
+/// How often a request waiting for an in-flight slot looks whether it was interrupted.
+const CANCEL_POLL: Duration = Duration::from_millis(20);
 
 /// Exponential backoff between attempts while the server fails.
 #[derive(Debug, Default)]
@@ -362,6 +385,21 @@ impl RemoteScorer {
                 url: url.clone(),
                 reason,
             },
+            ClientError::Timeout(t) => RemoteError::NoAnswer {
+                url: url.clone(),
+                what: what.to_string(),
+                ms: t.as_millis(),
+                hint: match server.is_https() {
+                    true => "; is it a plain-HTTP server (http://)?".into(),
+                    false => String::new(),
+                },
+            },
+            ClientError::Status { code, message } if matches!(code, 401 | 403) => {
+                RemoteError::Refused {
+                    url: url.clone(),
+                    reason: ClientError::Status { code, message }.to_string(),
+                }
+            }
             e => RemoteError::Answered {
                 url: url.clone(),
                 what: what.to_string(),
@@ -371,7 +409,9 @@ impl RemoteScorer {
         };
         let meta = match client.model_metadata(&model) {
             Ok(m) => m,
-            Err(ClientError::Status { code, message }) if (400..500).contains(&code) => {
+            Err(ClientError::Status { code, message })
+                if (400..500).contains(&code) && !matches!(code, 401 | 403) =>
+            {
                 return Err(RemoteError::UnknownModel {
                     reason: ClientError::Status { code, message }.to_string(),
                     url,
@@ -510,12 +550,17 @@ impl RemoteScorer {
         inputs: &[InputTensor<'_>],
         outputs: &[&str],
     ) -> Result<Vec<client::OutputTensor>, String> {
-        let _permit = self.limiter.acquire(self.timeout).map_err(|max| {
-            format!(
-                "{max} requests already in flight to the server for {} ms",
-                self.timeout.as_millis()
-            )
-        })?;
+        let canceller = self.client.canceller();
+        let _permit = self
+            .limiter
+            .acquire(self.timeout, &canceller)
+            .map_err(|max| match max {
+                Some(max) => format!(
+                    "{max} requests already in flight to the server for {} ms",
+                    self.timeout.as_millis()
+                ),
+                None => "interrupted while waiting for a request slot".into(),
+            })?;
         let t0 = Instant::now();
         self.requests += 1;
         let r = self.client.infer(&self.model, inputs, outputs);
@@ -635,6 +680,7 @@ impl RemoteScorer {
                 left.as_millis()
             )));
         }
+        let failed_before = self.failed;
         match self.score_inner(reference, current) {
             Ok(u) => {
                 if self.backoff.failures > 0 {
@@ -654,6 +700,11 @@ impl RemoteScorer {
                 Err(ScorerError::Interrupted)
             }
             Err(e) => {
+                // An answer that cannot be used (a utility out of range, features of the wrong
+                // shape) is a failed request too, like one that never came.
+                if self.failed == failed_before {
+                    self.failed += 1;
+                }
                 self.current = None;
                 self.backoff.fail(e.clone());
                 gst::debug!(CAT, "server {} failed: {e}", self.url);
@@ -722,6 +773,38 @@ impl RemoteScorer {
 mod tests {
     use super::*;
 
+    /// A request canceller, as each element's client has one.
+    fn canceller() -> Canceller {
+        let url = ServerUrl::parse("http://127.0.0.1:9").unwrap();
+        V2Client::new(&url, Duration::from_secs(1)).canceller()
+    }
+
+    #[test]
+    fn a_stop_ends_the_wait_for_an_in_flight_slot() {
+        // One slot, taken; a second request waits for it with a 20 s timeout until the element
+        // is stopped (a probe measured 18 s for set_state(NULL) before).
+        let a = Limiter::join("test://slot-wait", 1);
+        let b = Limiter::join("test://slot-wait", 1);
+        let canceller = canceller();
+        let _held = a
+            .acquire(Duration::from_secs(1), &canceller)
+            .expect("a free slot");
+        let stop = canceller.clone();
+        let t = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(100));
+            stop.cancel();
+        });
+        let t0 = Instant::now();
+        let r = b.acquire(Duration::from_secs(20), &canceller);
+        assert!(matches!(r, Err(None)), "interrupted, not timed out");
+        assert!(t0.elapsed() < Duration::from_secs(2), "{:?}", t0.elapsed());
+        t.join().unwrap();
+        // Without a stop the wait ends at the timeout, naming the bound.
+        canceller.resume();
+        let r = b.acquire(Duration::from_millis(50), &canceller);
+        assert!(matches!(r, Err(Some(1))));
+    }
+
     #[test]
     fn backoff_doubles_and_caps() {
         assert_eq!(Backoff::delay(1), BACKOFF_MIN);
@@ -745,28 +828,30 @@ mod tests {
     #[test]
     fn limiter_bounds() {
         let t = Duration::from_millis(10);
+        let c = canceller();
         let l = Limiter::join("http://test-limiter", 1);
-        let p = l.acquire(t).unwrap();
-        assert_eq!(l.acquire(t).err(), Some(1));
+        let p = l.acquire(t, &c).unwrap();
+        assert_eq!(l.acquire(t, &c).err(), Some(Some(1)));
         drop(p);
-        assert!(l.acquire(t).is_ok());
+        assert!(l.acquire(t, &c).is_ok());
         // No bound from anybody: no wait.
         let free = Limiter::join("http://test-unbounded", 0);
-        let _held: Vec<_> = (0..100).map(|_| free.acquire(t).unwrap()).collect();
+        let _held: Vec<_> = (0..100).map(|_| free.acquire(t, &c).unwrap()).collect();
     }
 
     #[test]
     fn smallest_bound_of_the_users_applies_while_they_use_it() {
         let t = Duration::from_millis(10);
+        let c = canceller();
         let wide = Limiter::join("http://test-smallest", 3);
         let narrow = Limiter::join("http://test-smallest", 1);
-        let p = wide.acquire(t).unwrap();
-        assert_eq!(wide.acquire(t).err(), Some(1));
-        assert_eq!(narrow.acquire(t).err(), Some(1));
+        let p = wide.acquire(t, &c).unwrap();
+        assert_eq!(wide.acquire(t, &c).err(), Some(Some(1)));
+        assert_eq!(narrow.acquire(t, &c).err(), Some(Some(1)));
         drop(narrow);
-        let q = wide.acquire(t).unwrap();
-        let r = wide.acquire(t).unwrap();
-        assert_eq!(wide.acquire(t).err(), Some(3));
+        let q = wide.acquire(t, &c).unwrap();
+        let r = wide.acquire(t, &c).unwrap();
+        assert_eq!(wide.acquire(t, &c).err(), Some(Some(3)));
         drop((p, q, r));
         // The last user gone, the server's limiter goes too: a new one starts afresh.
         drop(wide);

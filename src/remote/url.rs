@@ -56,6 +56,11 @@ impl fmt::Debug for ServerUrl {
 }
 
 impl ServerUrl {
+    /// Whether the URL is `https://`.
+    pub fn is_https(&self) -> bool {
+        self.https
+    }
+
     /// Parse `raw`; the error says what is wrong (the caller names the URL, shown with
     /// [`display_url`]).
     pub fn parse(raw: &str) -> Result<ServerUrl, String> {
@@ -77,6 +82,16 @@ impl ServerUrl {
             return Err("a server URL has no query or fragment".into());
         }
         let (authority, path) = rest.split_at(rest.find('/').unwrap_or(rest.len()));
+        // An `@` after the host is a password holding an unencoded `/` (`user:pa/ss@host`): read
+        // as written, the host would be the user name and the secret would go to DNS and to
+        // whatever answers there, while every message shows the real host.
+        if path.contains('@') {
+            return Err(
+                "`@` after the host: a user name or password holding `/` must be \
+                        percent-encoded (`/` as %2F)"
+                    .into(),
+            );
+        }
         let (userinfo, hostport) = match authority.rsplit_once('@') {
             Some((u, h)) => (Some(u.to_string()), h),
             None => (None, authority),
