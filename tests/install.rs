@@ -764,16 +764,17 @@ fn install_never_replaces_a_users_file_and_an_interrupted_reinstall_restores_the
         std::fs::remove_file(&path).unwrap();
     }
 
-    // Ctrl-C while a re-install moves the old package's __init__.py aside: a `mv` that renames,
-    // then interrupts its caller, as a Ctrl-C arriving at that moment would (and again when the
-    // rollback moves it back: a second Ctrl-C must not cut the rollback short).
+    // Interrupted while a re-install moves the old package's __init__.py aside: a `mv` that
+    // renames, then signals its caller, as a Ctrl-C arriving at that moment would (and again when
+    // the rollback moves it back: a second signal must not cut the rollback short). SIGTERM, which
+    // the installer handles as it does SIGINT: a test run in the background has SIGINT ignored.
     install(&home, &prefix, false);
     let shim = outside.join("shim");
     std::fs::create_dir_all(&shim).unwrap();
     std::fs::write(
         shim.join("mv"),
         "#!/bin/bash\n/bin/mv \"$@\"; rc=$?\ncase \"$*\" in *__init__.py.leangate-old.*) \
-         kill -INT $PPID ;; esac\nexit $rc\n",
+         kill -TERM $PPID ;; esac\nexit $rc\n",
     )
     .unwrap();
     use std::os::unix::fs::PermissionsExt;
