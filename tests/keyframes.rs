@@ -701,3 +701,27 @@ fn a_raised_lookback_while_playing_asks_upstream_to_allocate_again() {
         "no new allocation query after sharpness-lookback 0 -> 10"
     );
 }
+
+/// `videotestsrc pattern=ball`, a small bright ball on black, is a picture (docs/element.md,
+/// `reject-junk`): at 640x480 and 1280x720 no frame is junk (with the 99th percentile rule every
+/// one was `dark` from 640x480 up, so `leangate-client --source videotestsrc` received nothing);
+/// an all-black stream is still junk throughout.
+#[test]
+fn the_test_ball_on_black_is_a_picture_at_common_sizes() {
+    let junk = |pattern: &str, w: u32, h: u32| {
+        let msgs = common::run_pipeline(
+            &format!(
+                "videotestsrc pattern={pattern} num-buffers=20 ! video/x-raw,width={w},height={h} \
+                 ! leangate mode=annotate ! fakesink"
+            ),
+            120,
+        );
+        assert_eq!(common::error_text(&msgs), None);
+        let stats = common::element_message(&msgs, "leangate-stats");
+        let last = gstleangate::StatsMessage::from_structure(stats.last().expect("stats")).unwrap();
+        (last.frames_in, last.frames_junk)
+    };
+    assert_eq!(junk("ball", 640, 480), (20, 0));
+    assert_eq!(junk("ball", 1280, 720), (20, 0));
+    assert_eq!(junk("black", 640, 480), (20, 20));
+}
