@@ -2663,3 +2663,177 @@ fn example_scripts_take_any_path_and_a_ctrl_c_keeps_the_summary() {
     assert!(cwd.join("it's out/eval.json").is_file());
     assert!(text.contains("== frames in / kept: 50 / "), "{text}");
 }
+
+/// A started source that is not closed is shut down anyway: stopping the `for` loop early
+/// (`break`, no `with`, no `close()`) or reaching `max_frames` closes it, and a started source
+/// that is simply dropped is garbage-collected (its `__del__` closes it). Its pad probe and the
+/// decoder's `pad-added` / `no-more-pads` handlers used to hold bound methods of the source, a
+/// reference cycle through GObject closures that Python's collector cannot see: every
+/// abandoned source stayed PLAYING with its streaming threads. `ended` is True only at a real
+/// end-of-stream, not when `close()` from another thread stops the loop.
+#[test]
+fn abandoned_sources_are_shut_down_and_collected() {
+    if !python_ok() || !have_elements(&["jpegenc", "avimux", "avidemux", "jpegdec"]) {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let clip = tmp.path().join("clip.avi");
+    let script = r#"
+import gc, json, os, sys, threading, time, weakref
+from leangate_client import LeanGateSource
+from leangate_client import _gst
+model, clip = sys.argv[1:]
+Gst = _gst.Gst
+_gst.ensure_plugin()
+p = Gst.parse_launch("videotestsrc num-buffers=200 pattern=ball ! video/x-raw,width=160,height=120 "
+                     f"! jpegenc ! avimux ! filesink location={clip}")
+p.set_state(Gst.State.PLAYING)
+p.get_bus().timed_pop_filtered(30 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
+p.set_state(Gst.State.NULL)
+del p
+
+def threads():
+    return len(os.listdir("/proc/self/task"))
+
+def src(**kw):
+    return LeanGateSource(clip, model=model, mode="annotate", arrays=False, **kw)
+
+r = {}
+for _ in range(2):  # closed properly: what lasts after a run (idle pool threads)
+    with src(max_frames=1) as s:
+        for _ in s:
+            pass
+gc.collect()
+r["start"] = threads()
+for _ in range(5):
+    for f, m in src():
+        break
+    for f, m in src(max_frames=2):
+        pass
+gc.collect()
+r["after_abandoned"] = threads()
+
+s = src(max_frames=2)
+r["max_frames_received"] = sum(1 for _ in s)
+r["max_frames_stopped"] = s.gate is None
+r["max_frames_ended"] = s.ended
+s = src()
+for f, m in s:
+    break
+r["break_stopped"] = s.gate is None
+s = src()
+s.start()
+time.sleep(0.2)
+w = weakref.ref(s)
+del s
+gc.collect()
+r["dropped_collected"] = w() is None
+r["after_dropped"] = threads()
+
+s = src(timeout_s=20)
+n = 0
+for f, m in s:
+    n += 1
+    if n == 1:
+        threading.Thread(target=s.close).start()
+    time.sleep(0.01)
+r["closed_from_thread"] = {"frames": n, "ended": s.ended}
+s = src()
+r["eos_frames"] = sum(1 for _ in s)
+r["eos_ended"] = s.ended
+s.close()
+print(json.dumps(r))
+"#;
+    let out = client_script(script, &[model(), clip.display().to_string()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let r: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    let start = r["start"].as_u64().unwrap();
+    // Each abandoned source used to keep ~5 streaming threads (10 sources: ~50); a few idle
+    // threads of GStreamer's task pool may linger.
+    for k in ["after_abandoned", "after_dropped"] {
+        assert!(r[k].as_u64().unwrap() <= start + 6, "{k}: {r}");
+    }
+    assert_eq!(r["max_frames_received"], 2, "{r}");
+    assert_eq!(
+        r["max_frames_stopped"], true,
+        "max_frames shuts the pipeline down: {r}"
+    );
+    assert_eq!(r["max_frames_ended"], false, "{r}");
+    assert_eq!(
+        r["break_stopped"], true,
+        "a break shuts the pipeline down: {r}"
+    );
+    assert_eq!(
+        r["dropped_collected"], true,
+        "a dropped started source is collected: {r}"
+    );
+    let closed = &r["closed_from_thread"];
+    assert!(closed["frames"].as_u64().unwrap() < 200, "{r}");
+    assert_eq!(closed["ended"], false, "close() is no end-of-stream: {r}");
+    assert_eq!(r["eos_frames"], 200, "{r}");
+    assert_eq!(r["eos_ended"], true, "{r}");
+}
+
+/// `properties=` values are checked against the property's range (its GParamSpec): GLib only
+/// printed a warning and the element ran with another value. NaN is refused for a float. The
+/// limits themselves are accepted. `name` is refused: the source finds its element as `gate`
+/// (a renamed gate made force_keyframe fail with a bare AttributeError).
+#[test]
+fn out_of_range_properties_and_a_name_are_refused() {
+    if !python_ok() {
+        return;
+    }
+    let script = r#"
+import json, sys
+from leangate_client import LeanGateSource, SetupError
+from leangate_client import _gst
+model = sys.argv[1]
+_gst.ensure_plugin()
+el = _gst.Gst.ElementFactory.make("leangate", None)
+spec = "test://ball?num-buffers=5&width=160&height=120"
+def limits(k):
+    p = el.find_property(k)
+    return p.minimum, p.maximum
+r = {"refused": [], "accepted": []}
+for k, v in (("sharpness-wait", limits("sharpness-wait")[1] + 1), ("threshold", 1.5),
+             ("feedback-rate", float("nan")), ("batch-size", limits("batch-size")[0] - 1),
+             ("name", "mygate")):
+    try:
+        with LeanGateSource(spec, model=model, properties={k: v}, max_frames=1) as s:
+            for _ in s:
+                pass
+        r["refused"].append({"prop": k, "error": None})
+    except SetupError as e:
+        r["refused"].append({"prop": k, "value": repr(v), "limits": None if k == "name" else
+                             "[%s, %s]" % limits(k), "error": str(e)})
+for k, v in (("threshold", limits("threshold")[0]), ("sharpness-wait", limits("sharpness-wait")[1])):
+    with LeanGateSource(spec, model=model, mode="annotate", properties={k: v}) as s:
+        for _ in s:
+            r["accepted"].append({"prop": k, "value": v, "set": s.gate.get_property(k),
+                                  "forced": s.force_keyframe()})
+            break
+print(json.dumps(r))
+"#;
+    let out = client_script(script, &[model()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let r: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    let refused = r["refused"].as_array().unwrap();
+    assert_eq!(refused.len(), 5, "{r}");
+    for e in refused {
+        let msg = e["error"]
+            .as_str()
+            .unwrap_or_else(|| panic!("accepted: {e}"));
+        let prop = e["prop"].as_str().unwrap();
+        assert!(msg.contains(prop), "{msg}");
+        if let Some(limits) = e["limits"].as_str() {
+            let value = e["value"].as_str().unwrap();
+            assert!(msg.contains(value) && msg.contains(limits), "{msg}");
+        }
+    }
+    let accepted = r["accepted"].as_array().unwrap();
+    assert_eq!(accepted.len(), 2, "{r}");
+    for a in accepted {
+        assert_eq!(a["set"], a["value"], "{a}");
+        assert_eq!(a["forced"], true, "{a}");
+    }
+}

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import logging
+import math
 import os
-from typing import Any, Iterable, List, Optional, Union
+import weakref
+from typing import Any, Callable, Iterable, List, Optional, Union
 
 from .errors import SetupError
 
@@ -151,12 +153,56 @@ def _enum_nicks(el, prop: str) -> List[str]:
         return []
 
 
+def weak_method(method: Callable, default: Any = None) -> Callable:
+    """A callable for a signal or pad probe that holds only a weak reference to ``method``'s
+    object: a GObject closure holding a bound method makes a reference cycle that Python's
+    garbage collector cannot see, so the object (and what it keeps running) would never be
+    freed. Once the object is gone, the call returns ``default``."""
+    ref = weakref.WeakMethod(method)
+
+    def call(*args):
+        m = ref()
+        return default if m is None else m(*args)
+
+    return call
+
+
+def _factory_name(el) -> str:
+    return el.get_factory().get_name() if el.get_factory() else el.get_name()
+
+
+def _check_range(el, prop: str, value: Any) -> None:
+    """SetupError for a number outside the range of ``prop``'s GParamSpec (GLib would only
+    print a warning and leave the property as it was), or NaN for a floating-point one."""
+    pspec = el.find_property(prop)
+    if pspec is None or isinstance(value, bool) or not isinstance(value, (int, float)):
+        return  # unknown property or not a number: set_property says what is wrong
+    lo, hi = getattr(pspec, "minimum", None), getattr(pspec, "maximum", None)
+    if lo is None or hi is None:
+        return  # not a numeric spec (boolean, enum, string, ...)
+    if isinstance(value, float) and math.isnan(value):
+        bad = True
+    else:
+        v = value
+        if pspec.value_type == GObject.TYPE_FLOAT:  # compared as GLib will store it
+            v = float(np.float32(value))
+        bad = not lo <= v <= hi
+    if bad:
+        raise SetupError(
+            f"bad value {value!r} for {_factory_name(el)} property {prop}: "
+            f"it must be in [{lo}, {hi}]"
+        )
+
+
 def _set(el, prop: str, value: Any) -> None:
-    """``el.set_property`` with a SetupError (naming the accepted values) for a bad value."""
+    """``el.set_property`` with a SetupError (naming the accepted values, or the accepted range
+    of a number) for a bad value."""
+    _check_range(el, prop, value)
     try:
         el.set_property(prop, value)
     except (TypeError, ValueError, OverflowError) as e:
         nicks = _enum_nicks(el, prop)
         known = f"; one of: {', '.join(nicks)}" if nicks else ""
-        factory = el.get_factory().get_name() if el.get_factory() else el.get_name()
-        raise SetupError(f"bad value {value!r} for {factory} property {prop}{known} ({e})") from None
+        raise SetupError(
+            f"bad value {value!r} for {_factory_name(el)} property {prop}{known} ({e})"
+        ) from None

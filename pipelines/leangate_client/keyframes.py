@@ -259,7 +259,11 @@ class KeptFrameSaver:
         self._sink = sink
         self._elements = (queue, convert, enc, sink)
         self._frame_index = frame_index
-        queue.get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, self._probe)
+        # Weakly: the probe's GObject closure must not keep the saver (and through it the
+        # pipeline's elements) alive in a cycle the garbage collector cannot see.
+        queue.get_static_pad("sink").add_probe(
+            Gst.PadProbeType.BUFFER, _gst.weak_method(self._probe, Gst.PadProbeReturn.OK)
+        )
 
     @property
     def description(self) -> str:

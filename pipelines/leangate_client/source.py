@@ -121,6 +121,63 @@ class _FrameIndex:
         return index
 
 
+class _InputCounter:
+    """The probe on the gate's sink pad: counts the frames entering the gate and fills every
+    consumer's ``_FrameIndex``. A separate object, not a method of the source: a GObject
+    closure holding a bound method of the source would keep it alive forever (a reference
+    cycle the garbage collector cannot see), and a streaming thread must never be the one that
+    drops the source's last reference (its ``__del__`` stops the pipeline)."""
+
+    def __init__(self, indexes: List[_FrameIndex]):
+        self._lock = threading.Lock()
+        self.indexes = indexes
+        self.count = 0
+
+    def probe(self, pad, info):
+        buf = info.get_buffer()
+        if buf is not None:
+            with self._lock:
+                if buf.pts != _gst.Gst.CLOCK_TIME_NONE:
+                    for index in self.indexes:
+                        index.add(buf.pts, self.count)
+                self.count += 1
+        return _gst.Gst.PadProbeReturn.OK
+
+
+class _DecoderWatch:
+    """Links a decoder's video pad to the gate when it appears (``pad-added``); what went wrong
+    is left in ``error``. Separate from the source for the reason given in ``_InputCounter``."""
+
+    def __init__(self, source: str):
+        self.source = source
+        self.error: Optional[str] = None  # set from the decoder's streaming thread
+
+    def on_pad_added(self, dec, pad, gate) -> None:
+        # Runs in a streaming thread: no exceptions out of here, errors go to self.error.
+        caps = pad.get_current_caps() or pad.query_caps(None)
+        name = caps.get_structure(0).get_name() if caps is not None and caps.get_size() else "?"
+        if not name.startswith("video/"):
+            log.debug("%s: ignoring pad %s (%s)", dec.get_name(), pad.get_name(), name)
+            return
+        target = gate.get_static_pad("sink")
+        if target.is_linked():
+            log.warning("%s: more than one video stream; only the first is gated", self.source)
+            return
+        ret = pad.link(target)
+        if ret != _gst.Gst.PadLinkReturn.OK:
+            self.error = (
+                f"cannot link the decoded video ({caps.to_string()}) to leangate: "
+                f"{ret.value_nick}"
+            )
+            log.debug(self.error)
+        else:
+            log.debug("%s: linked %s (%s) to leangate", dec.get_name(), pad.get_name(), name)
+
+    def on_no_more_pads(self, dec, gate) -> None:
+        if not gate.get_static_pad("sink").is_linked() and self.error is None:
+            self.error = f"no video stream in {self.source}"
+
+
 class LeanGateSource:
     """Iterate over the frames that leave `leangate` as ``(rgb_array, meta_dict)``.
 
@@ -133,10 +190,14 @@ class LeanGateSource:
     properties (None = the element's default; ``model=None`` is the embedded student
     leangate-s). ``stats_interval``: seconds between periodic `leangate-stats` messages (None:
     only at EOS). ``properties``: any other element properties by their GStreamer names, e.g.
-    ``{"threads": 2, "device-id": 1}``.
+    ``{"threads": 2, "device-id": 1}``; a value of the wrong type or out of the property's range
+    is a SetupError, and so is ``name`` (the element is the source's ``gate``).
 
     ``max_frames`` stops after that many frames have been handed to the caller (the pipeline is
-    then shut down without EOS, so no end-of-stream statistics are posted). With
+    then shut down without EOS, so no end-of-stream statistics are posted). Stopping the
+    iteration early (``break``) shuts it down too, and a source dropped without ``close`` is
+    closed when it is garbage-collected; with ``save_kept`` the pipeline is left to ``close``
+    (the ``with`` block's end) so that an exception there still discards the run. With
     ``arrays=False`` the frame is None (cheaper, for score dumps). ``timeout_s``: give up when
     neither a frame nor EOS arrives for that long. ``plugin_path``: libgstleangate.so or its
     directory, when it is not on ``GST_PLUGIN_PATH`` (see ``ensure_plugin``).
@@ -246,6 +307,11 @@ class LeanGateSource:
             self.gate_properties["precision"] = precision
         if stats_interval is not None:
             self.gate_properties["stats-interval"] = int(round(stats_interval * 1e9))
+        if properties and "name" in properties:
+            raise SetupError(
+                "properties: `name` cannot be set: the source finds its leangate element by its "
+                "name `gate`"
+            )
         self.gate_properties.update(properties or {})
 
         self.mode = mode
@@ -253,14 +319,13 @@ class LeanGateSource:
         self.arrays = arrays
         self.timeout_s = timeout_s
         self.stats: Optional[LeanGateStats] = None  # the last `leangate-stats` message
-        self.frames_in = 0  # frames that entered the gate (sink-pad probe)
         self.received = 0  # frames handed to the caller
         self.forced_events = 0
         self.kept_received = 0  # frames handed out with keep set
         self._index = _FrameIndex()  # for the appsink branch
         self._indexes = [self._index]  # every consumer's, filled by the sink-pad probe
-        self._lock = threading.Lock()  # frames_in: written by the probe
-        self._stream_error: Optional[str] = None  # set from decodebin's streaming thread
+        self._input = _InputCounter(self._indexes)
+        self._decoder = _DecoderWatch(self.source)
         self._pipeline = None
         self._sink = None
         self._bus = None
@@ -270,7 +335,7 @@ class LeanGateSource:
         # start failed): close() then discards the saved frames instead of committing them
         self._aborted = False
         self._eos = False  # the pipeline's EOS message was seen (every sink got EOS)
-        self._ended = False  # the iteration ended at EOS
+        self._ended = False  # the iteration ended at EOS (not at a close() from another thread)
         self._failed = False  # an ERROR message was seen
 
     # -- description and building --------------------------------------------------------
@@ -398,33 +463,13 @@ class LeanGateSource:
             self._watch_decoder(dec, gate)
 
     def _watch_decoder(self, dec, gate) -> None:
-        dec.connect("pad-added", self._on_pad_added, gate)
-        dec.connect("no-more-pads", self._on_no_more_pads, gate)
+        dec.connect("pad-added", self._decoder.on_pad_added, gate)
+        dec.connect("no-more-pads", self._decoder.on_no_more_pads, gate)
 
-    def _on_pad_added(self, dec, pad, gate) -> None:
-        # Runs in a streaming thread: no exceptions out of here, errors go to _stream_error.
-        caps = pad.get_current_caps() or pad.query_caps(None)
-        name = caps.get_structure(0).get_name() if caps is not None and caps.get_size() else "?"
-        if not name.startswith("video/"):
-            log.debug("%s: ignoring pad %s (%s)", dec.get_name(), pad.get_name(), name)
-            return
-        target = gate.get_static_pad("sink")
-        if target.is_linked():
-            log.warning("%s: more than one video stream; only the first is gated", self.source)
-            return
-        ret = pad.link(target)
-        if ret != _gst.Gst.PadLinkReturn.OK:
-            self._stream_error = (
-                f"cannot link the decoded video ({caps.to_string()}) to leangate: "
-                f"{ret.value_nick}"
-            )
-            log.debug(self._stream_error)
-        else:
-            log.debug("%s: linked %s (%s) to leangate", dec.get_name(), pad.get_name(), name)
-
-    def _on_no_more_pads(self, dec, gate) -> None:
-        if not gate.get_static_pad("sink").is_linked() and self._stream_error is None:
-            self._stream_error = f"no video stream in {self.source}"
+    @property
+    def frames_in(self) -> int:
+        """Frames that entered the gate (counted by a probe on its sink pad)."""
+        return self._input.count
 
     # -- control -------------------------------------------------------------------------
     def force_keyframe(self) -> bool:
@@ -472,7 +517,7 @@ class LeanGateSource:
     @property
     def ended(self) -> bool:
         """The iteration ran to end-of-stream (the ``for`` loop ended at EOS; not when the
-        caller stopped early or ``max_frames`` stopped it). ``force_keyframe``, ``reset`` and
+        caller stopped early, ``max_frames`` stopped it or ``close`` from another thread did). ``force_keyframe``, ``reset`` and
         ``feedback`` then raise NotRunningError (``state`` ``"ended"``); inside the loop, on
         the last frame too, they still go to the gate."""
         return self._ended
@@ -530,7 +575,7 @@ class LeanGateSource:
         try:
             self._pipeline, gate, self._sink = self._build()
             self._bus = self._pipeline.get_bus()
-            gate.get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, self._count_input)
+            gate.get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, self._input.probe)
             self._started = True
             log.info("plugin: %s", self.plugin)
             log.info("pipeline: %s", self.description)
@@ -543,16 +588,6 @@ class LeanGateSource:
             except PipelineError as e:  # the exception in flight says more
                 log.debug("while stopping: %s", e)
             raise
-
-    def _count_input(self, pad, info):
-        buf = info.get_buffer()
-        if buf is not None:
-            with self._lock:
-                if buf.pts != _gst.Gst.CLOCK_TIME_NONE:
-                    for index in self._indexes:
-                        index.add(buf.pts, self.frames_in)
-                self.frames_in += 1
-        return _gst.Gst.PadProbeReturn.OK
 
     def close(self) -> None:
         """Stop the pipeline; the source cannot run again. With ``save_kept``, when the run
@@ -685,8 +720,8 @@ class LeanGateSource:
                 log.debug("stats from %s: %s", src, stats)
 
     def _check_stream(self) -> None:
-        if self._stream_error is not None:
-            raise PipelineError(self._stream_error)
+        if self._decoder.error is not None:
+            raise PipelineError(self._decoder.error)
 
     def _drain_bus(self) -> None:
         while True:
@@ -712,14 +747,18 @@ class LeanGateSource:
         info = None
         caps = None
         idle = 0.0
+        stopped = False  # the iteration stopped before end-of-stream: shut the pipeline down
         try:
             while True:
                 if self.max_frames is not None and self.received >= self.max_frames:
+                    stopped = True
                     return
                 sample = self._sink.emit("try-pull-sample", 100 * Gst.MSECOND)
                 self._check_stream()
                 self._drain_bus()
                 if sample is None:
+                    if self._closed:  # close() from another thread: no end-of-stream
+                        return
                     if self._sink.get_property("eos"):
                         # EOS reached the sink; the stats message was posted before it.
                         self._ended = True
@@ -749,12 +788,17 @@ class LeanGateSource:
                 self.kept_received += meta["keep"]
                 yield frame, meta
         except GeneratorExit:  # the caller stopped iterating: not a failure
+            stopped = True
             raise
         except BaseException:  # an error, or Ctrl-C while waiting for a frame
             self._aborted = True
             raise
         finally:
             self._drain_bus_quietly()
+            if stopped and self.saver is None:
+                # Not left running until the source is collected; with save_kept, close()
+                # (the `with` block's end) decides whether the run is saved.
+                self.close()
 
     def _drain_bus_quietly(self) -> None:
         if self._bus is None:
