@@ -291,17 +291,21 @@ fn the_cuda_kernel_cut_keeps_the_chosen_architectures_images_and_zeroes_only_the
     let dir = tempfile::tempdir().unwrap();
     let (input, out) = (dir.path().join("lib.so"), dir.path().join("cut.so"));
     std::fs::write(&input, &lib).unwrap();
-    let o = run_script(
-        root,
-        &[
-            script.as_os_str(),
-            input.as_os_str(),
-            out.as_os_str(),
-            "--arch".as_ref(),
-            "90".as_ref(),
-        ],
-        "python3",
-    );
+    // `python3 scripts/cuda_fatbin_keep.py LIB OUT --arch SM`.
+    let keep = |lib: &Path, out: &Path, arch: &str| {
+        run_script(
+            root,
+            &[
+                script.as_os_str(),
+                lib.as_os_str(),
+                out.as_os_str(),
+                "--arch".as_ref(),
+                arch.as_ref(),
+            ],
+            "python3",
+        )
+    };
+    let o = keep(&input, &out, "90");
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(
         o.status.success(),
@@ -348,17 +352,7 @@ fn the_cuda_kernel_cut_keeps_the_chosen_architectures_images_and_zeroes_only_the
         ),
     ] {
         let out = dir.path().join("never.so");
-        let o = run_script(
-            root,
-            &[
-                script.as_os_str(),
-                input.as_os_str(),
-                out.as_os_str(),
-                "--arch".as_ref(),
-                arch.as_ref(),
-            ],
-            "python3",
-        );
+        let o = keep(input, &out, arch);
         let stderr = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(1), "{stderr}");
         assert!(

@@ -15,6 +15,7 @@ use gstleangate::GateConfig;
 use leangate_tools::args;
 use leangate_tools::dataset::{RgbFormat, Sequence};
 use leangate_tools::eval;
+use leangate_tools::output::OutputFile;
 use leangate_tools::synth::{self, MotionSpec, Replay, ReplayEnd, SensorConfig, SynthConfig};
 use leangate_tools::teacher::{self, Teacher, TeacherConfig};
 
@@ -393,7 +394,7 @@ fn run(cli: Cli) -> Res {
             };
             // Written beside `--out` and renamed over it at the end: a bad pairs file, an error
             // or an interrupt leaves it as it was.
-            let mut sink = CsvSink::open(out.as_deref())?;
+            let mut sink = csv_sink(out.as_deref())?;
             match list {
                 Some(list) => teacher::label_pairs_csv(&teacher, &list, &mut sink)?,
                 None => {
@@ -423,7 +424,7 @@ fn run(cli: Cli) -> Res {
                     );
                 }
             }
-            sink.finish()
+            Ok(sink.commit()?)
         }
         Command::Geometry {
             sequence,
@@ -440,7 +441,7 @@ fn run(cli: Cli) -> Res {
             let seq = Sequence::open(&sequence)?;
             let list = read_pairs(&pairs, seq.len(), true)?;
             let rows = leangate_tools::geometry::pair_geometry(&seq, &list, w, h, resize)?;
-            let mut sink = CsvSink::open(out.as_deref())?;
+            let mut sink = csv_sink(out.as_deref())?;
             writeln!(sink, "i,j,tau_geo,f_m,f_u")?;
             for ((i, j), r) in list.iter().zip(&rows) {
                 match r {
@@ -448,7 +449,7 @@ fn run(cli: Cli) -> Res {
                     None => writeln!(sink, "{i},{j},,,")?,
                 }
             }
-            sink.finish()?;
+            sink.commit()?;
             let lost = rows.iter().filter(|r| r.is_none()).count();
             eprintln!("{} pairs, chain lost on {lost}", rows.len());
             Ok(())
@@ -909,41 +910,10 @@ fn eval_cmd(
 
 /// Where `label` and `geometry` write their CSV: `--out`, whole or not at all (a failed or
 /// interrupted run leaves the file that was there), or standard output.
-enum CsvSink {
-    File(leangate_tools::output::OutputFile),
-    Stdout(std::io::BufWriter<std::io::StdoutLock<'static>>),
-}
-
-impl Write for CsvSink {
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        match self {
-            CsvSink::File(f) => f.write(buf),
-            CsvSink::Stdout(o) => o.write(buf),
-        }
-    }
-    fn flush(&mut self) -> std::io::Result<()> {
-        match self {
-            CsvSink::File(f) => f.flush(),
-            CsvSink::Stdout(o) => o.flush(),
-        }
-    }
-}
-
-impl CsvSink {
-    fn open(out: Option<&Path>) -> Result<CsvSink, String> {
-        Ok(match out {
-            Some(p) => CsvSink::File(leangate_tools::output::OutputFile::create(p)?),
-            None => CsvSink::Stdout(std::io::BufWriter::new(std::io::stdout().lock())),
-        })
-    }
-
-    /// All rows written: the file takes its place.
-    fn finish(self) -> Res {
-        match self {
-            CsvSink::File(f) => f.commit()?,
-            CsvSink::Stdout(mut o) => o.flush()?,
-        }
-        Ok(())
+fn csv_sink(out: Option<&Path>) -> Result<OutputFile, String> {
+    match out {
+        Some(p) => OutputFile::create(p),
+        None => Ok(OutputFile::stdout()),
     }
 }
 

@@ -21,6 +21,7 @@ fn is_special(path: &Path) -> bool {
 enum Target {
     Staged(tempfile::NamedTempFile),
     Direct(File),
+    Stdout(std::io::Stdout),
 }
 
 /// A file being written: [`Write`] into it, then [`OutputFile::commit`]. Dropped without a
@@ -35,12 +36,14 @@ impl Write for Target {
         match self {
             Target::Staged(f) => f.write(buf),
             Target::Direct(f) => f.write(buf),
+            Target::Stdout(o) => o.write(buf),
         }
     }
     fn flush(&mut self) -> std::io::Result<()> {
         match self {
             Target::Staged(f) => f.flush(),
             Target::Direct(f) => f.flush(),
+            Target::Stdout(o) => o.flush(),
         }
     }
 }
@@ -71,6 +74,15 @@ impl OutputFile {
         })
     }
 
+    /// Writing to standard output instead (`path` only names it in errors): a CLI's output
+    /// when no file is given.
+    pub fn stdout() -> OutputFile {
+        OutputFile {
+            path: PathBuf::from("<standard output>"),
+            out: BufWriter::new(Target::Stdout(std::io::stdout())),
+        }
+    }
+
     /// Everything written: the file takes its place (the rename keeps the permissions a new file
     /// gets, not the temporary file's owner-only ones).
     pub fn commit(self) -> Result<(), String> {
@@ -78,6 +90,7 @@ impl OutputFile {
         let target = self.out.into_inner().map_err(|e| named(&path, e.error()))?;
         match target {
             Target::Direct(mut f) => f.flush().map_err(|e| named(&path, e)),
+            Target::Stdout(mut o) => o.flush().map_err(|e| named(&path, e)),
             Target::Staged(tmp) => {
                 tmp.as_file().sync_all().map_err(|e| named(&path, e))?;
                 let mode = 0o666 & !umask();

@@ -2472,17 +2472,21 @@ fn label_and_geometry_outputs_never_replace_their_inputs_or_a_file_on_failure() 
         .iter()
         .map(|p| (p.to_path_buf(), std::fs::read(p).unwrap()))
         .collect();
+    // `leangate CMD --sequence SEQ --pairs PAIRS --out OUT`.
+    let run = |cmd: &str, pairs: &Path, out: &Path| {
+        leangate()
+            .args([cmd, "--sequence"])
+            .arg(&seq)
+            .arg("--pairs")
+            .arg(pairs)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap()
+    };
     for cmd in ["label", "geometry"] {
         for target in [&rgb, &frame, &pairs] {
-            let out = leangate()
-                .args([cmd, "--sequence"])
-                .arg(&seq)
-                .arg("--pairs")
-                .arg(&pairs)
-                .arg("--out")
-                .arg(target)
-                .output()
-                .unwrap();
+            let out = run(cmd, &pairs, target);
             let err = String::from_utf8_lossy(&out.stderr);
             assert_eq!(out.status.code(), Some(1), "{cmd} --out {target:?}: {err}");
             assert!(err.contains("an input of this command"), "{err}");
@@ -2498,15 +2502,7 @@ fn label_and_geometry_outputs_never_replace_their_inputs_or_a_file_on_failure() 
     let bad = dir.path().join("bad.csv");
     std::fs::write(&bad, "1,0\n99,0\n").unwrap();
     for cmd in ["label", "geometry"] {
-        let out = leangate()
-            .args([cmd, "--sequence"])
-            .arg(&seq)
-            .arg("--pairs")
-            .arg(&bad)
-            .arg("--out")
-            .arg(&result)
-            .output()
-            .unwrap();
+        let out = run(cmd, &bad, &result);
         assert_eq!(
             out.status.code(),
             Some(1),
@@ -2519,15 +2515,7 @@ fn label_and_geometry_outputs_never_replace_their_inputs_or_a_file_on_failure() 
         );
     }
     // A good run replaces it.
-    let out = leangate()
-        .args(["geometry", "--sequence"])
-        .arg(&seq)
-        .arg("--pairs")
-        .arg(&pairs)
-        .arg("--out")
-        .arg(&result)
-        .output()
-        .unwrap();
+    let out = run("geometry", &pairs, &result);
     assert!(
         out.status.success(),
         "{}",
