@@ -955,33 +955,26 @@ fn consumer_checks_its_output_files_up_front_and_writes_them_whole() {
     let ply = root.join("r.ply");
     std::fs::write(&json, "earlier").unwrap();
     std::fs::write(&ply, "earlier").unwrap();
-    let o = consumer(
-        &py,
-        &["--frames", "0,60", "--out"],
-        &[
-            &out_dir,
-            Path::new("--json"),
-            &json,
-            Path::new("--ply"),
-            &ply,
-            &input,
-        ],
-    );
+    // The consumer with ARGS, writing OUT, the JSON and the PLY.
+    let both = |args: &[&str]| {
+        consumer(
+            &py,
+            args,
+            &[
+                &out_dir,
+                Path::new("--json"),
+                &json,
+                Path::new("--ply"),
+                &ply,
+                &input,
+            ],
+        )
+    };
+    let o = both(&["--frames", "0,60", "--out"]);
     assert_eq!(o.status.code(), Some(2));
     assert_eq!(std::fs::read(&json).unwrap(), b"earlier");
     assert_eq!(std::fs::read(&ply).unwrap(), b"earlier");
-    let o = consumer(
-        &py,
-        &["--every", "12", "--out"],
-        &[
-            &out_dir,
-            Path::new("--json"),
-            &json,
-            Path::new("--ply"),
-            &ply,
-            &input,
-        ],
-    );
+    let o = both(&["--every", "12", "--out"]);
     assert!(o.status.success());
     assert_eq!(read_json(&json)["kept"], 5);
     assert!(std::fs::read(&ply).unwrap().starts_with(b"ply\n"));
