@@ -566,6 +566,45 @@ fn stats_message_at_eos_and_interval() {
     assert_eq!(last.get::<&str>("execution-provider").unwrap(), "cpu");
 }
 
+/// Reverse playback brings PTS down frame by frame: `stats-interval` still counts the stream
+/// time played (it used to restart the interval on every frame, so only EOS posted stats).
+#[test]
+fn stats_interval_counts_reverse_playback() {
+    common::init();
+    let desc = format!(
+        "videotestsrc pattern=ball ! video/x-raw,width=64,height=48,framerate=30/1 ! \
+         leangate model={} stats-interval=300000000 ! fakesink sync=false",
+        fixture("mad.onnx")
+    );
+    let pipeline = gst::parse::launch(&desc).unwrap();
+    pipeline.set_state(gst::State::Paused).unwrap();
+    let (res, _, _) = pipeline.state(gst::ClockTime::from_seconds(10));
+    res.unwrap();
+    pipeline
+        .seek(
+            -1.0,
+            gst::SeekFlags::FLUSH | gst::SeekFlags::ACCURATE,
+            gst::SeekType::Set,
+            gst::ClockTime::ZERO,
+            gst::SeekType::Set,
+            gst::ClockTime::from_seconds(1),
+        )
+        .unwrap();
+    let msgs = common::run_to_end(&pipeline, &desc, 30);
+    assert!(error_text(&msgs).is_none(), "{:?}", error_text(&msgs));
+    let stats = element_message(&msgs, "leangate-stats");
+    let frames = stats.last().unwrap().get::<u64>("frames-in").unwrap();
+    assert!(
+        frames >= 25,
+        "a second played backwards, got {frames} frames"
+    );
+    assert!(
+        stats.len() >= 3,
+        "every 0.3 s of the second played backwards, plus EOS; got {}",
+        stats.len()
+    );
+}
+
 #[test]
 fn nan_model_keeps_frames_and_warns() {
     let msgs = run_pipeline(

@@ -557,12 +557,11 @@ impl LeanGate {
         }
 
         if let (Some(pts), true) = (pts, fs.stats_interval > 0) {
+            // Stream time in either direction: reverse playback (a negative rate) brings PTS
+            // down frame by frame, and a looping source jumps back; both count as time passed.
             match state.last_stats_pts {
                 None => state.last_stats_pts = Some(pts),
-                // PTS went backwards without a flush (a looping source, a new segment): measure
-                // the interval from here instead of waiting for the old position to come back.
-                Some(last) if pts < last => state.last_stats_pts = Some(pts),
-                Some(last) if pts.nseconds() - last.nseconds() >= fs.stats_interval => {
+                Some(last) if pts.nseconds().abs_diff(last.nseconds()) >= fs.stats_interval => {
                     state.last_stats_pts = Some(pts);
                     let s = self.stats_structure(state);
                     out.stats.push(s);
