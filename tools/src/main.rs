@@ -649,6 +649,17 @@ fn eval_cmd(
     // `--trajectory-dir SEQ` its groundtruth.txt, before anything is judged.
     let inputs = eval::input_files(sequences, model.path)?;
     for (flag, path) in outputs {
+        if let (Some(p), Some(m)) = (path, model.path) {
+            if eval::model_reads(m, p) {
+                return Err(format!(
+                    "{flag} `{}`: is a file the model `{}` reads (its head or its external \
+                     tensor data; it would be overwritten); choose another path",
+                    p.display(),
+                    m.display()
+                )
+                .into());
+            }
+        }
         if let Some(p) = path {
             if inputs.hit(p, false).is_some() {
                 return Err(format!(
@@ -761,6 +772,7 @@ fn eval_cmd(
                 )?);
             }
             bar.finish_and_clear();
+            warn_model_failures(&report);
             if phases > 1 {
                 // one line per run; the sums over the runs follow (per-run files are refused)
                 print_run_line(&report, phase);
@@ -968,6 +980,24 @@ fn refuse_input(flag: &str, path: &Path, inputs: &eval::Inputs, dir: bool) -> Re
 }
 
 /// One line per run of `--phases`: where it started, what the model and the oracle kept.
+/// A model that failed on frames (kept, fail open) is said on standard error, whatever else is
+/// printed: its `model` row would otherwise read as the model's own keeps.
+fn warn_model_failures(r: &eval::EvalReport) {
+    if r.model_failed_frames > 0 {
+        // On standard error whatever --json says: the model row's keeps are then not the model's.
+        eprintln!(
+            "warning: {}: the model failed on {} of {} frames, which were kept (fail open): the \
+         `model` row and the budget of every other policy count them{}",
+            r.sequence,
+            r.model_failed_frames,
+            r.frames,
+            r.model_failure
+                .as_deref()
+                .map_or(String::new(), |w| format!(" (the element: {w})"))
+        );
+    }
+}
+
 fn print_run_line(report: &eval::EvalReport, phase: usize) {
     let kept = |p: &str| {
         report

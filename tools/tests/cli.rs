@@ -2647,3 +2647,122 @@ fn eval_refuses_what_its_options_cannot_do_before_the_run() {
         assert!(text.contains(&format!("({p}, cpu)")), "{text}");
     }
 }
+
+/// The files a model reads besides itself are inputs too (found by a hostile probe): a split
+/// model's head and a model's external tensor data were overwritten by `--json` (the model then
+/// failed to load, or silently ran with the JSON as weights), and `--set model=` named a model the
+/// checks did not see. Refused, and the files stay as they were.
+#[test]
+fn eval_never_overwrites_the_files_its_model_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 6, "pan", 4);
+    let models = dir.path().join("models");
+    std::fs::create_dir(&models).unwrap();
+    for f in [
+        "split_encoder.onnx",
+        "split_head.onnx",
+        "ext_data.onnx",
+        "ext_data.onnx.data",
+        "mad.onnx",
+    ] {
+        std::fs::copy(fixture(f), models.join(f)).unwrap();
+    }
+    let before: Vec<Vec<u8>> = ["split_head.onnx", "ext_data.onnx.data"]
+        .iter()
+        .map(|f| std::fs::read(models.join(f)).unwrap())
+        .collect();
+    let run = |args: &[&str]| {
+        let mut cmd = leangate();
+        cmd.args(["eval", "--sequence"]).arg(&seq).args(args);
+        output_within(cmd, std::time::Duration::from_secs(60))
+    };
+    let path = |f: &str| models.join(f).to_str().unwrap().to_string();
+    for (model, target) in [
+        ("split_encoder.onnx", "split_head.onnx"),
+        ("ext_data.onnx", "ext_data.onnx.data"),
+    ] {
+        let out = run(&["--model", &path(model), "--json", &path(target)]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{model} --json {target}: {err}");
+        assert!(
+            err.contains("is a file the model") && err.contains(target),
+            "{err}"
+        );
+    }
+    let after: Vec<Vec<u8>> = ["split_head.onnx", "ext_data.onnx.data"]
+        .iter()
+        .map(|f| std::fs::read(models.join(f)).unwrap())
+        .collect();
+    assert!(before == after, "a file the model reads was changed");
+    // Another file of the model's folder is not one it reads: written.
+    let own = models.join("report.json");
+    let out = run(&[
+        "--model",
+        &path("split_encoder.onnx"),
+        "--json",
+        own.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(own.is_file());
+    // The model through --set: refused, pointing at --model.
+    let set = format!("model={}", path("mad.onnx"));
+    let out = run(&["--set", &set, "--json", &path("mad.onnx")]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--set model=") && err.contains("--model"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read(models.join("mad.onnx")).unwrap(),
+        std::fs::read(fixture("mad.onnx")).unwrap()
+    );
+}
+
+/// A model that fails on frames (kept, fail open) is said, not read as a model that keeps them
+/// (found by a hostile probe: a model returning NaN on every frame was "model kept 62 of 62",
+/// exit 0, and the cheap gates were tuned to that budget without a word).
+#[test]
+fn eval_says_when_the_model_failed_on_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    synth(&seq, 6, "pan", 4);
+    let json = dir.path().join("r.json");
+    let mut cmd = leangate();
+    cmd.args(["eval", "--model", &fixture("nan.onnx"), "--sequence"])
+        .arg(&seq)
+        .arg("--json")
+        .arg(&json);
+    let out = output_within(cmd, std::time::Duration::from_secs(60));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let failed = r["model_failed_frames"].as_u64().unwrap();
+    // Every frame after the first (which is kept as `first`, unscored).
+    assert_eq!(failed, 5, "{r}");
+    assert!(
+        r["model_failure"].as_str().unwrap().contains("not finite"),
+        "{r}"
+    );
+    assert!(
+        err.contains("warning:") && err.contains("failed on 5 of 6 frames"),
+        "{err}"
+    );
+    // A model that does not fail: 0, and no warning.
+    let mut cmd = leangate();
+    cmd.args(["eval", "--model", &fixture("mad.onnx"), "--sequence"])
+        .arg(&seq)
+        .arg("--json")
+        .arg(&json);
+    let out = output_within(cmd, std::time::Duration::from_secs(60));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && !err.contains("warning:"), "{err}");
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(r["model_failed_frames"], 0, "{r}");
+    assert!(r.get("model_failure").is_none(), "{r}");
+}

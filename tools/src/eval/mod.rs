@@ -292,6 +292,12 @@ pub struct EvalReport {
     /// `fp32` or `int8` (the element's `precision`; the embedded student runs INT8 on the CPU).
     pub model_precision: String,
     pub execution_provider: String,
+    /// Frames kept because the model failed on them (NaN, an error: kept, fail open), so that
+    /// a model failing on every frame is not read as one that keeps every frame.
+    pub model_failed_frames: usize,
+    /// The element's first warning about such a failure.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_failure: Option<String>,
     /// With `--feedback`: what the element's `feedback-offset` had settled at when the run ended
     /// (the correction the teacher's reports taught it; `model` is that run).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -438,6 +444,11 @@ pub fn evaluate(
             model: run.model_name.clone(),
             model_precision: run.model_precision.clone(),
             execution_provider: run.provider.clone(),
+            model_failed_frames: run.failed_frames(),
+            model_failure: run
+                .failure_warning
+                .clone()
+                .filter(|_| run.failed_frames() > 0),
             feedback_offset: run.feedback_offset,
             policies,
             sweep: None,
@@ -478,6 +489,60 @@ pub fn kept_label(i: usize, run: &ModelRun) -> String {
         gstleangate::Reason::Score => format!("#{i}  {time}  {u}"),
         r => format!("#{i}  {time}  {u}  {r}"),
     }
+}
+
+/// Whether `out` is a file that the model at `model` reads besides itself: a split model's head
+/// (its `leangate.head`) or tensor data kept outside the `.onnx` file (ONNX external data). Both
+/// are named inside the model file as a protobuf string (a length, then the path relative to the
+/// model's folder), which is what is looked for: an existing `out` in the model's folder whose
+/// relative path the model, or a `.onnx` file of that folder that the model names (its head),
+/// spells out that way.
+pub fn model_reads(model: &Path, out: &Path) -> bool {
+    let (Ok(model), Ok(out)) = (model.canonicalize(), out.canonicalize()) else {
+        return false;
+    };
+    let Some(dir) = model.parent() else {
+        return false;
+    };
+    let Some(rel) = out.strip_prefix(dir).ok().and_then(Path::to_str) else {
+        return false;
+    };
+    let names = |file: &Path, name: &str| -> bool {
+        let Ok(bytes) = std::fs::read(file) else {
+            return false;
+        };
+        let mut needle = Vec::with_capacity(name.len() + 3);
+        // A protobuf string field (tag 2: the value of a StringStringEntryProto), its length as
+        // a varint, then the bytes.
+        needle.push(0x12);
+        let mut n = name.len();
+        while n >= 0x80 {
+            needle.push((n as u8 & 0x7f) | 0x80);
+            n >>= 7;
+        }
+        needle.push(n as u8);
+        needle.extend_from_slice(name.as_bytes());
+        bytes.windows(needle.len()).any(|w| w == needle.as_slice())
+    };
+    if out == model {
+        return false;
+    }
+    if names(&model, rel) {
+        return true;
+    }
+    // The head a split model names reads its own external data from the same folder.
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return false;
+    };
+    entries.flatten().any(|e| {
+        let p = e.path();
+        let is_onnx = p.extension().is_some_and(|x| x == "onnx") && p != model;
+        is_onnx
+            && e.file_name()
+                .to_str()
+                .is_some_and(|head| names(&model, head))
+            && names(&p, rel)
+    })
 }
 
 /// Every file an eval of `sequences` with `model` reads, as canonical paths: the video file, or

@@ -33,9 +33,20 @@ pub struct ModelRun {
     pub model_precision: String,
     /// With feedback: the element's `feedback-offset` at the end of the run.
     pub feedback_offset: Option<f64>,
+    /// The element's first warning about a failed inference (`inference failed ...: kept`), when
+    /// the model failed on a frame: those frames are kept (fail open), not judged by the model.
+    pub failure_warning: Option<String>,
 }
 
 impl ModelRun {
+    /// Frames kept because the model failed on them (reason `error`, fail open).
+    pub fn failed_frames(&self) -> usize {
+        self.metas
+            .iter()
+            .filter(|m| m.reason == Reason::Error)
+            .count()
+    }
+
     pub fn trace(&self) -> Trace {
         Trace {
             keep: self.metas.iter().map(|m| m.keep).collect(),
@@ -195,6 +206,12 @@ pub struct GateModel<'a> {
 fn set_from_text(gate: &gst::Element, name: &str, value: &str) -> Result<(), EvalError> {
     use gst::glib;
     use gst::prelude::*;
+    if name == "model" {
+        return Err(EvalError(format!(
+            "--set model={value}: give the model with --model (the eval checks that none of its \
+             outputs is the model or a file the model reads)"
+        )));
+    }
     if name == "mode" {
         return Err(EvalError(
             "--set mode: the eval runs the element in annotate mode (it reads every frame's verdict)"
@@ -524,6 +541,7 @@ pub fn run_model(
         model_name: stats.as_ref().map(|s| s.model.clone()).unwrap_or_default(),
         model_precision: stats.map(|s| s.model_precision).unwrap_or_default(),
         feedback_offset,
+        failure_warning: log.warning,
     })
 }
 
@@ -535,6 +553,8 @@ struct BusLog {
     gate: gst::Element,
     error: Option<EvalError>,
     stats: Option<StatsMessage>,
+    /// The element's first warning (a failed inference, rate-limited by the element).
+    warning: Option<String>,
 }
 
 impl BusLog {
@@ -547,6 +567,7 @@ impl BusLog {
             gate: gate.clone(),
             error: None,
             stats: None,
+            warning: None,
         }
     }
 
@@ -561,6 +582,14 @@ impl BusLog {
                         .is_some_and(|src| src == self.gate.upcast_ref::<gst::Object>());
                     let who = (!from_gate).then(|| format!("`{}`", self.input));
                     self.error = Some(EvalError(user_error(e, who.as_deref())));
+                }
+                gst::MessageView::Warning(w) if self.warning.is_none() => {
+                    if msg
+                        .src()
+                        .is_some_and(|src| src == self.gate.upcast_ref::<gst::Object>())
+                    {
+                        self.warning = Some(w.error().to_string());
+                    }
                 }
                 gst::MessageView::Element(_) => {
                     if let Some(stats) = msg

@@ -189,6 +189,8 @@ mod tests {
             model: "m".into(),
             model_precision: "int8".into(),
             execution_provider: "cpu".into(),
+            model_failed_frames: 0,
+            model_failure: None,
             feedback_offset: None,
             policies: rows
                 .iter()
