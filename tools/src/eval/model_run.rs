@@ -583,13 +583,13 @@ impl BusLog {
                     let who = (!from_gate).then(|| format!("`{}`", self.input));
                     self.error = Some(EvalError(user_error(e, who.as_deref())));
                 }
-                gst::MessageView::Warning(w) if self.warning.is_none() => {
-                    if msg
-                        .src()
-                        .is_some_and(|src| src == self.gate.upcast_ref::<gst::Object>())
-                    {
-                        self.warning = Some(w.error().to_string());
-                    }
+                gst::MessageView::Warning(w)
+                    if self.warning.is_none()
+                        && msg
+                            .src()
+                            .is_some_and(|src| src == self.gate.upcast_ref::<gst::Object>()) =>
+                {
+                    self.warning = Some(w.error().to_string());
                 }
                 gst::MessageView::Element(_) => {
                     if let Some(stats) = msg
