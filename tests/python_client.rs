@@ -2776,7 +2776,8 @@ print(json.dumps(r))
 
 /// `properties=` values are checked against the property's range (its GParamSpec): GLib only
 /// printed a warning and the element ran with another value. NaN is refused for a float. The
-/// limits themselves are accepted. `name` is refused: the source finds its element as `gate`
+/// limits themselves are accepted. `threads` has a limit (256; it had none, and 10,000 threads
+/// took minutes to stop). `name` is refused: the source finds its element as `gate`
 /// (a renamed gate made force_keyframe fail with a bare AttributeError).
 #[test]
 fn out_of_range_properties_and_a_name_are_refused() {
@@ -2797,7 +2798,7 @@ def limits(k):
 r = {"refused": [], "accepted": []}
 for k, v in (("sharpness-wait", limits("sharpness-wait")[1] + 1), ("threshold", 1.5),
              ("feedback-rate", float("nan")), ("batch-size", limits("batch-size")[0] - 1),
-             ("name", "mygate")):
+             ("threads", 100000), ("name", "mygate")):
     try:
         with LeanGateSource(spec, model=model, properties={k: v}, max_frames=1) as s:
             for _ in s:
@@ -2818,7 +2819,7 @@ print(json.dumps(r))
     assert!(out.status.success(), "{}", stderr(&out));
     let r: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
     let refused = r["refused"].as_array().unwrap();
-    assert_eq!(refused.len(), 5, "{r}");
+    assert_eq!(refused.len(), 6, "{r}");
     for e in refused {
         let msg = e["error"]
             .as_str()

@@ -146,7 +146,7 @@ impl ScorerOptions {
     /// The intra-op thread count actually used (`threads`, or [`default_threads`] for 0).
     pub fn effective_threads(&self) -> usize {
         if self.threads > 0 {
-            self.threads
+            self.threads.min(MAX_THREADS)
         } else {
             default_threads()
         }
@@ -180,6 +180,12 @@ pub fn default_max_sessions(provider: &str, threads: usize) -> usize {
 pub fn default_threads() -> usize {
     1
 }
+
+/// The most intra-op threads a session may have (the element's `threads` maximum; a larger
+/// [`ScorerOptions::threads`] counts as this). ONNX Runtime starts them all at once, per session:
+/// thousands took minutes to start and stop and gigabytes of stacks, for a model that gains
+/// nothing beyond a few.
+pub const MAX_THREADS: usize = 256;
 
 /// Everything that can go wrong loading or running a model.
 #[derive(Debug, Clone, thiserror::Error)]
@@ -1007,6 +1013,18 @@ fn first_utility(outputs: &ort::session::SessionOutputs) -> Result<f32, ScorerEr
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn threads_beyond_the_limit_count_as_the_limit() {
+        let opts = |threads| ScorerOptions {
+            threads,
+            ..Default::default()
+        };
+        assert_eq!(opts(0).effective_threads(), default_threads());
+        assert_eq!(opts(3).effective_threads(), 3);
+        assert_eq!(opts(100_000).effective_threads(), MAX_THREADS);
+    }
+
     use super::*;
 
     /// A batching model's sessions go with its last scorer, on that scorer's thread (the element

@@ -277,6 +277,7 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
                 "ONNX Runtime intra-op threads on CPU (0 = the plugin's default: 1, \
                  which leaves the other cores to the decoders)",
             )
+            .maximum(crate::scorer::MAX_THREADS as u32)
             .default_value(DEFAULT_THREADS)
             .mutable_ready()
             .build(),
