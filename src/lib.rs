@@ -49,8 +49,8 @@ pub use quality::Quality;
 pub use remote::{Backend, Interrupt, RemoteError, RemoteOptions, RemoteScorer};
 pub use runtime::RuntimeError;
 pub use scorer::{
-    default_max_sessions, ExecutionProvider, IdleHandle, ModelInfo, ModelSource, Precision, Scorer,
-    ScorerError, ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
+    default_max_sessions, files_read, ExecutionProvider, IdleHandle, ModelInfo, ModelSource,
+    Precision, Scorer, ScorerError, ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
 };
 pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};
 pub use utility::{Composed, Utility};

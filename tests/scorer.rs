@@ -717,3 +717,56 @@ fn embedded_student_runs_its_int8_build_on_the_cpu_unless_fp32_is_asked() {
         "int8 vs fp32 over {n} pairs: mean {mean:.4}, max {max:.4}"
     );
 }
+
+/// What a model reads besides its own file is part of what it is (found by a hostile probe): a
+/// split model whose head was replaced while an element ran on it was shared by the next element
+/// with the old head still loaded. `files_read` names the head and external tensor data, and a
+/// scorer loaded after one of them changed gets a session of its own.
+#[test]
+fn a_replaced_head_or_external_data_file_is_a_new_model_for_sharing() {
+    let dir = tempfile::tempdir().unwrap();
+    for f in [
+        "split_encoder.onnx",
+        "split_head.onnx",
+        "ext_data.onnx",
+        "ext_data.onnx.data",
+    ] {
+        std::fs::copy(fixture(f), dir.path().join(f)).unwrap();
+    }
+    let canon = |f: &str| dir.path().join(f).canonicalize().unwrap();
+    let enc = dir.path().join("split_encoder.onnx");
+    assert_eq!(
+        gstleangate::files_read(&enc),
+        vec![canon("split_encoder.onnx"), canon("split_head.onnx")]
+    );
+    let ext = dir.path().join("ext_data.onnx");
+    assert_eq!(
+        gstleangate::files_read(&ext),
+        vec![canon("ext_data.onnx"), canon("ext_data.onnx.data")]
+    );
+    let opts = ScorerOptions {
+        execution_provider: ExecutionProvider::Cpu,
+        shared: true,
+        max_sessions: 1,
+        ..Default::default()
+    };
+    for (model, read) in [(&enc, "split_head.onnx"), (&ext, "ext_data.onnx.data")] {
+        let a = Scorer::load(&ModelSource::File(model.clone()), &opts).unwrap();
+        let b = Scorer::load(&ModelSource::File(model.clone()), &opts).unwrap();
+        assert!(
+            a.shares_session_with(&b),
+            "{read}: the same files are shared"
+        );
+        // The same bytes written again: a new modification time, as a replaced file has.
+        let path = dir.path().join(read);
+        let bytes = std::fs::read(&path).unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        std::fs::remove_file(&path).unwrap();
+        std::fs::write(&path, bytes).unwrap();
+        let c = Scorer::load(&ModelSource::File(model.clone()), &opts).unwrap();
+        assert!(
+            !c.shares_session_with(&a),
+            "{read} replaced: the next scorer must load it afresh"
+        );
+    }
+}

@@ -12,7 +12,7 @@
 
 use std::collections::HashMap;
 use std::fmt;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, LazyLock, Mutex, MutexGuard, Weak};
 use std::time::Duration;
 
@@ -120,7 +120,8 @@ pub struct ScorerOptions {
     /// from the decoders and other elements of the pipeline for a few microseconds of latency.
     pub spinning: bool,
     /// Share the ONNX Runtime sessions with every other scorer of the process that loads the
-    /// same model (same file, size and modification time, or the same embedded bytes) with the
+    /// same model (same file, size and modification time, and the same of the files it reads,
+    /// [`files_read`]; or the same embedded bytes) with the
     /// same provider, device, threads and spinning (a process-wide registry). Each scorer keeps
     /// its own reference features.
     pub shared: bool,
@@ -326,20 +327,95 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// A model's identity for the registry: the canonical path with size and modification time (a
-/// replaced file is a new model), or the embedded bytes' name, address and length.
+/// Every file loading the model at `model` reads, as canonical paths: the model itself, a split
+/// model's head (its `leangate.head`), and the tensor data either keeps outside the `.onnx`
+/// (ONNX external data, each tensor's `location`). Both are written in the model file as a
+/// key-value entry (`StringStringEntryProto`: the key, then the path relative to the model's
+/// folder), which is what is read here, without parsing the whole model. Paths that do not
+/// exist are left out (loading the model then fails, naming them).
+pub fn files_read(model: &Path) -> Vec<PathBuf> {
+    let mut out: Vec<PathBuf> = Vec::new();
+    let mut todo = vec![(model.to_path_buf(), true)];
+    while let Some((file, may_name_head)) = todo.pop() {
+        let Ok(file) = file.canonicalize() else {
+            continue;
+        };
+        if out.contains(&file) {
+            continue;
+        }
+        out.push(file.clone());
+        let Some(dir) = file.parent().map(Path::to_path_buf) else {
+            continue;
+        };
+        let Ok(bytes) = std::fs::read(&file) else {
+            continue;
+        };
+        for (key, is_head) in [(&b"location"[..], false), (&b"leangate.head"[..], true)] {
+            if is_head && !may_name_head {
+                continue;
+            }
+            for name in entry_values(&bytes, key) {
+                todo.push((dir.join(name), false));
+            }
+        }
+    }
+    out
+}
+
+/// The values of the protobuf key-value entries (`StringStringEntryProto`: field 1 the key,
+/// field 2 the value, both short strings) whose key is `key`, as relative paths; any other
+/// bytes are skipped.
+fn entry_values<'a>(bytes: &'a [u8], key: &[u8]) -> Vec<&'a str> {
+    let mut pattern = vec![0x0a, key.len() as u8];
+    pattern.extend_from_slice(key);
+    pattern.push(0x12);
+    let mut values = Vec::new();
+    let mut at = 0;
+    while let Some(i) = bytes[at..]
+        .windows(pattern.len())
+        .position(|w| w == pattern.as_slice())
+    {
+        let start = at + i + pattern.len();
+        at = start;
+        // The value's length, a varint of at most two bytes (a path under 16 KiB).
+        let (len, skip) = match bytes.get(start..start + 2) {
+            Some(&[b0, _]) if b0 < 0x80 => (b0 as usize, 1),
+            Some(&[b0, b1]) if b1 < 0x80 => ((b0 & 0x7f) as usize | (b1 as usize) << 7, 2),
+            _ => continue,
+        };
+        let Some(v) = bytes.get(start + skip..start + skip + len) else {
+            continue;
+        };
+        if let Ok(v) = std::str::from_utf8(v) {
+            if !v.is_empty() {
+                values.push(v);
+            }
+        }
+    }
+    values
+}
+
+/// A model's identity for the registry: the canonical paths of the model and the files it reads
+/// with their sizes and modification times (a replaced file is a new model), or the embedded
+/// bytes' name, address and length.
 fn identity(source: &ModelSource) -> Option<String> {
     match source {
         ModelSource::File(p) => {
-            let canon = std::fs::canonicalize(p).ok()?;
-            let md = std::fs::metadata(&canon).ok()?;
-            let mtime = md
-                .modified()
-                .ok()
-                .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
-                .map(|d| d.as_nanos())
-                .unwrap_or(0);
-            Some(format!("file:{}:{}:{mtime}", canon.display(), md.len()))
+            // The model and what it reads (a split model's head, external data): replacing any
+            // of them makes a new model.
+            let mut id = String::from("file");
+            std::fs::canonicalize(p).ok()?;
+            for f in files_read(p) {
+                let md = std::fs::metadata(&f).ok()?;
+                let mtime = md
+                    .modified()
+                    .ok()
+                    .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                    .map(|d| d.as_nanos())
+                    .unwrap_or(0);
+                id.push_str(&format!(":{}:{}:{mtime}", f.display(), md.len()));
+            }
+            Some(id)
         }
         ModelSource::Memory {
             name,

@@ -649,17 +649,6 @@ fn eval_cmd(
     // `--trajectory-dir SEQ` its groundtruth.txt, before anything is judged.
     let inputs = eval::input_files(sequences, model.path)?;
     for (flag, path) in outputs {
-        if let (Some(p), Some(m)) = (path, model.path) {
-            if eval::model_reads(m, p) {
-                return Err(format!(
-                    "{flag} `{}`: is a file the model `{}` reads (its head or its external \
-                     tensor data; it would be overwritten); choose another path",
-                    p.display(),
-                    m.display()
-                )
-                .into());
-            }
-        }
         if let Some(p) = path {
             if inputs.hit(p, false).is_some() {
                 return Err(format!(

@@ -2686,7 +2686,7 @@ fn eval_never_overwrites_the_files_its_model_reads() {
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(1), "{model} --json {target}: {err}");
         assert!(
-            err.contains("is a file the model") && err.contains(target),
+            err.contains("is an input of this eval") && err.contains(target),
             "{err}"
         );
     }

@@ -491,66 +491,16 @@ pub fn kept_label(i: usize, run: &ModelRun) -> String {
     }
 }
 
-/// Whether `out` is a file that the model at `model` reads besides itself: a split model's head
-/// (its `leangate.head`) or tensor data kept outside the `.onnx` file (ONNX external data). Both
-/// are named inside the model file as a protobuf string (a length, then the path relative to the
-/// model's folder), which is what is looked for: an existing `out` in the model's folder whose
-/// relative path the model, or a `.onnx` file of that folder that the model names (its head),
-/// spells out that way.
-pub fn model_reads(model: &Path, out: &Path) -> bool {
-    let (Ok(model), Ok(out)) = (model.canonicalize(), out.canonicalize()) else {
-        return false;
-    };
-    let Some(dir) = model.parent() else {
-        return false;
-    };
-    let Some(rel) = out.strip_prefix(dir).ok().and_then(Path::to_str) else {
-        return false;
-    };
-    let names = |file: &Path, name: &str| -> bool {
-        let Ok(bytes) = std::fs::read(file) else {
-            return false;
-        };
-        let mut needle = Vec::with_capacity(name.len() + 3);
-        // A protobuf string field (tag 2: the value of a StringStringEntryProto), its length as
-        // a varint, then the bytes.
-        needle.push(0x12);
-        let mut n = name.len();
-        while n >= 0x80 {
-            needle.push((n as u8 & 0x7f) | 0x80);
-            n >>= 7;
-        }
-        needle.push(n as u8);
-        needle.extend_from_slice(name.as_bytes());
-        bytes.windows(needle.len()).any(|w| w == needle.as_slice())
-    };
-    if out == model {
-        return false;
-    }
-    if names(&model, rel) {
-        return true;
-    }
-    // The head a split model names reads its own external data from the same folder.
-    let Ok(entries) = std::fs::read_dir(dir) else {
-        return false;
-    };
-    entries.flatten().any(|e| {
-        let p = e.path();
-        let is_onnx = p.extension().is_some_and(|x| x == "onnx") && p != model;
-        is_onnx
-            && e.file_name()
-                .to_str()
-                .is_some_and(|head| names(&model, head))
-            && names(&p, rel)
-    })
-}
-
 /// Every file an eval of `sequences` with `model` reads, as canonical paths: the video file, or
 /// the sequence's lists (`rgb.txt`, `depth.txt`, ground truth, `intrinsics.txt`) and every image
-/// they name; and the model (for `label` and `geometry`: the pairs file). What must never be an
-/// output.
+/// they name; and the model with the files it reads (a split model's head, external tensor
+/// data: [`gstleangate::files_read`]; for `label` and `geometry`: the pairs file). What must never
+/// be an output.
 pub fn input_files(sequences: &[PathBuf], model: Option<&Path>) -> Result<Inputs, EvalError> {
     let mut files: Vec<PathBuf> = model.into_iter().map(Path::to_path_buf).collect();
+    if let Some(m) = model {
+        files.extend(gstleangate::files_read(m));
+    }
     for s in sequences {
         if !s.is_dir() {
             files.push(s.clone());
