@@ -545,9 +545,9 @@ fn a_stream_that_stops_does_not_hold_back_the_others_batches() {
 
 /// When another session of a shared model cannot be created, a new scorer shares an existing
 /// one and says so in its warnings, instead of failing to start. The second load is made to
-/// fail by corrupting the split model's head file after the first load (the registry knows the
-/// model by its encoder file, which is unchanged, so the second scorer still looks for a
-/// session of the same model).
+/// fail by corrupting the split model's head file after the first load, keeping its size and
+/// modification time (the registry knows a model by its files' sizes and times, so the second
+/// scorer still looks for a session of the same model).
 #[test]
 fn a_failed_extra_session_falls_back_to_sharing_one_that_works() {
     let (dir, encoder) = common::student_copy();
@@ -560,11 +560,20 @@ fn a_failed_extra_session_falls_back_to_sharing_one_that_works() {
     };
     let mut first = Scorer::load(&source, &opts).unwrap();
     assert!(first.warnings.is_empty(), "{:?}", first.warnings);
-    std::fs::write(
-        dir.path().join("leangate-s-head.onnx"),
-        b"not an onnx model",
-    )
-    .unwrap();
+    let head = dir.path().join("leangate-s-head.onnx");
+    let (len, modified) = {
+        let md = std::fs::metadata(&head).unwrap();
+        (md.len() as usize, md.modified().unwrap())
+    };
+    let mut garbage = b"not an onnx model".repeat(len / 17 + 1);
+    garbage.truncate(len);
+    std::fs::write(&head, garbage).unwrap();
+    std::fs::File::options()
+        .write(true)
+        .open(&head)
+        .unwrap()
+        .set_modified(modified)
+        .unwrap();
     // With sharing off the broken head is a plain start error...
     let err = Scorer::load(
         &source,
@@ -769,4 +778,20 @@ fn a_replaced_head_or_external_data_file_is_a_new_model_for_sharing() {
             "{read} replaced: the next scorer must load it afresh"
         );
     }
+}
+
+/// An encoder that declares a dynamic batch is run in batches with `batch-size`: one that cannot
+/// take a batch is refused at load (found by a hostile probe: it passed the dry run of one frame,
+/// then every batched frame failed and was kept).
+#[test]
+fn an_encoder_that_declares_a_batch_but_cannot_take_one_is_refused() {
+    let e = load("split_batch_one_encoder.onnx")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("dynamic batch") && e.contains("batch of 2") && e.contains("shape [1"),
+        "{e}"
+    );
+    // The same encoder computing per frame loads.
+    load("split_encoder.onnx").unwrap();
 }

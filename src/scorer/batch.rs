@@ -41,6 +41,19 @@ pub(super) struct Job {
     pub(super) image: Vec<f32>,
 }
 
+impl Job {
+    /// A frame that is not queued: for a dry run of [`super::run_batch`] at load.
+    pub(super) fn unqueued(image: Vec<f32>) -> Job {
+        Job {
+            ticket: 0,
+            member: 0,
+            batch_size: 0,
+            timeout: Duration::ZERO,
+            image,
+        }
+    }
+}
+
 #[derive(Default)]
 pub(super) struct Batcher {
     state: Mutex<BatchState>,

@@ -752,7 +752,29 @@ impl Scorer {
         r.map(|_| ()).map_err(|e| ScorerError::Contract {
             model: model.to_string(),
             reason: format!("a dry run on a blank frame{with} failed: {e}"),
-        })
+        })?;
+        // An encoder that declares a dynamic batch is run in batches (`batch-size`): it must
+        // take one, or every batched frame would fail later.
+        if let Kind::Split {
+            encoder,
+            batchable: true,
+            ..
+        } = &self.model.kind
+        {
+            let shape = [1, 3, spec.height as usize, spec.width as usize];
+            let jobs = [Job::unqueued(blank.clone()), Job::unqueued(blank)];
+            run_batch(encoder, shape, &jobs, &mut Vec::new()).map_err(|e| {
+                ScorerError::Contract {
+                    model: model.to_string(),
+                    reason: format!(
+                        "its encoder declares a dynamic batch dimension, but a dry run on a \
+                         batch of 2 blank frames failed: {e} (make the batch dimension 1 if the \
+                         encoder cannot take batches)"
+                    ),
+                }
+            })?;
+        }
+        Ok(())
     }
 
     pub fn info(&self) -> &ModelInfo {
@@ -1089,6 +1111,7 @@ fn first_utility(outputs: &ort::session::SessionOutputs) -> Result<f32, ScorerEr
 
 #[cfg(test)]
 mod tests {
+    use super::*;
 
     #[test]
     fn threads_beyond_the_limit_count_as_the_limit() {
@@ -1100,8 +1123,6 @@ mod tests {
         assert_eq!(opts(3).effective_threads(), 3);
         assert_eq!(opts(100_000).effective_threads(), MAX_THREADS);
     }
-
-    use super::*;
 
     /// A batching model's sessions go with its last scorer, on that scorer's thread (the element
     /// stopping), not later on the batch worker: the worker holds the model only while it runs
