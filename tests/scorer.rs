@@ -795,3 +795,36 @@ fn an_encoder_that_declares_a_batch_but_cannot_take_one_is_refused() {
     // The same encoder computing per frame loads.
     load("split_encoder.onnx").unwrap();
 }
+
+/// One model's load does not hold up another's (found by a hostile probe: the registry of shared
+/// sessions stayed locked while a model loaded, so an element starting with a slow model, or one
+/// whose start never ended, held up every other element's start in the process). Streams of the
+/// same model still wait for its one load.
+#[test]
+fn a_slow_model_load_does_not_hold_up_another_models_load() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    let opts = ScorerOptions {
+        execution_provider: ExecutionProvider::Cpu,
+        shared: true,
+        ..Default::default()
+    };
+    let slow_done = Arc::new(AtomicBool::new(false));
+    let slow = {
+        let (opts, done) = (opts.clone(), slow_done.clone());
+        std::thread::spawn(move || {
+            let s = Scorer::load(&ModelSource::File(fixture("slow.onnx").into()), &opts);
+            done.store(true, Ordering::SeqCst);
+            s.map(|_| ())
+        })
+    };
+    // The slow model's start (its dry run: three 1600x1600 products) has begun.
+    std::thread::sleep(std::time::Duration::from_millis(100));
+    Scorer::load(&ModelSource::File(fixture("mad.onnx").into()), &opts).unwrap();
+    let other_first = !slow_done.load(Ordering::SeqCst);
+    slow.join().unwrap().unwrap();
+    assert!(
+        other_first,
+        "mad.onnx loaded only after slow.onnx: the registry was held through the slow load"
+    );
+}

@@ -319,8 +319,13 @@ struct ModelKey {
     precision: Precision,
 }
 
-/// Per key, the loaded instances of the model (at most `max_sessions`).
-static REGISTRY: LazyLock<Mutex<HashMap<ModelKey, Vec<Weak<Model>>>>> =
+/// The loaded instances of one model (at most `max_sessions`), locked while one is loaded.
+type Instances = Arc<Mutex<Vec<Weak<Model>>>>;
+
+/// Per key, the loaded instances of the model. The map is locked only to find or add a key; a
+/// model is loaded under its own key's lock, so that a slow model's load (a large network, a
+/// TensorRT engine build) holds up only the streams starting with the same model.
+static REGISTRY: LazyLock<Mutex<HashMap<ModelKey, Instances>>> =
     LazyLock::new(|| Mutex::new(HashMap::new()));
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -500,21 +505,33 @@ impl Scorer {
                         spinning: opts.spinning,
                         precision: opts.precision,
                     };
+                    let entry = {
+                        let mut reg = lock(&REGISTRY);
+                        // Keys whose models are all gone go; one that is being loaded (locked)
+                        // or about to be (its entry held by a starting scorer) stays.
+                        reg.retain(|_, e| {
+                            if Arc::strong_count(e) > 1 {
+                                return true;
+                            }
+                            match e.try_lock() {
+                                Ok(mut v) => {
+                                    v.retain(|w| w.strong_count() > 0);
+                                    !v.is_empty()
+                                }
+                                Err(_) => true,
+                            }
+                        });
+                        reg.entry(key).or_default().clone()
+                    };
                     // The instances upgraded below; declared before the lock so that they are
                     // let go after it: if one of them was the last reference, its sessions are
                     // freed (and the memory given back) with the registry unlocked.
                     let live: Vec<Arc<Model>>;
-                    // Held while loading: a second stream starting at the same time waits for
-                    // the first's model instead of loading its own.
-                    let mut reg = lock(&REGISTRY);
-                    reg.retain(|_, v| {
-                        v.retain(|w| w.strong_count() > 0);
-                        !v.is_empty()
-                    });
-                    live = reg
-                        .get(&key)
-                        .map(|v| v.iter().filter_map(Weak::upgrade).collect())
-                        .unwrap_or_default();
+                    // Held while loading: a second stream of the same model starting at the same
+                    // time waits for the first's instance instead of loading its own.
+                    let mut instances = lock(&entry);
+                    instances.retain(|w| w.strong_count() > 0);
+                    live = instances.iter().filter_map(Weak::upgrade).collect();
                     // The least used instance (the `live` clones add one to each count).
                     let least = live.iter().min_by_key(|m| Arc::strong_count(m)).cloned();
                     match least {
@@ -522,7 +539,7 @@ impl Scorer {
                         least => match Self::load_model(source, opts) {
                             Ok(m) => {
                                 let m = Arc::new(m);
-                                reg.entry(key).or_default().push(Arc::downgrade(&m));
+                                instances.push(Arc::downgrade(&m));
                                 m
                             }
                             // Another instance could not be made (memory, a provider that
