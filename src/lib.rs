@@ -50,7 +50,7 @@ pub use remote::{Backend, Interrupt, RemoteError, RemoteOptions, RemoteScorer};
 pub use runtime::RuntimeError;
 pub use scorer::{
     default_max_sessions, files_read, ExecutionProvider, IdleHandle, ModelInfo, ModelSource,
-    Precision, Scorer, ScorerError, ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
+    Precision, RunStop, Scorer, ScorerError, ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
 };
 pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};
 pub use utility::{Composed, Utility};

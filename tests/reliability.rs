@@ -1220,3 +1220,55 @@ fn caps_the_preprocessing_cannot_take_are_an_error_naming_why() {
         "{e}"
     );
 }
+
+/// Stopping the element, or a flushing seek, ends a local model run in flight instead of waiting
+/// for it (found by a hostile probe: set_state(NULL) waited as long as the model ran, for ever
+/// with a model that loops on real frames, and took 6.8 s with one taking 5.6 s a frame). The
+/// fixture `forever.onnx` loops about for ever on any real frame: the pipeline must still stop,
+/// and a stop is no failure (no warning or error on the bus).
+#[test]
+fn stopping_ends_a_model_run_in_flight() {
+    common::init();
+    let desc = format!(
+        "videotestsrc ! video/x-raw,width=64,height=48 ! leangate name=g model={} ! fakesink",
+        fixture("forever.onnx")
+    );
+    for flush_first in [false, true] {
+        let pipeline = gst::parse::launch(&desc).unwrap();
+        let gate = pipeline
+            .downcast_ref::<gst::Bin>()
+            .unwrap()
+            .by_name("g")
+            .unwrap();
+        pipeline.set_state(gst::State::Playing).unwrap();
+        // The second frame is scored against the first (kept as `first`): its run loops.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
+        while gate.property::<u64>("frames-in") < 2 {
+            assert!(std::time::Instant::now() < deadline, "no second frame");
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(200));
+        let (tx, rx) = std::sync::mpsc::channel();
+        let p = pipeline.clone();
+        std::thread::spawn(move || {
+            if flush_first {
+                // A flushing seek interrupts the run; the frames after it loop again.
+                let _ = p.seek_simple(gst::SeekFlags::FLUSH, gst::ClockTime::ZERO);
+            }
+            let _ = p.set_state(gst::State::Null);
+            let _ = tx.send(());
+        });
+        assert!(
+            rx.recv_timeout(std::time::Duration::from_secs(20)).is_ok(),
+            "the pipeline did not stop while the model ran (flush first: {flush_first})"
+        );
+        let bus = pipeline.bus().unwrap();
+        let msgs: Vec<_> = std::iter::from_fn(|| bus.pop()).collect();
+        assert!(error_text(&msgs).is_none(), "{:?}", error_text(&msgs));
+        assert!(
+            warning_texts(&msgs).is_empty(),
+            "{:?}",
+            warning_texts(&msgs)
+        );
+    }
+}

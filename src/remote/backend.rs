@@ -1,7 +1,7 @@
 //! Where frames are scored: locally on ONNX Runtime, or on a V2 server.
 
 use super::{Canceller, RemoteScorer};
-use crate::scorer::{IdleHandle, ModelInfo, Scorer, ScorerError};
+use crate::scorer::{IdleHandle, ModelInfo, RunStop, Scorer, ScorerError};
 use crate::stats::ServerStats;
 
 /// The element's scorer: the same calls whichever runs the model.
@@ -60,10 +60,12 @@ impl Backend {
             Backend::Local(s) => Interrupt {
                 batch: s.idle_handle(),
                 remote: None,
+                local: Some(s.run_stop()),
             },
             Backend::Remote(r) => Interrupt {
                 batch: None,
                 remote: Some(r.canceller()),
+                local: None,
             },
         }
     }
@@ -89,6 +91,7 @@ impl Backend {
 pub struct Interrupt {
     batch: Option<IdleHandle>,
     remote: Option<Canceller>,
+    local: Option<RunStop>,
 }
 
 impl Interrupt {
@@ -100,13 +103,16 @@ impl Interrupt {
         }
     }
 
-    /// The stream stops or flushes: as [`Interrupt::idle`], and a server request in flight fails
-    /// at once with [`ScorerError::Interrupted`] (as do the next ones, until
-    /// [`Interrupt::resume`]).
+    /// The stream stops or flushes: as [`Interrupt::idle`], and a server request or a local model
+    /// run in flight fails at once with [`ScorerError::Interrupted`] (as do the next ones, until
+    /// [`Interrupt::resume`]; a local run ends at the model's next operator).
     pub fn cancel(&self) {
         self.idle();
         if let Some(c) = &self.remote {
             c.cancel();
+        }
+        if let Some(l) = &self.local {
+            l.stop();
         }
     }
 
@@ -114,6 +120,9 @@ impl Interrupt {
     pub fn resume(&self) {
         if let Some(c) = &self.remote {
             c.resume();
+        }
+        if let Some(l) = &self.local {
+            l.resume();
         }
     }
 }

@@ -37,9 +37,11 @@ impl Scorer {
         let r = TensorRef::from_array_view((reference.0.to_vec(), reference.1)).map_err(inf)?;
         let c = TensorRef::from_array_view((current.0.to_vec(), current.1)).map_err(inf)?;
         let mut head = super::lock(head);
-        let outputs = head
-            .run(ort::inputs!["reference_features" => r, "current_features" => c])
-            .map_err(inf)?;
+        let stop = self.stop.clone();
+        let outputs = stop.run(
+            &mut head,
+            ort::inputs!["reference_features" => r, "current_features" => c],
+        )?;
         let u = first_utility(&outputs)?;
         if !u.is_finite() {
             return Err(ScorerError::Inference(format!(

@@ -13,10 +13,11 @@
 use std::collections::HashMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, LazyLock, Mutex, MutexGuard, Weak};
 use std::time::Duration;
 
-use ort::session::Session;
+use ort::session::{RunOptions, Session};
 use ort::value::TensorRef;
 
 use crate::preprocess::{try_zeroed, TensorSpec};
@@ -437,6 +438,80 @@ fn identity(source: &ModelSource) -> Option<String> {
     }
 }
 
+/// Stops a scorer's local inference from another thread ([`Scorer::run_stop`]): the element
+/// stopping or flushing ends a model run in flight (ONNX Runtime's terminate flag, checked between
+/// the graph's operators) instead of waiting for it, and the run fails with
+/// [`ScorerError::Interrupted`], as do the next ones until [`RunStop::resume`]. A batched encoder
+/// run (`batch-size`) serves other streams too and is let finish.
+#[derive(Clone)]
+pub struct RunStop {
+    options: Option<Arc<RunOptions>>,
+    stopped: Arc<AtomicBool>,
+}
+
+impl fmt::Debug for RunStop {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("RunStop")
+            .field("stopped", &self.stopped())
+            .finish()
+    }
+}
+
+impl RunStop {
+    fn new() -> RunStop {
+        RunStop {
+            // Without run options (ONNX Runtime could not make them) runs cannot be stopped.
+            options: RunOptions::new().ok().map(|mut o| {
+                // A failed run is the element's to report (a warning naming it, the frame kept);
+                // a stopped one is no failure. Neither goes to standard error from ONNX Runtime.
+                let _ = o.set_log_level(ort::logging::LogLevel::Fatal);
+                Arc::new(o)
+            }),
+            stopped: Arc::default(),
+        }
+    }
+
+    /// The stream stops or flushes: a run in flight ends, and runs fail until [`RunStop::resume`].
+    pub fn stop(&self) {
+        self.stopped.store(true, Ordering::SeqCst);
+        if let Some(o) = &self.options {
+            let _ = o.terminate();
+        }
+    }
+
+    /// After a flush, or a stop that did not happen: runs may go again.
+    pub fn resume(&self) {
+        if let Some(o) = &self.options {
+            let _ = o.unterminate();
+        }
+        self.stopped.store(false, Ordering::SeqCst);
+    }
+
+    fn stopped(&self) -> bool {
+        self.stopped.load(Ordering::SeqCst)
+    }
+
+    /// Run `session` on `inputs` with these run options; a run ended by [`RunStop::stop`] is
+    /// [`ScorerError::Interrupted`].
+    fn run<'s, 'i, 'v: 'i, const N: usize>(
+        &'s self,
+        session: &'s mut Session,
+        inputs: impl Into<ort::session::SessionInputs<'i, 'v, N>>,
+    ) -> Result<ort::session::SessionOutputs<'s>, ScorerError> {
+        if self.stopped() {
+            return Err(ScorerError::Interrupted);
+        }
+        let r = match &self.options {
+            Some(o) => session.run_with_options(inputs, o),
+            None => session.run(inputs),
+        };
+        r.map_err(|e| match self.stopped() {
+            true => ScorerError::Interrupted,
+            false => ScorerError::Inference(e.to_string()),
+        })
+    }
+}
+
 /// A scorer: one stream's view of a (possibly shared) model, with its own reference features.
 pub struct Scorer {
     model: Arc<Model>,
@@ -451,6 +526,8 @@ pub struct Scorer {
     staging: Vec<f32>,
     /// Warnings collected while choosing the provider (`auto` fallbacks).
     pub warnings: Vec<String>,
+    /// Ends this scorer's local runs when the element stops or flushes.
+    stop: RunStop,
 }
 
 impl Drop for Scorer {
@@ -584,6 +661,7 @@ impl Scorer {
             ));
         }
         Ok(Scorer {
+            stop: RunStop::new(),
             warnings,
             model,
             reference: None,
@@ -644,6 +722,7 @@ impl Scorer {
                         _give_back: GiveBackOnDrop,
                     });
                     let mut scorer = Scorer {
+                        stop: RunStop::new(),
                         model: m.clone(),
                         reference: None,
                         current: None,
@@ -819,6 +898,11 @@ impl Scorer {
         Arc::ptr_eq(&self.model, &other.model)
     }
 
+    /// What stops this scorer's local runs from another thread (see [`RunStop`]).
+    pub fn run_stop(&self) -> RunStop {
+        self.stop.clone()
+    }
+
     /// Whether this scorer's frames go through the batcher (shared, `batch_size` > 1, and a
     /// model whose encoder takes a dynamic batch).
     pub fn is_batching(&self) -> bool {
@@ -869,14 +953,14 @@ impl Scorer {
         }
         let inf = |e: ort::Error| ScorerError::Inference(e.to_string());
         let model = self.model.clone();
+        let stop = self.stop.clone();
         let u = match &model.kind {
             Kind::Pair(session) => {
                 let r = TensorRef::from_array_view((shape, reference)).map_err(inf)?;
                 let c = TensorRef::from_array_view((shape, current)).map_err(inf)?;
                 let mut session = lock(session);
-                let outputs = session
-                    .run(ort::inputs!["reference" => r, "current" => c])
-                    .map_err(inf)?;
+                let outputs =
+                    stop.run(&mut session, ort::inputs!["reference" => r, "current" => c])?;
                 first_utility(&outputs)?
             }
             Kind::Split { encoder, head, .. } => {
@@ -892,9 +976,10 @@ impl Scorer {
                 let c =
                     TensorRef::from_array_view((cf.shape.clone(), &cf.data[..])).map_err(inf)?;
                 let mut head = lock(head);
-                let outputs = head
-                    .run(ort::inputs!["reference_features" => r, "current_features" => c])
-                    .map_err(inf)?;
+                let outputs = stop.run(
+                    &mut head,
+                    ort::inputs!["reference_features" => r, "current_features" => c],
+                )?;
                 let u = first_utility(&outputs)?;
                 drop(outputs);
                 drop(head);
@@ -920,7 +1005,7 @@ impl Scorer {
         if let Some(member) = self.member {
             self.encode_batched(member, image)
         } else {
-            encode(&mut lock(encoder), shape, image)
+            encode(&mut lock(encoder), shape, image, &self.stop)
         }
     }
 
@@ -1088,10 +1173,11 @@ fn encode(
     encoder: &mut Session,
     shape: [usize; 4],
     image: &[f32],
+    stop: &RunStop,
 ) -> Result<Features, ScorerError> {
     let inf = |e: ort::Error| ScorerError::Inference(e.to_string());
     let t = TensorRef::from_array_view((shape, image)).map_err(inf)?;
-    let outputs = encoder.run(ort::inputs!["image" => t]).map_err(inf)?;
+    let outputs = stop.run(encoder, ort::inputs!["image" => t])?;
     let f = outputs
         .get("features")
         .ok_or_else(|| ScorerError::Inference("no `features` output".into()))?;
