@@ -658,10 +658,10 @@ impl RemoteScorer {
                 u
             }
         };
-        if !(0.0..=1.0).contains(&u) {
-            return Err(format!("`utility` {u} is not in [0, 1]"));
-        }
-        Ok(u)
+        crate::scorer::check_utility(u).map_err(|e| match e {
+            ScorerError::Inference(why) => why,
+            e => e.to_string(),
+        })
     }
 
     /// Score one pair of preprocessed tensors. While the server is in backoff after a failure,

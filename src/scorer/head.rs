@@ -42,12 +42,6 @@ impl Scorer {
             &mut head,
             ort::inputs!["reference_features" => r, "current_features" => c],
         )?;
-        let u = first_utility(&outputs)?;
-        if !u.is_finite() {
-            return Err(ScorerError::Inference(format!(
-                "`utility` is not finite ({u})"
-            )));
-        }
-        Ok(u)
+        super::check_utility(first_utility(&outputs)?)
     }
 }

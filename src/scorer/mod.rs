@@ -353,6 +353,12 @@ pub fn files_read(model: &Path) -> Vec<PathBuf> {
         let Some(dir) = file.parent().map(Path::to_path_buf) else {
             continue;
         };
+        // Only a regular file is read (a FIFO or a device would block or never end; loading
+        // refuses them), and only one a protobuf can be (ONNX's limit is 2 GiB).
+        let regular = std::fs::metadata(&file).is_ok_and(|m| m.is_file() && m.len() < 1 << 31);
+        if !regular {
+            continue;
+        }
         let Ok(bytes) = std::fs::read(&file) else {
             continue;
         };
@@ -376,17 +382,15 @@ fn entry_values<'a>(bytes: &'a [u8], key: &[u8]) -> Vec<&'a str> {
     pattern.extend_from_slice(key);
     pattern.push(0x12);
     let mut values = Vec::new();
-    let mut at = 0;
-    while let Some(i) = bytes[at..]
-        .windows(pattern.len())
-        .position(|w| w == pattern.as_slice())
-    {
-        let start = at + i + pattern.len();
-        at = start;
+    for i in memchr::memmem::find_iter(bytes, &pattern) {
+        let start = i + pattern.len();
         // The value's length, a varint of at most two bytes (a path under 16 KiB).
-        let (len, skip) = match bytes.get(start..start + 2) {
-            Some(&[b0, _]) if b0 < 0x80 => (b0 as usize, 1),
-            Some(&[b0, b1]) if b1 < 0x80 => ((b0 & 0x7f) as usize | (b1 as usize) << 7, 2),
+        let Some(&b0) = bytes.get(start) else {
+            continue;
+        };
+        let (len, skip) = match (b0, bytes.get(start + 1)) {
+            (b0, _) if b0 < 0x80 => (b0 as usize, 1),
+            (b0, Some(&b1)) if b1 < 0x80 => ((b0 & 0x7f) as usize | (b1 as usize) << 7, 2),
             _ => continue,
         };
         let Some(v) = bytes.get(start + skip..start + skip + len) else {
@@ -987,12 +991,7 @@ impl Scorer {
                 u
             }
         };
-        if !u.is_finite() {
-            return Err(ScorerError::Inference(format!(
-                "`utility` is not finite ({u})"
-            )));
-        }
-        Ok(u)
+        check_utility(u)
     }
 
     /// Encode one image, through the batcher when batching.
@@ -1191,6 +1190,22 @@ fn encode(
         shape: shape.iter().map(|&d| d.max(0) as usize).collect(),
         data: owned,
     })
+}
+
+/// A model's utility is tau = 1 - S, in [0, 1]: anything else is a failed run (the element keeps
+/// the frame and warns), as a server's answer out of that range is.
+pub(crate) fn check_utility(u: f32) -> Result<f32, ScorerError> {
+    if !u.is_finite() {
+        return Err(ScorerError::Inference(format!(
+            "`utility` is not finite ({u})"
+        )));
+    }
+    if !(0.0..=1.0).contains(&u) {
+        return Err(ScorerError::Inference(format!(
+            "`utility` {u} is not in [0, 1]"
+        )));
+    }
+    Ok(u)
 }
 
 /// The single utility value of a batch of one.
