@@ -11,7 +11,7 @@
 //! | `reference-pts` | guint64 | PTS (ns) of the reference the frame was scored against (its own PTS for `first`; `GST_CLOCK_TIME_NONE` when unknown) |
 //! | `frames-since-keyframe` | guint | frames since that reference (0 for a kept frame) |
 //! | `inference-us` | guint64 | time spent preprocessing and scoring this frame, microseconds |
-//! | `quality` | string | `usable`, or what [`crate::quality::assess`] found: `dark`, `saturated`, `noise` (junk: never kept), `textureless` (utility 0); `usable` when `reject-junk` is off or the frame could not be read |
+//! | `quality` | string | `usable`, or what [`crate::quality::assess`] found: `dark`, `saturated`, `noise` (junk: never kept), `textureless` (utility 0), or `corrupted` (the buffer flagged CORRUPTED or GAP: junk); `usable` when `reject-junk` is off or the frame could not be read |
 //! | `screened` | boolean | the model did not run: the geometric prior alone bounded the utility below the threshold (the `screen` property); the frame is dropped unless `warmup`, `max-gap` or a forced keyframe keeps it |
 
 use crate::policy::Reason;

@@ -320,7 +320,11 @@ impl Gate {
                 candidate: false,
             };
         }
-        let mut reason = if !self.has_reference || score == Score::NoReference {
+        let mut reason = if score == Score::Failed && !self.has_reference {
+            // An unreadable frame with no reference (the stream's first, or one after another
+            // unreadable frame) is kept as what it is: it cannot become the reference.
+            Some(Reason::Error)
+        } else if !self.has_reference || score == Score::NoReference {
             Some(Reason::First)
         } else if self.force_next {
             Some(Reason::Forced)
@@ -415,6 +419,24 @@ impl Gate {
                 }
             }
         }
+    }
+
+    /// The stream ends (EOS) while a keep due on score waits to settle
+    /// ([`GateConfig::sharpness_wait`] with a look-back): it settles now, on the sharpest frame
+    /// held (the due one or a later one). Returns how many frames before the last decided frame
+    /// that one is (0: the last) and its keyframe index; `None` when no keep waits.
+    pub fn settle_pending(&mut self) -> Option<(u64, u64)> {
+        if self.waited == 0 {
+            return None;
+        }
+        let (p, _) = self.sharpest_candidate()?;
+        let last = self.position.checked_sub(1)?;
+        self.candidates.clear();
+        self.waited = 0;
+        self.force_next = false;
+        self.since_keyframe = last - p;
+        self.kept += 1;
+        Some((last - p, self.kept))
     }
 
     /// The sharpest candidate of the look-back (the earliest of equals).
@@ -837,6 +859,17 @@ mod tests {
         assert_eq!((d.keep, d.reason), (true, Reason::Error));
         let d = g.decide(Score::Utility(f64::NAN));
         assert_eq!((d.keep, d.reason), (true, Reason::Error));
+        // Unreadable frames in a row (the element drops the reference after each): every one is
+        // `error`, and the next readable frame is `first` (a hostile probe saw `first` on the
+        // second and third, which cannot be a reference).
+        for _ in 0..3 {
+            g.drop_reference();
+            let d = g.decide(Score::Failed);
+            assert_eq!((d.keep, d.reason), (true, Reason::Error));
+        }
+        g.drop_reference();
+        let d = g.decide(Score::NoReference);
+        assert_eq!((d.keep, d.reason), (true, Reason::First));
     }
 
     #[test]

@@ -52,15 +52,19 @@ pub enum Quality {
     Noise,
     /// A flat view: a picture without texture to match.
     Textureless,
+    /// Flagged as damaged upstream (`GST_BUFFER_FLAG_CORRUPTED`: a decoder's concealment after
+    /// lost or broken data) or as a gap filler (`GST_BUFFER_FLAG_GAP`): not a picture to trust.
+    Corrupted,
 }
 
 impl Quality {
-    pub const ALL: [Quality; 5] = [
+    pub const ALL: [Quality; 6] = [
         Quality::Usable,
         Quality::Dark,
         Quality::Saturated,
         Quality::Noise,
         Quality::Textureless,
+        Quality::Corrupted,
     ];
 
     /// The string written into `LeanGateMeta`'s `quality` field.
@@ -71,6 +75,7 @@ impl Quality {
             Quality::Saturated => "saturated",
             Quality::Noise => "noise",
             Quality::Textureless => "textureless",
+            Quality::Corrupted => "corrupted",
         }
     }
 
@@ -80,7 +85,10 @@ impl Quality {
 
     /// No usable picture: never kept, never the reference.
     pub fn is_junk(self) -> bool {
-        matches!(self, Quality::Dark | Quality::Saturated | Quality::Noise)
+        matches!(
+            self,
+            Quality::Dark | Quality::Saturated | Quality::Noise | Quality::Corrupted
+        )
     }
 }
 
@@ -345,8 +353,8 @@ mod tests {
         }
         assert_eq!(
             Quality::ALL.iter().filter(|q| q.is_junk()).count(),
-            3,
-            "dark, saturated, noise"
+            4,
+            "dark, saturated, noise, corrupted"
         );
     }
 }

@@ -217,6 +217,24 @@ impl Utility {
             .push_back(self.tracker.chain().filter(|_| trackable));
     }
 
+    /// Observe a frame flagged as damaged upstream ([`Quality::Corrupted`]): junk, whatever its
+    /// pixels, so it is never kept or the reference and the prior's chain bridges it (as
+    /// [`Utility::observe`] does for a dark frame).
+    pub fn observe_damaged(&mut self) {
+        self.last_score = match (self.score.take(), self.last_score) {
+            (Some(s), _) => Some((s, 1)),
+            (None, Some((s, k))) => Some((s, k.saturating_add(1))),
+            (None, None) => None,
+        };
+        self.tau = None;
+        self.quality = Quality::Corrupted;
+        self.sharpness = None;
+        if self.recent.len() > crate::policy::MAX_LOOKBACK as usize {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(None);
+    }
+
     fn observe_frame(
         &mut self,
         frame: Option<(&[f32], &TensorSpec)>,

@@ -1336,3 +1336,135 @@ fn bad_feedback_and_failing_frames_warn_apart() {
     );
     assert!(!frames[0].contains("suppressed"), "{frames:?}");
 }
+
+/// A buffer flagged CORRUPTED (a decoder's concealment after lost data) or GAP (a gap filler) is
+/// junk whatever its pixels: never kept, never the reference, `quality` `corrupted` in its meta,
+/// counted in `frames-junk` (found by a hostile probe: a corrupted first frame became the
+/// reference and a corrupted frame was kept on score).
+#[test]
+fn frames_flagged_corrupted_or_gap_are_junk() {
+    for flag in [gst::BufferFlags::CORRUPTED, gst::BufferFlags::GAP] {
+        let mut h = harness(
+            &format!("model={} threshold=0.2 mode=annotate", fixture("mad.onnx")),
+            &rgb_caps(W, H),
+        );
+        let flagged = |data: Vec<u8>, pts: u64| {
+            let mut b = buffer(data, pts);
+            b.get_mut().unwrap().set_flags(flag);
+            b
+        };
+        let (a, b) = (texture(W, H, 1), texture(W, H, 2));
+        h.push(flagged(a.clone(), 0)).unwrap(); // damaged: not the stream's first keyframe
+        h.push(buffer(a.clone(), 33)).unwrap(); // first
+        h.push(flagged(b.clone(), 66)).unwrap(); // would be kept on score
+        h.push(buffer(a.clone(), 99)).unwrap(); // against the real reference: dropped
+        h.push(buffer(b, 132)).unwrap(); // kept on score
+        let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+        let got: Vec<_> = m.iter().map(|m| (m.keep, m.reason, m.quality)).collect();
+        use gstleangate::Quality;
+        assert_eq!(
+            got,
+            vec![
+                (false, Reason::Junk, Quality::Corrupted),
+                (true, Reason::First, Quality::Usable),
+                (false, Reason::Junk, Quality::Corrupted),
+                (false, Reason::Score, Quality::Usable),
+                (true, Reason::Score, Quality::Usable),
+            ],
+            "{flag:?}"
+        );
+        assert_eq!(h.element().unwrap().property::<u64>("frames-junk"), 2);
+        // With reject-junk off the flags are not looked at.
+        let mut h = harness(
+            &format!(
+                "model={} threshold=0.2 mode=annotate reject-junk=false",
+                fixture("mad.onnx")
+            ),
+            &rgb_caps(W, H),
+        );
+        h.push(flagged(a, 0)).unwrap();
+        assert_eq!(meta(&drain(&mut h)[0]).reason, Reason::First);
+    }
+}
+
+/// The latency the look-back adds saturates instead of overflowing (found by a hostile probe: a
+/// frame every 2^31 s and `sharpness-lookback=9` panicked in the latency query, "Attempt to build
+/// a ClockTime with value GST_CLOCK_TIME_NONE", and the pipeline would not preroll).
+#[test]
+fn an_absurd_frame_duration_does_not_overflow_the_latency() {
+    let msgs = run_pipeline(
+        &format!(
+            "videotestsrc num-buffers=5 ! video/x-raw,width=64,height=48,framerate=1/2147483647 ! \
+             leangate model={} sharpness-lookback=30 ! fakesink",
+            fixture("mad.onnx")
+        ),
+        30,
+    );
+    assert!(error_text(&msgs).is_none(), "{:?}", error_text(&msgs));
+    assert!(msgs
+        .iter()
+        .any(|m| matches!(m.view(), gst::MessageView::Eos(_))));
+}
+
+/// A keep due on score that waits to settle (`sharpness-wait` with `sharpness-lookback`) when the
+/// stream ends settles on the sharpest held frame instead of being lost (found by a hostile
+/// probe: the last keep of a stream, its last new view, was never made).
+#[test]
+fn a_keep_waiting_to_settle_at_the_end_of_the_stream_is_made() {
+    let mut h = harness(
+        &format!(
+            "model={} threshold=0.2 mode=annotate sharpness-wait=2 sharpness-lookback=4",
+            fixture("mad.onnx")
+        ),
+        &rgb_caps(W, H),
+    );
+    let a = texture(W, H, 1);
+    // A smooth full-range gradient: far from `a` (mad about 0.33) and without edges (blurred).
+    let gradient: Vec<u8> = (0..W * H)
+        .flat_map(|i| {
+            let v = ((i % W) * 255 / (W - 1)) as u8;
+            [v, v, v]
+        })
+        .collect();
+    h.push(buffer(a.clone(), 0)).unwrap(); // first
+    h.push(buffer(a.clone(), 33)).unwrap(); // dropped, sharp: a candidate
+    h.push(buffer(a, 66)).unwrap(); // dropped, sharp
+    h.push(buffer(gradient, 99)).unwrap(); // due, blurred: waits to settle
+    h.push_event(gst::event::Eos::new());
+    let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+    let got: Vec<_> = m.iter().map(|m| (m.keep, m.reason)).collect();
+    assert_eq!(
+        got,
+        vec![
+            (true, Reason::First),
+            (true, Reason::Sharper),
+            (false, Reason::Score),
+            (false, Reason::Deferred),
+        ]
+    );
+    assert_eq!(m[1].keyframe_index, 2);
+    assert_eq!(h.element().unwrap().property::<u64>("frames-kept"), 2);
+}
+
+/// A local model's utility outside [0, 1] is a failed run, as a server's is: the frame is kept
+/// (fail open) and a warning names the value (found by a hostile probe: it was taken as it came,
+/// so a model answering 5 kept every frame and one answering -1 none, without a word).
+#[test]
+fn a_utility_outside_zero_to_one_is_a_failed_run() {
+    let msgs = run_pipeline(
+        &format!(
+            "videotestsrc num-buffers=5 horizontal-speed=5 ! video/x-raw,width=32,height=32 ! \
+             leangate model={} ! fakesink",
+            fixture("over_one.onnx")
+        ),
+        30,
+    );
+    assert!(error_text(&msgs).is_none(), "{:?}", error_text(&msgs));
+    let warnings = warning_texts(&msgs);
+    assert!(
+        warnings.len() == 1 && warnings[0].contains("is not in [0, 1]"),
+        "{warnings:?}"
+    );
+    let stats = element_message(&msgs, "leangate-stats");
+    assert_eq!(stats.last().unwrap().get::<u64>("frames-kept").unwrap(), 5);
+}

@@ -23,7 +23,7 @@ REASONS = (
     "sharper",
 )
 #: The meta's ``quality``: ``usable``, junk (never kept), or ``textureless`` (utility 0).
-QUALITIES = ("usable", "dark", "saturated", "noise", "textureless")
+QUALITIES = ("usable", "dark", "saturated", "noise", "textureless", "corrupted")
 
 #: Keys of the dicts yielded by ``LeanGateSource`` (``frame`` and ``pts`` come from the
 #: stream, the rest from the buffer's LeanGateMeta).

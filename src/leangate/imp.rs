@@ -347,12 +347,39 @@ impl LeanGate {
     /// Let every held frame go with its fate as it stands (pushed when `push`, else discarded:
     /// a flush), and tell the gate they can no longer be kept instead of a later frame.
     fn release_held(&self, push: bool) {
-        let ready: Vec<Held> = lock(&self.held).drain(..).collect();
-        if ready.is_empty() {
+        if lock(&self.held).is_empty() {
             return;
         }
-        if let Some(state) = lock(&self.state).as_mut() {
-            state.gate.forget_candidates();
+        // A keep due on score that waits to settle (`sharpness-wait` with a look-back) is made
+        // now, on the sharpest frame held, instead of being lost with the stream's end.
+        let settled = match lock(&self.state).as_mut() {
+            Some(state) => {
+                let settled = if push {
+                    state.gate.settle_pending()
+                } else {
+                    None
+                };
+                state.gate.forget_candidates();
+                settled
+            }
+            None => None,
+        };
+        let ready: Vec<Held> = {
+            let mut held = lock(&self.held);
+            if let Some((back, index)) = settled {
+                let at = held.len().checked_sub(1 + back as usize);
+                if let Some(h) = at.and_then(|i| held.get_mut(i)) {
+                    h.meta.keep = true;
+                    h.meta.reason = Reason::Sharper;
+                    h.meta.keyframe_index = index;
+                    h.meta.frames_since_keyframe = 0;
+                    self.frames_kept.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            held.drain(..).collect()
+        };
+        if ready.is_empty() {
+            return;
         }
         if push {
             let mode = self.frame_settings().mode;
@@ -420,7 +447,16 @@ impl LeanGate {
         state
             .utility
             .set_sharpness_measure(fs.sharpness_wait > 0 || fs.sharpness_lookback > 0);
-        state.utility.observe(frame, has_reference, fs.geometry);
+        // A picture its decoder flagged as damaged (concealment after lost data) or a gap
+        // filler is junk, whatever its pixels (`reject-junk`).
+        let damaged = buf
+            .flags()
+            .intersects(gst::BufferFlags::CORRUPTED | gst::BufferFlags::GAP);
+        if damaged && fs.reject_junk && frame_readable {
+            state.utility.observe_damaged();
+        } else {
+            state.utility.observe(frame, has_reference, fs.geometry);
+        }
         let model_step = state.scorer.info().geometry.and_then(|f| f.s_step);
         state.utility.set_score_step(if fs.screen_step < 0.0 {
             model_step
@@ -883,13 +919,19 @@ impl BaseTransformImpl for LeanGate {
             (res, direction, query.view_mut())
         {
             // Frames held for `sharpness-lookback` leave that many frame durations later.
+            // Saturating below GST_CLOCK_TIME_NONE (u64::MAX): absurd caps (a frame every 68
+            // years) must not panic here.
             let frames = lock(&self.settings).sharpness_lookback as u64;
-            let extra = gst::ClockTime::from_nseconds(
-                frames.saturating_mul(self.frame_ns.load(Ordering::Relaxed)),
-            );
-            if !extra.is_zero() {
+            let most = gst::ClockTime::MAX.nseconds();
+            let extra = frames
+                .saturating_mul(self.frame_ns.load(Ordering::Relaxed))
+                .min(most);
+            if extra > 0 {
+                let add = |t: gst::ClockTime| {
+                    gst::ClockTime::from_nseconds(t.nseconds().saturating_add(extra).min(most))
+                };
                 let (live, min, max) = q.result();
-                q.set(live, min + extra, max.map(|m| m + extra));
+                q.set(live, add(min), max.map(add));
             }
         }
         let refused = match query.view() {
