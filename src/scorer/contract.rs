@@ -18,8 +18,11 @@ pub const MAX_TENSOR_BYTES: u64 = 64 << 20;
 /// Smallest accepted `|leangate.std|` (a tiny std turns every frame into Inf/NaN).
 pub const MIN_STD: f32 = 1e-6;
 
-pub const CONTRACT: &str = "a LeanGate pair model has float32 inputs `reference` and `current` of \
-shape [N,3,H,W] (N = 1 or dynamic) and a float32 output `utility` of shape [N] or [N,1]";
+pub const CONTRACT: &str = "a LeanGate model is a pair model (float32 inputs `reference` and \
+`current` of shape [N,3,H,W], N = 1 or dynamic, and a float32 output `utility` of shape [N] or \
+[N,1]) or a split model (an encoder `image` → `features` and a head `reference_features`, \
+`current_features` → `utility`); models/README.md, installed as \
+share/doc/leangate/models/README.md";
 
 pub(super) fn parse_triplet(s: &str) -> Option<[f32; 3]> {
     let v: Vec<f32> = s

@@ -794,7 +794,15 @@ impl Scorer {
                     }
                     (ModelSource::File(p), _) => {
                         head_path = contract::head_path(p, &session, model)?;
-                        session::check_model_file(&head_path)?;
+                        session::check_model_file(&head_path).map_err(|e| match e {
+                            ScorerError::Read { path, reason } => ScorerError::Read {
+                                path,
+                                reason: format!(
+                                    "{reason} (the head that {model}'s leangate.head names)"
+                                ),
+                            },
+                            e => e,
+                        })?;
                         head_name = format!("`{}`", head_path.display());
                         Input::File(&head_path)
                     }
