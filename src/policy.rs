@@ -475,13 +475,16 @@ impl Gate {
         self.candidates.clear();
         self.waited = 0;
         self.force_next = false;
+        // This frame was compared with the reference before the keep: its count is from there;
+        // the next frames count from the frame kept instead.
+        let compared = self.since_keyframe + 1;
         self.since_keyframe = position - p;
         self.kept += 1;
         Decision {
             keep: false,
             reason: Reason::Score,
             keyframe_index: self.kept,
-            frames_since_keyframe: self.since_keyframe,
+            frames_since_keyframe: compared,
             kept_back: position - p,
             candidate: false,
         }
@@ -723,7 +726,8 @@ mod tests {
         assert_eq!(step(&mut g, 0.1, 80.0), (false, Reason::Score, 0, 1, 1));
         assert_eq!(step(&mut g, 0.3, 90.0), (false, Reason::Score, 0, 1, 2));
         assert_eq!(step(&mut g, 0.4, 70.0), (false, Reason::Score, 0, 1, 3));
-        assert_eq!(step(&mut g, 0.6, 40.0), (false, Reason::Score, 2, 2, 2));
+        // (The due frame itself was compared with the first frame, 4 frames before it.)
+        assert_eq!(step(&mut g, 0.6, 40.0), (false, Reason::Score, 2, 2, 4));
         // The frames before that keep are no candidates any more: a due blurred frame after it
         // keeps at once when nothing since is sharper...
         assert!(step(&mut g, 0.9, 10.0).0);
@@ -772,7 +776,8 @@ mod tests {
         // the sharpest frame held (frame 6, one back), whatever the utility did meanwhile.
         assert_eq!(step(&mut g, 0.55, 30.0), (false, Reason::Deferred, 0, 5));
         assert_eq!(step(&mut g, 0.45, 90.0), (false, Reason::Deferred, 0, 6));
-        assert_eq!(step(&mut g, 0.7, 45.0), (false, Reason::Score, 1, 1));
+        // (Frame 7 itself was compared with frame 0.)
+        assert_eq!(step(&mut g, 0.7, 45.0), (false, Reason::Score, 1, 7));
         // Frames before frame 3 are out of reach (4 frames back from frame 7): a sharp frame 1
         // would not have been chosen. A settling frame at least 0.9 as sharp as the sharpest
         // held keeps itself, even when the due frame was sharp: the wait always runs its length.
@@ -786,7 +791,7 @@ mod tests {
         // settles at once: here on the sharper frame before it.
         step(&mut g, 0.2, 100.0);
         assert_eq!(step(&mut g, 0.55, 30.0).1, Reason::Deferred);
-        assert_eq!(step(&mut g, 0.59, 40.0), (false, Reason::Score, 2, 2));
+        assert_eq!(step(&mut g, 0.59, 40.0), (false, Reason::Score, 2, 3));
         // A keep for another reason (forced) ends the wait at once.
         step(&mut g, 0.2, 100.0);
         assert_eq!(step(&mut g, 0.55, 30.0).1, Reason::Deferred);

@@ -341,6 +341,24 @@ fn a_keep_due_on_a_blurred_frame_goes_back_to_a_sharper_recent_one() {
             .find(|&j| metas[j].keyframe_index == metas[i].keyframe_index && !metas[j].keep);
         assert!(due.is_some(), "keep at {i}: no due frame after it");
     }
+    // In output order the keep count never goes down, and every frame's count of frames since
+    // its keyframe is from the reference it names (a hostile probe found the frames between a
+    // `sharper` keep and its due frame one keep behind, and the due frame counting from the new
+    // keyframe while naming the old one).
+    for (i, m) in metas.iter().enumerate() {
+        if i > 0 {
+            assert!(
+                m.keyframe_index >= metas[i - 1].keyframe_index,
+                "frame {i}: keyframe index {} after {}",
+                m.keyframe_index,
+                metas[i - 1].keyframe_index
+            );
+        }
+        if let (false, Some(r)) = (m.keep, m.reference_pts) {
+            let r = (r.mseconds() / 33) as usize;
+            assert_eq!(m.frames_since_keyframe as usize, i - r, "frame {i}");
+        }
+    }
     let (k0, k3) = (keeps(&at_once), keeps(&back));
     let (m0, m3) = (
         median_sharpness_ratio(&k0, &sharp),
@@ -395,12 +413,19 @@ fn with_a_wait_and_a_lookback_a_keep_settles_on_the_sharpest_frame_around_the_du
             i += 1;
             continue;
         }
-        // The frame the keep was due on, the first of a run of deferred frames; the keep that
-        // settles it is the next keyframe.
+        // The frame the keep was due on, the first of a run of deferred frames. The keep that
+        // settles it: a `sharper` keep before it that it counts already (in output order a frame
+        // counts every keep that left before it), else the next keyframe.
         let due = i;
+        let back_to = (due.saturating_sub(2)..due).find(|&j| {
+            metas[j].reason == Reason::Sharper
+                && metas[j].keyframe_index == metas[due].keyframe_index
+        });
         let index = metas[due].keyframe_index + 1;
-        let k = (0..metas.len())
-            .find(|&j| metas[j].keep && metas[j].keyframe_index == index)
+        let k = back_to
+            .or_else(|| {
+                (0..metas.len()).find(|&j| metas[j].keep && metas[j].keyframe_index == index)
+            })
             .unwrap_or_else(|| panic!("the keep due on frame {due} never came"));
         assert!(
             k + 2 >= due && k <= due + 2,

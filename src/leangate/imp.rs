@@ -1095,14 +1095,19 @@ impl BaseTransformImpl for LeanGate {
             });
             let n = held.len();
             if verdict.kept_back > 0 {
-                if let Some(h) = n
-                    .checked_sub(1 + verdict.kept_back as usize)
-                    .and_then(|i| held.get_mut(i))
-                {
-                    h.meta.keep = true;
-                    h.meta.reason = Reason::Sharper;
-                    h.meta.keyframe_index = verdict.meta.keyframe_index;
-                    h.meta.frames_since_keyframe = 0;
+                if let Some(at) = n.checked_sub(1 + verdict.kept_back as usize) {
+                    if let Some(h) = held.get_mut(at) {
+                        h.meta.keep = true;
+                        h.meta.reason = Reason::Sharper;
+                        h.meta.keyframe_index = verdict.meta.keyframe_index;
+                        h.meta.frames_since_keyframe = 0;
+                    }
+                    // The frames after it leave after it: their count of keeps includes it
+                    // (their reference and frames since it stay the ones they were compared
+                    // with).
+                    for h in held.iter_mut().skip(at + 1) {
+                        h.meta.keyframe_index = verdict.meta.keyframe_index;
+                    }
                 }
             }
             // A frame leaves when it is `sharpness-lookback` frames old (this one included in
