@@ -1468,3 +1468,41 @@ fn a_utility_outside_zero_to_one_is_a_failed_run() {
     let stats = element_message(&msgs, "leangate-stats");
     assert_eq!(stats.last().unwrap().get::<u64>("frames-kept").unwrap(), 5);
 }
+
+/// Caps the element cannot gate are said once on the bus, not once per negotiation attempt (a
+/// hostile probe counted the same error three times for width 32769).
+#[test]
+fn refused_caps_are_reported_once() {
+    common::init();
+    let desc = format!(
+        "videotestsrc num-buffers=3 ! video/x-raw,format=RGB,width=32769,height=2 ! \
+         leangate model={} ! fakesink",
+        fixture("mad.onnx")
+    );
+    let pipeline = gst::parse::launch(&desc).unwrap();
+    let bus = pipeline.bus().unwrap();
+    let _ = pipeline.set_state(gst::State::Playing);
+    // The first error, then whatever else the attempts post within a second.
+    let first = bus
+        .timed_pop_filtered(gst::ClockTime::from_seconds(20), &[gst::MessageType::Error])
+        .expect("an error");
+    let mut msgs = vec![first];
+    let until = std::time::Instant::now() + std::time::Duration::from_secs(1);
+    while std::time::Instant::now() < until {
+        if let Some(m) = bus.timed_pop(gst::ClockTime::from_mseconds(50)) {
+            msgs.push(m);
+        }
+    }
+    let _ = pipeline.set_state(gst::State::Null);
+    let refused: Vec<String> = msgs
+        .iter()
+        .filter_map(|m| match m.view() {
+            gst::MessageView::Error(e) if e.error().to_string().contains("cannot gate frames") => {
+                Some(e.error().to_string())
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(refused.len(), 1, "{refused:?}");
+    assert!(refused[0].contains("32769"), "{refused:?}");
+}

@@ -148,6 +148,9 @@ pub struct LeanGate {
     /// Refused property values whose warning found no bus (set before the element was in a
     /// pipeline: gst-launch sets properties first); posted at the next start. Taken alone.
     unposted: Mutex<Vec<String>>,
+    /// The caps last refused with an error on the bus: negotiation retries the same caps, and the
+    /// application needs to be told once. Nothing else is taken while it is held.
+    refused_caps: Mutex<Option<gst::Caps>>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -726,6 +729,8 @@ impl BaseTransformImpl for LeanGate {
     const TRANSFORM_IP_ON_PASSTHROUGH: bool = false;
 
     fn start(&self) -> Result<(), gst::ErrorMessage> {
+        // A new run is told about caps it cannot gate again.
+        *lock(&self.refused_caps) = None;
         // Refusals from before the element had a bus: it has one now.
         let unposted = std::mem::take(&mut *lock(&self.unposted));
         for why in unposted {
@@ -882,15 +887,20 @@ impl BaseTransformImpl for LeanGate {
                 // Said on the bus (the state lock released first), so that the application sees
                 // why, not only upstream's "not-negotiated".
                 drop(guard);
-                gst::element_imp_error!(
-                    self,
-                    gst::StreamError::Format,
-                    ("cannot gate frames of caps {incaps}: {e}")
-                );
+                let told =
+                    lock(&self.refused_caps).replace(incaps.clone()).as_ref() == Some(incaps);
+                if !told {
+                    gst::element_imp_error!(
+                        self,
+                        gst::StreamError::Format,
+                        ("cannot gate frames of caps {incaps}: {e}")
+                    );
+                }
                 return Err(gst::loggable_error!(CAT, "{e}"));
             }
         };
         gst::debug!(CAT, imp = self, "configured for {incaps}");
+        *lock(&self.refused_caps) = None;
         let fps = info.fps();
         let frame_ns = if fps.numer() > 0 && fps.denom() > 0 {
             (1_000_000_000u128 * fps.denom() as u128 / fps.numer() as u128).min(u64::MAX as u128)
