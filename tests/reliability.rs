@@ -29,6 +29,8 @@ fn broken_models_are_refused_at_start_naming_model_and_problem() {
         // D5
         ("batch2.onnx", &["batch dimension of 2"]),
         ("h_fixed.onnx", &["only one side", "leangate.input_size"]),
+        // A fixed side of 0 was read as a dynamic one (a hostile probe).
+        ("h_zero.onnx", &["fixes its input's H to 0"]),
         (
             "split_mismatch_encoder.onnx",
             &["split_head_8.onnx", "dry run"],

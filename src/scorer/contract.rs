@@ -318,6 +318,18 @@ pub(super) fn read_metadata(
         .metadata()
         .map_err(|e| meta_err(format!("unreadable: {e}")))?;
     let get = |k: &str| meta.custom(k).filter(|v| !v.trim().is_empty());
+    // A side the graph fixes: 0 is no size (not a dynamic one), and one beyond the largest
+    // input is said with its own value.
+    for (side, d) in [("W", size.0), ("H", size.1)] {
+        if d == 0 || d > MAX_INPUT_SIDE as i64 {
+            return Err(contract(
+                model,
+                format!(
+                    "the graph fixes its input's {side} to {d} (each side 1 to {MAX_INPUT_SIDE})"
+                ),
+            ));
+        }
+    }
     let fixed = |d: i64| (d > 0).then(|| u32::try_from(d).unwrap_or(u32::MAX));
     let (gw, gh) = (fixed(size.0), fixed(size.1));
     let (width, height) = match get("leangate.input_size") {
