@@ -1209,7 +1209,9 @@ fn print_reconstruction(r: &eval::EvalReport) {
 }
 
 fn print_sweep(points: &[eval::SweepPoint]) {
-    say!("equal-budget sweep (late keeps / breaks / min pair S at each model threshold):");
+    say!(
+        "equal-budget sweep (each cell: kept k, late keeps l, breaks b, at each model threshold):"
+    );
     let header: String = eval::POLICIES.iter().map(|p| format!(" {p:>12}")).collect();
     say!("{:>6}{header}", "T");
     let mut thresholds: Vec<f64> = points.iter().map(|p| p.threshold).collect();
