@@ -203,12 +203,19 @@ impl Utility {
         has_reference: bool,
         enabled: bool,
     ) {
+        self.step(|u| u.observe_frame(frame, has_reference, enabled));
+    }
+
+    /// One frame more: the model's last score ages a frame, `look` reads the frame (its quality,
+    /// sharpness, the prior's chain), and the chain is remembered for a look-back unless the
+    /// frame is junk.
+    fn step(&mut self, look: impl FnOnce(&mut Self)) {
         self.last_score = match (self.score.take(), self.last_score) {
             (Some(s), _) => Some((s, 1)),
             (None, Some((s, k))) => Some((s, k.saturating_add(1))),
             (None, None) => None,
         };
-        self.observe_frame(frame, has_reference, enabled);
+        look(self);
         if self.recent.len() > crate::policy::MAX_LOOKBACK as usize {
             self.recent.pop_front();
         }
@@ -221,18 +228,11 @@ impl Utility {
     /// pixels, so it is never kept or the reference and the prior's chain bridges it (as
     /// [`Utility::observe`] does for a dark frame).
     pub fn observe_damaged(&mut self) {
-        self.last_score = match (self.score.take(), self.last_score) {
-            (Some(s), _) => Some((s, 1)),
-            (None, Some((s, k))) => Some((s, k.saturating_add(1))),
-            (None, None) => None,
-        };
-        self.tau = None;
-        self.quality = Quality::Corrupted;
-        self.sharpness = None;
-        if self.recent.len() > crate::policy::MAX_LOOKBACK as usize {
-            self.recent.pop_front();
-        }
-        self.recent.push_back(None);
+        self.step(|u| {
+            u.tau = None;
+            u.quality = Quality::Corrupted;
+            u.sharpness = None;
+        });
     }
 
     fn observe_frame(
