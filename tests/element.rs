@@ -1470,18 +1470,58 @@ fn a_utility_outside_zero_to_one_is_a_failed_run() {
 }
 
 /// Caps the element cannot gate are said once on the bus, not once per negotiation attempt (a
-/// hostile probe counted the same error three times for width 32769).
+/// hostile probe counted the same error three times for width 32769, and a dozen times for a
+/// format it cannot read arriving through decodebin, which asks accept-caps again and again).
 #[test]
 fn refused_caps_are_reported_once() {
+    let wide = "videotestsrc num-buffers=3 ! video/x-raw,format=RGB,width=32769,height=2";
+    let refused = refusals(wide, "cannot gate frames");
+    assert_eq!(refused.len(), 1, "{refused:?}");
+    assert!(refused[0].contains("32769"), "{refused:?}");
+
+    // A format it cannot read, from a source that goes on pushing after not-negotiated (an app,
+    // or decodebin's queues), linked without the template check as decodebin's pads are: each
+    // buffer re-sends the caps and each caps event asks accept-caps again.
+    let y41b = "appsrc name=src is-live=false format=time \
+                caps=video/x-raw,format=Y41B,width=64,height=48,framerate=30/1";
+    let refused = refusals(y41b, "cannot read Y41B");
+    assert_eq!(refused.len(), 1, "{refused:?}");
+    assert!(refused[0].contains("videoconvert"), "{refused:?}");
+}
+
+/// The errors containing `what` that `src ! leangate ! fakesink` posts: the first, and whatever
+/// else within a second of it. An `appsrc` named `src` is linked without checking caps and
+/// gets ten frames pushed.
+fn refusals(src: &str, what: &str) -> Vec<String> {
     common::init();
-    let desc = format!(
-        "videotestsrc num-buffers=3 ! video/x-raw,format=RGB,width=32769,height=2 ! \
-         leangate model={} ! fakesink",
-        fixture("mad.onnx")
-    );
-    let pipeline = gst::parse::launch(&desc).unwrap();
+    let gate = format!("leangate name=gate model={} ! fakesink", fixture("mad.onnx"));
+    let pipeline = if src.starts_with("appsrc") {
+        let bin = gst::parse::launch(&format!("{src} {gate}")).unwrap();
+        let b = bin.downcast_ref::<gst::Bin>().unwrap();
+        let from = b.by_name("src").unwrap().static_pad("src").unwrap();
+        let to = b.by_name("gate").unwrap().static_pad("sink").unwrap();
+        from.link_full(&to, gst::PadLinkCheck::empty()).unwrap();
+        bin
+    } else {
+        gst::parse::launch(&format!("{src} ! {gate}")).unwrap()
+    };
     let bus = pipeline.bus().unwrap();
     let _ = pipeline.set_state(gst::State::Playing);
+    if let Some(app) = pipeline
+        .downcast_ref::<gst::Bin>()
+        .unwrap()
+        .by_name("src")
+        .and_then(|e| e.downcast::<gst_app::AppSrc>().ok())
+    {
+        for i in 0..10u64 {
+            let mut buf = gst::Buffer::with_size(64 * 48 * 3 / 2).unwrap();
+            buf.get_mut()
+                .unwrap()
+                .set_pts(gst::ClockTime::from_mseconds(33 * i));
+            let _ = app.push_buffer(buf);
+        }
+        let _ = app.end_of_stream();
+    }
     // The first error, then whatever else the attempts post within a second.
     let first = bus
         .timed_pop_filtered(gst::ClockTime::from_seconds(20), &[gst::MessageType::Error])
@@ -1494,15 +1534,12 @@ fn refused_caps_are_reported_once() {
         }
     }
     let _ = pipeline.set_state(gst::State::Null);
-    let refused: Vec<String> = msgs
-        .iter()
+    msgs.iter()
         .filter_map(|m| match m.view() {
-            gst::MessageView::Error(e) if e.error().to_string().contains("cannot gate frames") => {
+            gst::MessageView::Error(e) if e.error().to_string().contains(what) => {
                 Some(e.error().to_string())
             }
             _ => None,
         })
-        .collect();
-    assert_eq!(refused.len(), 1, "{refused:?}");
-    assert!(refused[0].contains("32769"), "{refused:?}");
+        .collect()
 }

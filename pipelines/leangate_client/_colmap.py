@@ -55,6 +55,9 @@ def import_pycolmap():
             f"(it creates .venv-sfm with pycolmap=={PYCOLMAP_VERSION} and the system's PyGObject) "
             f"and use .venv-sfm/bin/python, or `pip install pycolmap=={PYCOLMAP_VERSION}`"
         ) from None
+    # glog writes log files into $TMPDIR (or /tmp) unless told to log to stderr: a write where
+    # the user did not say. Its messages go to stderr, which run_sfm collects in OUT/colmap.log.
+    pycolmap.logging.logtostderr = True
     return pycolmap
 
 
@@ -183,6 +186,7 @@ def run_sfm(
     package_parent = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_parent, env.get("PYTHONPATH")) if p)
+    env["GLOG_logtostderr"] = "1"  # no glog files in $TMPDIR: COLMAP's messages go to colmap.log
     # pycolmap first: see import_pycolmap. The child ends with this process (SIGKILL when it
     # dies, even killed), and runs in a process group of its own: a signal meant for this
     # process (Ctrl-C, SIGTERM) is this process's to act on, and it stops the whole group.

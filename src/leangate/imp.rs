@@ -148,9 +148,11 @@ pub struct LeanGate {
     /// Refused property values whose warning found no bus (set before the element was in a
     /// pipeline: gst-launch sets properties first); posted at the next start. Taken alone.
     unposted: Mutex<Vec<String>>,
-    /// The caps last refused with an error on the bus: negotiation retries the same caps, and the
-    /// application needs to be told once. Nothing else is taken while it is held.
-    refused_caps: Mutex<Option<gst::Caps>>,
+    /// The last caps refusal said on the bus: negotiation retries the same caps (set-caps) and
+    /// asks again and again about the same format (accept-caps, a dozen times through
+    /// decodebin), and the application needs to be told once. Nothing else is taken while it
+    /// is held.
+    refused_caps: Mutex<Option<String>>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -184,6 +186,17 @@ struct Held {
 }
 
 impl LeanGate {
+    /// Whether `msg` (a caps refusal) is new this run and should be said on the bus; remembers
+    /// it. The lock is released before the caller posts.
+    fn first_refusal(&self, msg: &str) -> bool {
+        let mut last = lock(&self.refused_caps);
+        if last.as_deref() == Some(msg) {
+            return false;
+        }
+        *last = Some(msg.to_owned());
+        true
+    }
+
     fn gate_config(settings: &FrameSettings, model_threshold: Option<f64>) -> GateConfig {
         GateConfig {
             threshold: if settings.threshold >= 0.0 {
@@ -887,14 +900,9 @@ impl BaseTransformImpl for LeanGate {
                 // Said on the bus (the state lock released first), so that the application sees
                 // why, not only upstream's "not-negotiated".
                 drop(guard);
-                let told =
-                    lock(&self.refused_caps).replace(incaps.clone()).as_ref() == Some(incaps);
-                if !told {
-                    gst::element_imp_error!(
-                        self,
-                        gst::StreamError::Format,
-                        ("cannot gate frames of caps {incaps}: {e}")
-                    );
+                let msg = format!("cannot gate frames of caps {incaps}: {e}");
+                if self.first_refusal(&msg) {
+                    gst::element_imp_error!(self, gst::StreamError::Format, ("{}", msg));
                 }
                 return Err(gst::loggable_error!(CAT, "{e}"));
             }
@@ -950,6 +958,9 @@ impl BaseTransformImpl for LeanGate {
         };
         if let (true, Some((msg, details))) = (refused, unreadable) {
             // Upstream will only say `not-negotiated`: name the format and the fix first.
+            if !self.first_refusal(&msg) {
+                return res;
+            }
             gst::element_imp_error!(
                 self,
                 gst::CoreError::Negotiation,

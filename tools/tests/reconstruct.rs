@@ -51,13 +51,26 @@ fn plugin_dir() -> Option<PathBuf> {
     }
 }
 
+/// Asserts that a run left nothing in its own `TMPDIR` (COLMAP's glog wrote its log files there,
+/// or in /tmp, until it was told to log to stderr).
+fn assert_tmpdir_untouched(tmp: &Path, what: &str) {
+    let left: Vec<_> = std::fs::read_dir(tmp)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert!(left.is_empty(), "{what} left {left:?} in its TMPDIR");
+}
+
 fn consumer(python: &Path, args: &[&str], extra: &[&Path]) -> Output {
+    let tmp = tempfile::tempdir().unwrap();
     let mut c = Command::new(python);
     c.arg(repo_root().join("pipelines/reconstruct.py"))
         .args(args)
         .args(extra)
-        .env_remove("LEANGATE_MODEL");
+        .env_remove("LEANGATE_MODEL")
+        .env("TMPDIR", tmp.path());
     let out = c.output().unwrap();
+    assert_tmpdir_untouched(tmp.path(), "reconstruct.py");
     eprintln!(
         "--- {c:?}: {}\nstdout:\n{}\nstderr:\n{}",
         out.status,
@@ -346,7 +359,9 @@ fn eval_reconstruct_reports_every_policy_and_a_dense_reference() {
     let (sfm, traj) = (dir.path().join("sfm"), dir.path().join("traj"));
     std::fs::create_dir_all(sfm.join("stride")).unwrap();
     std::fs::write(sfm.join("stride/images"), "not a directory").unwrap();
+    let tmp = tempfile::tempdir().unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_leangate"))
+        .env("TMPDIR", tmp.path())
         .args(["eval", "--sequence"])
         .arg(&seq)
         .args(["--reconstruct", "--dense-every", "6", "--sfm-dir"])
@@ -361,6 +376,7 @@ fn eval_reconstruct_reports_every_policy_and_a_dense_reference() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     eprintln!("{stdout}\n{stderr}");
     assert!(out.status.success());
+    assert_tmpdir_untouched(tmp.path(), "leangate eval --reconstruct");
     assert!(stdout.contains("reconstruction (COLMAP"), "{stdout}");
     let v = read_json(&json);
     let info = &v["reconstruction"];
@@ -708,16 +724,19 @@ fn a_colmap_abort_is_an_error_for_the_caller_not_a_crash() {
         except PipelineError as e:\n\
         \x20   print('caught:', e)\n\
         print('still running')\n";
+    let tmp = tempfile::tempdir().unwrap();
     let out = Command::new(&py)
         .args(["-c", code])
         .arg(&seq)
         .arg(dir.path())
         .env("PYTHONPATH", repo_root().join("pipelines"))
+        .env("TMPDIR", tmp.path())
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
     eprintln!("{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "{:?}", out.status);
+    assert_tmpdir_untouched(tmp.path(), "run_sfm after a COLMAP abort");
     assert!(
         stdout.contains(
             "caught: COLMAP failed during feature extraction of 3 images (killed by SIGABRT)"
