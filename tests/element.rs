@@ -1494,7 +1494,10 @@ fn refused_caps_are_reported_once() {
 /// gets ten frames pushed.
 fn refusals(src: &str, what: &str) -> Vec<String> {
     common::init();
-    let gate = format!("leangate name=gate model={} ! fakesink", fixture("mad.onnx"));
+    let gate = format!(
+        "leangate name=gate model={} ! fakesink",
+        fixture("mad.onnx")
+    );
     let pipeline = if src.starts_with("appsrc") {
         let bin = gst::parse::launch(&format!("{src} {gate}")).unwrap();
         let b = bin.downcast_ref::<gst::Bin>().unwrap();
