@@ -652,21 +652,32 @@ fn section_scoring(reps: usize) {
     let pre =
         Preprocessor::new(PixelFormat::Rgb, w, h, YuvMatrix::BT709, info.spec.clone()).unwrap();
     let threshold = info.threshold.unwrap_or(0.5);
-    // `check`: the picture check (`reject-junk`), as the element runs it by default (the
-    // sharpness measure runs only with `sharpness-wait`, off by default).
+    // `check`: the picture check (`reject-junk`), as the element runs it by default.
+    // `sharp`: the sharpness measure and the gate's look-back of 3 with its margin, as the
+    // element runs them by default (`sharpness-lookback=3 sharpness-margin=0.05`). Not here: the
+    // element's copy of each nearly-due held frame's model picture (230 KB; `cargo bench --bench
+    // perf -- pipeline` has it).
     // Also where the time goes, stage by stage (seconds): preprocessing, the picture check + the
     // prior's tracking (`observe`), the composition (raster overlap, screening, the student when
     // it runs), the gate.
     // `step`: the model's leangate.score_step in the screening (`screen-step`, the default), or
     // none (`screen-step=0`).
-    let mut run = |geometry: bool, screen: bool, check: bool, step: bool| -> (f64, f64, [f64; 4]) {
+    let mut run = |geometry: bool,
+                   screen: bool,
+                   check: bool,
+                   step: bool,
+                   sharp: bool|
+     -> (f64, f64, [f64; 4]) {
         let mut utility = Utility::new(info.geometry);
         utility.set_quality_check(check);
+        utility.set_sharpness_measure(sharp);
         if !step {
             utility.set_score_step(None);
         }
         let mut gate = Gate::new(GateConfig {
             threshold,
+            sharpness_lookback: if sharp { 3 } else { 0 },
+            sharpness_margin: if sharp { 0.05 } else { 0.0 },
             ..Default::default()
         });
         let (mut reference, mut current) =
@@ -710,14 +721,21 @@ fn section_scoring(reps: usize) {
             stages.map(|t| t * 1e6 / n),
         )
     };
-    let (mut alone, mut fused, mut exact, mut screened, mut unchecked) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut alone, mut fused, mut exact, mut screened, mut unchecked, mut blunt) = (
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+    );
     for _ in 0..reps {
-        alone.push(run(false, false, true, true));
-        fused.push(run(true, false, true, true));
-        exact.push(run(true, true, true, false));
-        screened.push(run(true, true, true, true));
-        unchecked.push(run(true, true, false, true));
+        alone.push(run(false, false, true, true, true));
+        fused.push(run(true, false, true, true, true));
+        exact.push(run(true, true, true, false, true));
+        screened.push(run(true, true, true, true, true));
+        unchecked.push(run(true, true, false, true, true));
+        blunt.push(run(true, true, true, true, false));
     }
     type Run = (f64, f64, [f64; 4]);
     let wall = |v: &[Run]| median(&v.iter().map(|x| x.0).collect::<Vec<_>>());
@@ -730,6 +748,7 @@ fn section_scoring(reps: usize) {
     );
     let (ac, bc, cc, dc) = (cpu(&alone), cpu(&fused), cpu(&screened), cpu(&unchecked));
     let (e, ec) = (wall(&exact), cpu(&exact));
+    let (f, fc) = (wall(&blunt), cpu(&blunt));
     println!(
         "model {} ({}), {} frames {w}x{h}, fusion: {}",
         info.name,
@@ -759,6 +778,10 @@ fn section_scoring(reps: usize) {
     println!(
         "| the default without the picture check (`reject-junk=false`) | {d:.0} | {:.2} | {dc:.0} |",
         1e3 / d
+    );
+    println!(
+        "| the default without the sharpness pass and look-back (`sharpness-lookback=0`) | {f:.0} | {:.2} | {fc:.0} |",
+        1e3 / f
     );
     println!("\n### Where the default's time goes per frame: microseconds, median of {reps}");
     println!("| stage | µs per frame |");

@@ -24,7 +24,17 @@
 //!   frame instead: [`Decision::kept_back`] says how many frames back it is, the current frame is
 //!   dropped (reason `score`), and the earlier frame is kept with reason `sharper` and becomes the
 //!   reference. The element holds that many frames to make this possible (its latency grows by as
-//!   many frame durations).
+//!   many frame durations). Only frames whose utility came within [`LOOKBACK_NEAR`] of the
+//!   threshold are candidates: a keep goes back to a frame that was nearly due itself, not to
+//!   one that saw little new (on fast motion, where the utility leaps from frame to frame, there
+//!   is then nothing to go back to, and the keep is made where it fell due).
+//! - With a look-back, [`GateConfig::sharpness_margin`] > 0 and no
+//!   [`GateConfig::sharpness_wait`] (the element's default): a keep due on score on a blurred
+//!   frame (below [`SHARPER_RATIO`] of the sharpest of the [`SHARPNESS_HISTORY`] frames before
+//!   it) is not made while the utility is below `threshold + sharpness_margin`: the frame is
+//!   dropped with reason `deferred` (and held as a candidate), and the keep falls to the next
+//!   frame that is not so blurred or whose utility passes the margin, and from there, through
+//!   the look-back, to the sharpest nearly-due frame held. Never past `max_gap` drops.
 //! - With [`GateConfig::sharpness_wait`] > 0 as well, the keep settles that many frames later:
 //!   the due frame and the next `sharpness_wait - 1` are dropped with reason `deferred` (whatever
 //!   their utility: the keep was due) and held as candidates, and the frame after them is kept
@@ -127,6 +137,10 @@ pub struct GateConfig {
     pub sharpness_wait: u64,
     /// How many frames back a keep due on a blurred frame may go for a sharper one; 0 = none.
     pub sharpness_lookback: u64,
+    /// With a look-back and no `sharpness_wait`: how far above the threshold a blurred frame's
+    /// utility must be for a keep to be made on it at once; below, it waits for a sharper frame
+    /// (0 = never waits).
+    pub sharpness_margin: f64,
 }
 
 /// A frame is blurred, for [`GateConfig::sharpness_wait`], when its sharpness is below this
@@ -150,6 +164,9 @@ pub fn settle_cap(threshold: f64) -> f64 {
 
 /// The most frames [`GateConfig::sharpness_lookback`] may hold.
 pub const MAX_LOOKBACK: u64 = 30;
+/// A frame dropped on score is a look-back candidate only when its utility came this close to
+/// the threshold (at least `threshold - LOOKBACK_NEAR`).
+pub const LOOKBACK_NEAR: f64 = 0.1;
 
 impl Default for GateConfig {
     fn default() -> Self {
@@ -159,6 +176,7 @@ impl Default for GateConfig {
             max_gap: 0,
             sharpness_wait: 0,
             sharpness_lookback: 0,
+            sharpness_margin: 0.0,
         }
     }
 }
@@ -339,6 +357,19 @@ impl Gate {
                 _ => None,
             }
         };
+        // With a look-back, a keep due on a blurred frame within the margin waits for a sharper
+        // frame (or a clearly due one); this frame stays a candidate to go back to.
+        let mut margin_wait = false;
+        if let (Some(Reason::Score), Score::Utility(u)) = (reason, score) {
+            margin_wait = lookback > 0
+                && self.cfg.sharpness_wait == 0
+                && u < self.cfg.threshold + self.cfg.sharpness_margin
+                && !self.gap_reached()
+                && self.blurred(sharpness);
+            if margin_wait {
+                reason = None;
+            }
+        }
         // A keep due on score (now, or settling since an earlier frame) with a look-back: it
         // settles `sharpness_wait` frames later, on the sharpest frame held. Never past
         // `max_gap` drops: a keep due then is made now (or goes back), not deferred.
@@ -360,15 +391,7 @@ impl Gate {
         // Without a look-back, a keep due on a blurred frame waits for a sharper one.
         let mut deferred = false;
         if due && lookback == 0 && self.cfg.sharpness_wait > 0 {
-            let best = self
-                .sharpness
-                .iter()
-                .copied()
-                .fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v))));
-            let blurred = sharpness
-                .zip(best)
-                .is_some_and(|(s, b)| s < SHARPER_RATIO * b);
-            if blurred && self.waited < self.cfg.sharpness_wait && !gap_due {
+            if self.blurred(sharpness) && self.waited < self.cfg.sharpness_wait && !gap_due {
                 reason = None;
                 deferred = true;
                 self.waited += 1;
@@ -401,13 +424,15 @@ impl Gate {
             }
             None => {
                 self.since_keyframe += 1;
-                let candidate = sharpness.is_some() && !deferred && lookback > 0;
+                let near = matches!(score, Score::Utility(u)
+                    if u >= self.cfg.threshold - LOOKBACK_NEAR);
+                let candidate = sharpness.is_some() && !deferred && lookback > 0 && near;
                 if let (Some(s), true) = (sharpness, candidate) {
                     self.candidates.push_back((position, s));
                 }
                 Decision {
                     keep: false,
-                    reason: if deferred {
+                    reason: if deferred || margin_wait {
                         Reason::Deferred
                     } else {
                         Reason::Score
@@ -488,6 +513,19 @@ impl Gate {
             kept_back: position - p,
             candidate: false,
         }
+    }
+
+    /// Whether a frame of this sharpness is blurred: below [`SHARPER_RATIO`] of the sharpest of
+    /// the [`SHARPNESS_HISTORY`] frames before it (unknown sharpness: not blurred).
+    fn blurred(&self, sharpness: Option<f64>) -> bool {
+        let best = self
+            .sharpness
+            .iter()
+            .copied()
+            .fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v))));
+        sharpness
+            .zip(best)
+            .is_some_and(|(s, b)| s < SHARPER_RATIO * b)
     }
 
     fn remember_sharpness(&mut self, sharpness: Option<f64>) {
@@ -721,37 +759,38 @@ mod tests {
             )
         }
         assert!(step(&mut g, 0.0, 100.0).0);
-        // Candidates 80 (3 back: beyond the look-back), 90, 70; the due frame (40) goes back to
-        // the 90 one, two frames before it, which becomes keyframe 2.
-        assert_eq!(step(&mut g, 0.1, 80.0), (false, Reason::Score, 0, 1, 1));
-        assert_eq!(step(&mut g, 0.3, 90.0), (false, Reason::Score, 0, 1, 2));
-        assert_eq!(step(&mut g, 0.4, 70.0), (false, Reason::Score, 0, 1, 3));
+        // Candidates (nearly due: within 0.1 of the threshold) 80 (3 back: beyond the
+        // look-back), 90, 70; the due frame (40) goes back to the 90 one, two frames before it,
+        // which becomes keyframe 2.
+        assert_eq!(step(&mut g, 0.41, 80.0), (false, Reason::Score, 0, 1, 1));
+        assert_eq!(step(&mut g, 0.43, 90.0), (false, Reason::Score, 0, 1, 2));
+        assert_eq!(step(&mut g, 0.45, 70.0), (false, Reason::Score, 0, 1, 3));
         // (The due frame itself was compared with the first frame, 4 frames before it.)
         assert_eq!(step(&mut g, 0.6, 40.0), (false, Reason::Score, 2, 2, 4));
         // The frames before that keep are no candidates any more: a due blurred frame after it
         // keeps at once when nothing since is sharper...
         assert!(step(&mut g, 0.9, 10.0).0);
         // ...and a due frame at least 0.9 as sharp as the best candidate keeps itself.
-        step(&mut g, 0.1, 100.0);
+        step(&mut g, 0.45, 100.0);
         assert_eq!(step(&mut g, 0.6, 91.0), (true, Reason::Score, 0, 4, 0));
         // Junk is never a candidate; off (0) nothing goes back; without sharpness neither.
-        step(&mut g, 0.1, 100.0);
+        step(&mut g, 0.45, 100.0);
         assert!(!g.decide(Score::Junk).keep);
         // (the junk frame in between counts: the element holds every frame)
         assert_eq!(step(&mut g, 0.6, 20.0).2, 2);
         let mut off = Gate::new(GateConfig::default());
         off.decide(Score::NoReference);
-        off.decide_with(Score::Utility(0.1), Some(100.0));
+        off.decide_with(Score::Utility(0.45), Some(100.0));
         assert!(off.decide_with(Score::Utility(0.6), Some(10.0)).keep);
         let mut g = Gate::new(GateConfig {
             sharpness_lookback: 2,
             ..Default::default()
         });
         g.decide(Score::NoReference);
-        g.decide_with(Score::Utility(0.1), Some(100.0));
+        g.decide_with(Score::Utility(0.45), Some(100.0));
         assert_eq!(g.decide(Score::Utility(0.6)).kept_back, 0);
         // forget_candidates: the held frames are gone.
-        g.decide_with(Score::Utility(0.1), Some(100.0));
+        g.decide_with(Score::Utility(0.45), Some(100.0));
         g.forget_candidates();
         assert!(g.decide_with(Score::Utility(0.6), Some(10.0)).keep);
     }
@@ -770,7 +809,7 @@ mod tests {
         let mut g = Gate::new(cfg);
         assert!(step(&mut g, 0.0, 100.0).0);
         for s in [50.0, 60.0, 55.0, 40.0] {
-            assert!(!step(&mut g, 0.2, s).0);
+            assert!(!step(&mut g, 0.42, s).0);
         }
         // Due on frame 5 (blurred): it and the next frame wait; on frame 7 the keep settles on
         // the sharpest frame held (frame 6, one back), whatever the utility did meanwhile.
@@ -782,18 +821,18 @@ mod tests {
         // would not have been chosen. A settling frame at least 0.9 as sharp as the sharpest
         // held keeps itself, even when the due frame was sharp: the wait always runs its length.
         for s in [100.0, 20.0] {
-            assert!(!step(&mut g, 0.2, s).0);
+            assert!(!step(&mut g, 0.42, s).0);
         }
         assert_eq!(step(&mut g, 0.55, 95.0).1, Reason::Deferred);
         assert_eq!(step(&mut g, 0.55, 30.0).1, Reason::Deferred);
         assert_eq!(step(&mut g, 0.6, 92.0), (true, Reason::Score, 0, 0));
         // A frame halfway to a late keep (utility 0.59 against the cap 0.583 at threshold 0.5)
         // settles at once: here on the sharper frame before it.
-        step(&mut g, 0.2, 100.0);
+        step(&mut g, 0.42, 100.0);
         assert_eq!(step(&mut g, 0.55, 30.0).1, Reason::Deferred);
         assert_eq!(step(&mut g, 0.59, 40.0), (false, Reason::Score, 2, 3));
         // A keep for another reason (forced) ends the wait at once.
-        step(&mut g, 0.2, 100.0);
+        step(&mut g, 0.42, 100.0);
         assert_eq!(step(&mut g, 0.55, 30.0).1, Reason::Deferred);
         g.force_keyframe();
         assert_eq!(step(&mut g, 0.6, 30.0), (true, Reason::Forced, 0, 0));
@@ -814,6 +853,74 @@ mod tests {
     }
 
     #[test]
+    fn a_keep_goes_back_only_to_a_nearly_due_frame_and_waits_within_the_margin_when_blurred() {
+        fn step(g: &mut Gate, u: f64, s: f64) -> (bool, Reason, u64) {
+            let d = g.decide_with(Score::Utility(u), Some(s));
+            (d.keep, d.reason, d.kept_back)
+        }
+        let cfg = GateConfig {
+            sharpness_lookback: 3,
+            ..Default::default()
+        };
+        // A sharp frame that saw little new (0.35: more than LOOKBACK_NEAR below the threshold)
+        // is no candidate: the blurred due frame keeps itself. One within 0.1 is.
+        let mut g = Gate::new(cfg);
+        g.decide(Score::NoReference);
+        assert_eq!(step(&mut g, 0.35, 100.0), (false, Reason::Score, 0));
+        assert_eq!(step(&mut g, 0.6, 40.0), (true, Reason::Score, 0));
+        assert_eq!(step(&mut g, 0.41, 100.0), (false, Reason::Score, 0));
+        assert_eq!(step(&mut g, 0.6, 40.0), (false, Reason::Score, 1));
+
+        // The margin: a blurred frame (below 0.8 of the sharpest of the 3 before it) due within
+        // threshold + 0.05 waits (reason deferred, held as a candidate)...
+        let mut g = Gate::new(GateConfig {
+            sharpness_margin: 0.05,
+            ..cfg
+        });
+        g.decide(Score::NoReference);
+        step(&mut g, 0.2, 100.0);
+        assert_eq!(step(&mut g, 0.52, 70.0), (false, Reason::Deferred, 0));
+        // ...the next frame sharp enough takes the keep (it is at least 0.9 as sharp as the
+        // deferred one, so it keeps itself)...
+        assert_eq!(step(&mut g, 0.53, 95.0), (true, Reason::Score, 0));
+        // ...and one past the margin keeps at once, going back to the sharper deferred frame.
+        step(&mut g, 0.2, 100.0);
+        assert_eq!(step(&mut g, 0.52, 70.0), (false, Reason::Deferred, 0));
+        assert_eq!(step(&mut g, 0.56, 30.0), (false, Reason::Score, 1));
+        // A frame that is not blurred keeps at once within the margin.
+        step(&mut g, 0.2, 100.0);
+        assert_eq!(step(&mut g, 0.51, 85.0), (true, Reason::Score, 0));
+        // Never past max-gap: the gap's due keep is made on the blurred frame.
+        let mut g = Gate::new(GateConfig {
+            sharpness_margin: 0.05,
+            max_gap: 2,
+            ..cfg
+        });
+        g.decide(Score::NoReference);
+        step(&mut g, 0.2, 100.0);
+        step(&mut g, 0.2, 100.0);
+        assert!(step(&mut g, 0.52, 10.0).0);
+        // With sharpness-wait (the settle mode, which has its own rule) or without a look-back
+        // the margin does nothing.
+        let mut g = Gate::new(GateConfig {
+            sharpness_margin: 0.05,
+            sharpness_wait: 2,
+            ..cfg
+        });
+        g.decide(Score::NoReference);
+        step(&mut g, 0.2, 100.0);
+        assert_eq!(step(&mut g, 0.52, 10.0), (true, Reason::Score, 0));
+        let mut g = Gate::new(GateConfig {
+            sharpness_margin: 0.05,
+            sharpness_lookback: 0,
+            ..Default::default()
+        });
+        g.decide(Score::NoReference);
+        step(&mut g, 0.2, 100.0);
+        assert_eq!(step(&mut g, 0.52, 10.0), (true, Reason::Score, 0));
+    }
+
+    #[test]
     fn a_raised_lookback_goes_back_no_further_than_the_frames_still_held() {
         let mut g = Gate::new(GateConfig {
             sharpness_lookback: 2,
@@ -822,9 +929,9 @@ mod tests {
         g.decide(Score::NoReference);
         // A sharp candidate, then two blurred ones: with a look-back of 2, the element lets the
         // sharp one go when the second blurred one comes.
-        g.decide_with(Score::Utility(0.1), Some(100.0));
-        g.decide_with(Score::Utility(0.1), Some(10.0));
-        g.decide_with(Score::Utility(0.1), Some(10.0));
+        g.decide_with(Score::Utility(0.45), Some(100.0));
+        g.decide_with(Score::Utility(0.45), Some(10.0));
+        g.decide_with(Score::Utility(0.45), Some(10.0));
         // Raised to 30 before the due frame: the sharp frame (3 back) has left; the keep goes
         // back to the sharpest of the two frames still held (it went to the one that had left).
         g.set_config(GateConfig {
@@ -834,9 +941,9 @@ mod tests {
         assert_eq!(g.decide_with(Score::Utility(0.6), Some(5.0)).kept_back, 2);
         // From then on the look-back of 30 reaches that far.
         for _ in 0..10 {
-            g.decide_with(Score::Utility(0.1), Some(100.0));
+            g.decide_with(Score::Utility(0.45), Some(100.0));
         }
-        g.decide_with(Score::Utility(0.1), Some(10.0));
+        g.decide_with(Score::Utility(0.45), Some(10.0));
         assert_eq!(g.decide_with(Score::Utility(0.6), Some(5.0)).kept_back, 11);
     }
 

@@ -662,6 +662,35 @@ fn no_model_property_runs_the_embedded_default() {
     assert_eq!(s.get::<&str>("model-precision").unwrap(), "int8");
 }
 
+/// The default keeps sharper keyframes by looking back 3 frames (model card, "Sharper
+/// keyframes"): it holds every frame 3 frames, says so in the latency query, and lets the held
+/// frames go at EOS. (The `element()` helper of the other tests sets the look-back to 0.)
+#[test]
+fn the_default_element_holds_three_frames_to_look_back_for_a_sharper_keyframe() {
+    common::init();
+    let e = gst::ElementFactory::make("leangate").build().unwrap();
+    assert_eq!(e.property::<u32>("sharpness-lookback"), 3);
+    assert_eq!(e.property::<f64>("sharpness-margin"), 0.05);
+    assert_eq!(e.property::<u32>("sharpness-wait"), 0);
+    e.set_property_from_str("mode", "annotate");
+    let mut h = gst_check::Harness::with_element(&e, Some("sink"), Some("src"));
+    h.set_src_caps_str(&rgb_caps(W, H));
+    h.play();
+    for i in 0..5u64 {
+        h.push(buffer(texture(W, H, i as u32), i * 33)).unwrap();
+    }
+    // Frames leave 3 frames after they came.
+    assert_eq!(drain(&mut h).len(), 2);
+    let latency = h.query_latency();
+    assert!(
+        latency.is_some_and(|l| l >= gst::ClockTime::from_mseconds(99)),
+        "latency {latency:?}: three frames at 30/s are held"
+    );
+    h.push_event(gst::event::Eos::new());
+    let rest = drain(&mut h);
+    assert_eq!(rest.len(), 3, "the held frames leave at EOS");
+}
+
 #[test]
 fn precision_picks_the_embedded_build_and_leaves_model_files_as_they_are() {
     let run = |props: &str| {
@@ -1413,11 +1442,12 @@ fn an_absurd_frame_duration_does_not_overflow_the_latency() {
 fn a_keep_waiting_to_settle_at_the_end_of_the_stream_is_made() {
     let mut h = harness(
         &format!(
-            "model={} threshold=0.2 mode=annotate sharpness-wait=2 sharpness-lookback=4",
+            "model={} threshold=0.05 mode=annotate sharpness-wait=2 sharpness-lookback=4",
             fixture("mad.onnx")
         ),
         &rgb_caps(W, H),
     );
+    // (Threshold 0.05: the repeated frames, utility 0, are within 0.1 of it, so candidates.)
     let a = texture(W, H, 1);
     // A smooth full-range gradient: far from `a` (mad about 0.33) and without edges (blurred).
     let gradient: Vec<u8> = (0..W * H)

@@ -550,8 +550,10 @@ fn a_keep_goes_back_only_to_a_frame_still_held_when_the_lookback_rises() {
     seq.extend(std::iter::repeat_n(blurred(a), 3));
     seq.push(blurred(b));
     for (mode, lookback_first) in [("annotate", 3u32), ("drop", 3), ("annotate", 0)] {
+        // Threshold 0.42: the still view's frames (utility 0.34 here) come within 0.1 of it,
+        // so they are candidates to go back to.
         let mut h = harness(
-            &format!("mode={mode} sharpness-lookback={lookback_first}"),
+            &format!("mode={mode} sharpness-lookback={lookback_first} threshold=0.42"),
             &rgb_caps(W, H),
         );
         let mut out = Vec::new();

@@ -656,13 +656,21 @@ fn dropped_buffers_without_pts_gap_at_their_dts_or_not_at_all() {
 /// A compositor mixing a gated branch (a static picture: everything but the first frame dropped)
 /// with a moving branch must not stall waiting for frames that will never come. The gated branch's
 /// source stays open (no EOS), as a camera does: without GAP events the compositor waits on that
-/// pad after the first frame and produces nothing more.
+/// pad after the first frame and produces nothing more. With the default look-back of 3, the
+/// last 3 frames stay held (they leave when the next ones come): 3 fewer mixed frames, no stall.
 #[test]
 fn compositor_does_not_stall_on_a_gated_branch() {
+    for lookback in [0u64, 3] {
+        compositor_on_a_gated_branch(lookback);
+    }
+}
+
+fn compositor_on_a_gated_branch(lookback: u64) {
     init();
     let desc = format!(
         "compositor name=mix ! video/x-raw,width=64,height=48 ! appsink name=out sync=false \
-         appsrc name=src format=time caps={} ! leangate model={} ! queue ! mix.sink_0 \
+         appsrc name=src format=time caps={} ! leangate model={} sharpness-lookback={lookback} ! \
+         queue ! mix.sink_0 \
          videotestsrc num-buffers=60 pattern=ball ! video/x-raw,width=32,height=24,framerate=30/1 ! \
          queue ! mix.sink_1",
         rgb_caps(W, H),
@@ -686,17 +694,18 @@ fn compositor_does_not_stall_on_a_gated_branch() {
         src.push_buffer(b).unwrap();
     }
     // No EOS on the gated branch.
+    let want = 59 - lookback as usize;
     let mut pts = Vec::new();
     while let Some(s) = sink.try_pull_sample(gst::ClockTime::from_seconds(5)) {
         pts.push(s.buffer().unwrap().pts().unwrap());
-        if pts.len() == 59 {
+        if pts.len() == want {
             break;
         }
     }
     pipeline.set_state(gst::State::Null).unwrap();
     assert!(
-        pts.len() >= 59,
-        "the compositor produced {} frames: it stalled on the gated branch",
+        pts.len() >= want,
+        "look-back {lookback}: the compositor produced {} frames: it stalled on the gated branch",
         pts.len()
     );
     assert!(pts.windows(2).all(|w| w[1] > w[0]));
@@ -805,8 +814,8 @@ fn an_element_that_stops_streaming_does_not_slow_its_batch_down() {
         let (_dir, model) = student_copy();
         let desc = format!(
             "appsrc name=src format=time caps={} ! leangate model={} execution-provider=cpu \
-             max-sessions=1 batch-size=4 batch-timeout=1000000 mode=annotate ! \
-             appsink name=out sync=false max-buffers=1",
+             max-sessions=1 batch-size=4 batch-timeout=1000000 mode=annotate \
+             sharpness-lookback=0 ! appsink name=out sync=false max-buffers=1",
             rgb_caps(W, H),
             model.display()
         );

@@ -341,7 +341,7 @@ fn a_hung_request_is_interrupted_by_stopping(server: &V2Server) {
     init();
     let desc = format!(
         "appsrc name=src format=time caps={} ! leangate name=gate mode=annotate screen=false \
-         server={} server-timeout=60000 ! appsink name=out sync=false",
+         sharpness-lookback=0 server={} server-timeout=60000 ! appsink name=out sync=false",
         rgb_caps(W, H),
         hole.url()
     );

@@ -416,7 +416,10 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
                    "settles N frames later on the sharpest frame held (2 and 4: sharper "
                    "keyframes on footage that is not fast, docs/reconstruction.md)")
     g.add_argument("--sharpness-lookback", type=_integer(0, hi=30), default=None, metavar="N",
-                   help="the element's sharpness-lookback: frames held to go back to")
+                   help="the element's sharpness-lookback: frames held to go back to (default 3)")
+    g.add_argument("--sharpness-margin", type=_number(0.0, 1.0), default=None, metavar="M",
+                   help="the element's sharpness-margin: a keep due on a blurred frame waits "
+                   "while its utility is below threshold + M (default 0.05; 0: keeps at once)")
     g.add_argument("--max-frames", type=_integer(1), default=None,
                    help="gate only the first N frames of an image sequence / keep at most N of a video")
     g.add_argument("--execution-provider", choices=("auto", "cpu", "cuda", "tensorrt"))
@@ -508,6 +511,7 @@ def _run(args: argparse.Namespace, plugin_fallbacks: Iterable[str]) -> int:
                 for name, value in (
                     ("sharpness-wait", args.sharpness_wait),
                     ("sharpness-lookback", args.sharpness_lookback),
+                    ("sharpness-margin", args.sharpness_margin),
                 )
                 if value is not None
             },

@@ -208,6 +208,7 @@ impl LeanGate {
             max_gap: settings.max_gap as u64,
             sharpness_wait: settings.sharpness_wait as u64,
             sharpness_lookback: settings.sharpness_lookback as u64,
+            sharpness_margin: settings.sharpness_margin,
         }
     }
 

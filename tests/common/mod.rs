@@ -102,10 +102,16 @@ pub fn rgb_caps(w: u32, h: u32) -> String {
     format!("video/x-raw,format=RGB,width={w},height={h},framerate=30/1")
 }
 
-/// A `leangate` element with properties given in gst-launch syntax (`k=v k=v`).
+/// A `leangate` element with properties given in gst-launch syntax (`k=v k=v`). It holds no
+/// frames (`sharpness-lookback=0`) unless `props` sets the look-back: the tests built on it push
+/// a frame and look at what came out at once. The default's look-back of 3 is tested where a
+/// pipeline runs it (`tests/keyframes.rs`, `tests/launch.rs`, `default_properties_...`).
 pub fn element(props: &str) -> gst::Element {
     init();
     let e = gst::ElementFactory::make("leangate").build().unwrap();
+    if !props.contains("sharpness-lookback=") {
+        e.set_property("sharpness-lookback", 0u32);
+    }
     for kv in props.split_whitespace() {
         let (k, v) = kv.split_once('=').expect("k=v");
         e.set_property_from_str(k, v);

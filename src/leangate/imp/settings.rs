@@ -17,7 +17,8 @@ const DEFAULT_THRESHOLD: f64 = THRESHOLD_FROM_MODEL;
 const DEFAULT_WARMUP: u32 = 0;
 const DEFAULT_MAX_GAP: u32 = 0;
 const DEFAULT_SHARPNESS_WAIT: u32 = 0;
-const DEFAULT_SHARPNESS_LOOKBACK: u32 = 0;
+const DEFAULT_SHARPNESS_LOOKBACK: u32 = 3;
+const DEFAULT_SHARPNESS_MARGIN: f64 = 0.05;
 const DEFAULT_MODE: GateMode = GateMode::Drop;
 const DEFAULT_EXECUTION_PROVIDER: ExecutionProviderChoice = ExecutionProviderChoice::Auto;
 const DEFAULT_PRECISION: PrecisionChoice = PrecisionChoice::Auto;
@@ -47,6 +48,7 @@ pub(super) struct Settings {
     pub(super) max_gap: u32,
     pub(super) sharpness_wait: u32,
     pub(super) sharpness_lookback: u32,
+    pub(super) sharpness_margin: f64,
     pub(super) mode: GateMode,
     pub(super) execution_provider: ExecutionProviderChoice,
     pub(super) precision: PrecisionChoice,
@@ -84,6 +86,7 @@ impl Default for Settings {
             max_gap: DEFAULT_MAX_GAP,
             sharpness_wait: DEFAULT_SHARPNESS_WAIT,
             sharpness_lookback: DEFAULT_SHARPNESS_LOOKBACK,
+            sharpness_margin: DEFAULT_SHARPNESS_MARGIN,
             mode: DEFAULT_MODE,
             execution_provider: DEFAULT_EXECUTION_PROVIDER,
             precision: DEFAULT_PRECISION,
@@ -117,6 +120,7 @@ pub(super) struct FrameSettings {
     pub(super) max_gap: u32,
     pub(super) sharpness_wait: u32,
     pub(super) sharpness_lookback: u32,
+    pub(super) sharpness_margin: f64,
     pub(super) mode: GateMode,
     pub(super) stats_interval: u64,
     pub(super) geometry: bool,
@@ -133,6 +137,7 @@ impl From<&Settings> for FrameSettings {
             max_gap: s.max_gap,
             sharpness_wait: s.sharpness_wait,
             sharpness_lookback: s.sharpness_lookback,
+            sharpness_margin: s.sharpness_margin,
             mode: s.mode,
             stats_interval: s.stats_interval,
             geometry: s.geometry,
@@ -226,14 +231,30 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
             .nick("Keep the sharpest of the recent frames")
             .blurb(
                 "Hold this many frames; when a keep is due on a frame blurrier than 0.9 \
-                 of the sharpest of them (dropped since the last keep; variance of the \
-                 Laplacian of the model's picture), keep that sharper frame instead \
-                 (reason sharper) and drop the due one (with sharpness-wait: once the \
-                 wait is over). Adds this many frame durations of latency (reported in \
-                 the latency query). 0 = hold nothing",
+                 of the sharpest of them that came within 0.1 of the threshold (dropped \
+                 since the last keep; variance of the Laplacian of the model's picture), \
+                 keep that sharper frame instead (reason sharper) and drop the due one \
+                 (with sharpness-wait: once the wait is over). Adds this many frame \
+                 durations of latency (reported in the latency query). 0 = hold nothing \
+                 (and no sharpness-margin)",
             )
             .maximum(crate::policy::MAX_LOOKBACK as u32)
             .default_value(DEFAULT_SHARPNESS_LOOKBACK)
+            .mutable_playing()
+            .build(),
+        glib::ParamSpecDouble::builder("sharpness-margin")
+            .nick("Blurred frames wait within this margin")
+            .blurb(
+                "With sharpness-lookback: a keep due on a frame blurrier than 0.8 of the \
+                 sharpest of the 3 frames before it is not made while its utility is \
+                 below threshold + this margin; the frame is dropped (reason deferred) \
+                 and held, and the keep goes to the next frame that is sharp enough or \
+                 clearly due, or back to a sharper held one. Never past max-gap. \
+                 0 = keep at once",
+            )
+            .minimum(0.0)
+            .maximum(1.0)
+            .default_value(DEFAULT_SHARPNESS_MARGIN)
             .mutable_playing()
             .build(),
         glib::ParamSpecEnum::builder_with_default("mode", DEFAULT_MODE)
@@ -557,6 +578,10 @@ impl LeanGate {
                     settings.sharpness_lookback = value.get().expect("type checked upstream");
                     None
                 }
+                "sharpness-margin" => {
+                    settings.sharpness_margin = value.get().expect("type checked upstream");
+                    None
+                }
                 "mode" => {
                     settings.mode = value.get().expect("type checked upstream");
                     None
@@ -674,6 +699,7 @@ impl LeanGate {
             "max-gap" => settings.max_gap.to_value(),
             "sharpness-wait" => settings.sharpness_wait.to_value(),
             "sharpness-lookback" => settings.sharpness_lookback.to_value(),
+            "sharpness-margin" => settings.sharpness_margin.to_value(),
             "mode" => settings.mode.to_value(),
             "execution-provider" => settings.execution_provider.to_value(),
             "precision" => settings.precision.to_value(),
