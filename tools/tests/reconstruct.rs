@@ -246,6 +246,29 @@ fn consumer_passes_the_sharpness_settings_to_the_gate() {
     assert!(!reasons[1..].contains(&"first"), "{reasons:?}");
     let idx: Vec<u64> = gate.iter().map(|m| m["frame"].as_u64().unwrap()).collect();
     assert!(idx.windows(2).all(|w| w[0] < w[1]), "{idx:?}");
+
+    // --sharpness-margin reaches the element: with a margin of 1 a blurred due frame never keeps
+    // (its keep waits for a sharp one), with 0 it keeps at once; the kept frames differ.
+    let kept = |margin: &str| -> Vec<u64> {
+        let sub = dir.path().join(format!("margin-{margin}"));
+        std::fs::create_dir_all(&sub).unwrap();
+        let (out, json) = gated(
+            &py,
+            &plugins,
+            &seq,
+            &["--max-frames", "150", "--sharpness-margin", margin],
+            &sub,
+        );
+        assert!(out.status.success());
+        read_json(&json)["gate"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|m| m["frame"].as_u64().unwrap())
+            .collect()
+    };
+    let (none, all) = (kept("0"), kept("1"));
+    assert_ne!(none, all, "the margin changed nothing: {none:?}");
 }
 
 #[test]
@@ -559,10 +582,14 @@ fn consumer_refuses_bad_arguments_and_inputs_with_a_clear_error() {
             "{args:?}: {err}"
         );
     };
-    let cases: [(&[&str], &str); 13] = [
+    let cases: [(&[&str], &str); 14] = [
         (
             &["--sharpness-lookback", "31"],
             "argument --sharpness-lookback: must be at most 30, got 31",
+        ),
+        (
+            &["--sharpness-margin", "nan"],
+            "argument --sharpness-margin: expected a finite number, got 'nan'",
         ),
         (
             &[
