@@ -286,7 +286,8 @@ fn through_gate(
     (out, latency)
 }
 
-/// `sharpness-lookback=3` on the first 300 frames of tum_fr1_desk, in annotate mode: every frame
+/// `sharpness-lookback=3` (with the default `sharpness-margin`: the element's default; the
+/// harness sets 0 otherwise) on the first 300 frames of tum_fr1_desk, in annotate mode: every frame
 /// leaves exactly once and in order, three frames after it came (the last three at EOS; a keep
 /// used to let every held frame out at once, and the sink of a live pipeline, waiting for the
 /// last of them, blocked the source for the whole look-back: late frames, kept ones among them,
