@@ -691,6 +691,43 @@ fn the_default_element_holds_three_frames_to_look_back_for_a_sharper_keyframe() 
     assert_eq!(rest.len(), 3, "the held frames leave at EOS");
 }
 
+/// The default element asks upstream for 3 more buffers (the frames it holds) also when nothing
+/// downstream answers the allocation query (appsink, fakesink, queue, tee): it used to pass on
+/// their "no" and ask for nothing, and a source with a pool of its own minimum + 2 stalled
+/// behind it after two frames (found by a hostile probe).
+#[test]
+fn the_held_frames_are_asked_for_when_downstream_answers_no_allocation() {
+    common::init();
+    for (down, lookback) in [("appsink", 3u32), ("fakesink", 3), ("queue ! fakesink", 7)] {
+        let pipeline = gst::parse::launch(&format!(
+            "appsrc name=src caps={} format=time ! leangate name=g sharpness-lookback={lookback} \
+             ! {down}",
+            rgb_caps(W, H)
+        ))
+        .unwrap();
+        pipeline.set_state(gst::State::Paused).unwrap();
+        let sink = pipeline
+            .downcast_ref::<gst::Bin>()
+            .unwrap()
+            .by_name("g")
+            .unwrap()
+            .static_pad("sink")
+            .unwrap();
+        let caps: gst::Caps = rgb_caps(W, H).parse().unwrap();
+        assert!(sink.send_event(gst::event::StreamStart::new("s")));
+        assert!(sink.send_event(gst::event::Caps::new(&caps)));
+        let mut q = gst::query::Allocation::new(Some(&caps), true);
+        let answered = sink.query(&mut q);
+        let pools: Vec<_> = q.allocation_pools().collect();
+        pipeline.set_state(gst::State::Null).unwrap();
+        assert!(answered, "{down}: the allocation query was refused");
+        assert!(
+            pools.iter().any(|p| p.2 >= lookback),
+            "{down}: {pools:?} asks for fewer than the {lookback} held"
+        );
+    }
+}
+
 #[test]
 fn precision_picks_the_embedded_build_and_leaves_model_files_as_they_are() {
     let run = |props: &str| {

@@ -631,7 +631,9 @@ fn custom_events_and_gaps_wait_in_line_behind_held_frames() {
                     gst::EventView::CustomDownstream(c) => {
                         c.structure().unwrap().name().to_string()
                     }
+                    gst::EventView::CustomBoth(c) => c.structure().unwrap().name().to_string(),
                     gst::EventView::Gap(_) => "gap".into(),
+                    gst::EventView::Tag(_) => "tag".into(),
                     _ => return gst::PadProbeReturn::Ok,
                 },
                 _ => return gst::PadProbeReturn::Ok,
@@ -653,9 +655,21 @@ fn custom_events_and_gaps_wait_in_line_behind_held_frames() {
     }
     assert!(h.push_event(custom("leangate-force-keyframe")));
     push(&mut h, 6);
-    for i in 7..10 {
-        push(&mut h, i);
-    }
+    push(&mut h, 7);
+    // A tag (a parser's bitrate, a stream title) and a custom event for both directions wait in
+    // line too: they used to let the held frames out and change which frames were kept.
+    let mut tags = gst::TagList::new();
+    tags.get_mut()
+        .unwrap()
+        .add::<gst::tags::Title>(&"a title", gst::TagMergeMode::Append);
+    assert!(h.push_event(gst::event::Tag::new(tags)));
+    push(&mut h, 8);
+    assert!(
+        h.push_event(gst::event::CustomBoth::new(gst::Structure::new_empty(
+            "an-app-event"
+        )))
+    );
+    push(&mut h, 9);
     assert!(h.push_event(custom("leangate-reset")));
     assert!(
         h.push_event(gst::event::Gap::builder(gst::ClockTime::from_mseconds(10 * 33 - 1)).build())
@@ -677,6 +691,12 @@ fn custom_events_and_gaps_wait_in_line_behind_held_frames() {
     assert_eq!(
         at("6:forced"),
         at("leangate-force-keyframe") + 1,
+        "{seen:?}"
+    );
+    assert_eq!(seen[at("tag") - 1].split(':').next(), Some("7"), "{seen:?}");
+    assert_eq!(
+        seen[at("an-app-event") - 1].split(':').next(),
+        Some("8"),
         "{seen:?}"
     );
     let reset = at("leangate-reset");

@@ -974,13 +974,20 @@ impl BaseTransformImpl for LeanGate {
 
     fn sink_event(&self, event: gst::Event) -> bool {
         match event.view() {
-            // Frames held for `sharpness-lookback` go before any serialized event (caps, segment,
-            // EOS...) with their fate as it stands; a flush discards them. Custom events (a
-            // forced keyframe, a reset) and gaps wait in line behind them instead: letting every
-            // held frame out at once would hand a synchronised sink frames due up to the whole
-            // look-back later (it would block the streaming thread that long).
+            // Frames held for `sharpness-lookback` go before the serialized events that end or
+            // change what they belong to (caps, segment, EOS, stream-start...) with their fate as
+            // it stands; a flush discards them. Custom events (a forced keyframe, a reset), gaps,
+            // tags and TOCs wait in line behind them instead: letting every held frame out at
+            // once would hand a synchronised sink frames due up to the whole look-back later (it
+            // would block the streaming thread that long), and forget what a later keep could go
+            // back to (a parser's bitrate tags changed which frames were kept).
             gst::EventView::FlushStop(_) => self.release_held(false),
-            gst::EventView::CustomDownstream(_) | gst::EventView::Gap(_) => {
+            gst::EventView::CustomDownstream(_)
+            | gst::EventView::CustomDownstreamSticky(_)
+            | gst::EventView::CustomBoth(_)
+            | gst::EventView::Tag(_)
+            | gst::EventView::Toc(_)
+            | gst::EventView::Gap(_) => {
                 let queued = match lock(&self.held).back_mut() {
                     Some(last) => {
                         last.events_after.push(event.clone());
@@ -1056,12 +1063,15 @@ impl BaseTransformImpl for LeanGate {
         decide_query: Option<&gst::query::Allocation>,
         query: &mut gst::query::Allocation,
     ) -> Result<(), gst::LoggableError> {
-        self.parent_propose_allocation(decide_query, query)?;
+        let downstream = self.parent_propose_allocation(decide_query, query);
         // Frames held for `sharpness-lookback` are buffers upstream cannot reuse meanwhile: ask
-        // for that many more, so that a decoder with a bounded pool does not stall on them.
+        // for that many more, so that a decoder with a bounded pool does not stall on them. Also
+        // when downstream answered nothing (appsink, fakesink, queue, tee do not): the held
+        // frames are ours to account for (a hostile probe stalled a source with a pool of its
+        // own minimum + 2 behind the default element and an appsink).
         let held = lock(&self.settings).sharpness_lookback;
         if held == 0 {
-            return Ok(());
+            return downstream;
         }
         let pools: Vec<_> = query.allocation_pools().collect();
         if pools.is_empty() {
