@@ -1510,7 +1510,57 @@ fn a_keep_waiting_to_settle_at_the_end_of_the_stream_is_made() {
         ]
     );
     assert_eq!(m[1].keyframe_index, 2);
+    // The frames that leave after it count it (they said 1 before a probe found it).
+    assert_eq!((m[2].keyframe_index, m[3].keyframe_index), (2, 2));
     assert_eq!(h.element().unwrap().property::<u64>("frames-kept"), 2);
+}
+
+/// The same keep settled by a new segment in mid-stream: the stream goes on, and the next frame
+/// is compared with the frame the keep settled on, not the old reference (found by a hostile
+/// probe: the reference stayed where it was, so the next frames were scored against it).
+#[test]
+fn a_keep_settled_by_a_new_segment_moves_the_reference() {
+    let mut h = harness(
+        &format!(
+            "model={} threshold=0.05 mode=annotate sharpness-wait=2 sharpness-lookback=4",
+            fixture("mad.onnx")
+        ),
+        &rgb_caps(W, H),
+    );
+    let a = texture(W, H, 1);
+    let gradient: Vec<u8> = (0..W * H)
+        .flat_map(|i| {
+            let v = ((i % W) * 255 / (W - 1)) as u8;
+            [v, v, v]
+        })
+        .collect();
+    h.push(buffer(a.clone(), 0)).unwrap();
+    h.push(buffer(a.clone(), 33)).unwrap();
+    h.push(buffer(a.clone(), 66)).unwrap();
+    h.push(buffer(gradient, 99)).unwrap(); // due, blurred: waits to settle
+    let mut seg = gst::FormattedSegment::<gst::ClockTime>::new();
+    seg.set_start(gst::ClockTime::from_mseconds(132));
+    h.push_event(gst::event::Segment::new(&seg));
+    h.push(buffer(a, 132)).unwrap();
+    h.push_event(gst::event::Eos::new());
+    let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+    let got: Vec<_> = m.iter().map(|m| (m.keep, m.reason)).collect();
+    assert_eq!(
+        got[..4],
+        [
+            (true, Reason::First),
+            (true, Reason::Sharper),
+            (false, Reason::Score),
+            (false, Reason::Deferred),
+        ]
+    );
+    assert_eq!(
+        m[4].reference_pts,
+        Some(gst::ClockTime::from_mseconds(33)),
+        "{:?}",
+        m[4]
+    );
+    assert_eq!(m[4].keyframe_index, 2);
 }
 
 /// A local model's utility outside [0, 1] is a failed run, as a server's is: the frame is kept

@@ -376,6 +376,20 @@ impl LeanGate {
                 } else {
                     None
                 };
+                if let Some((back, _)) = settled {
+                    // The settled frame is the reference from now on (the stream may go on after
+                    // a segment), as for a keep that went back while frames came.
+                    let at = state.gate.position().checked_sub(1 + back);
+                    match state.recent.iter().position(|r| Some(r.position) == at) {
+                        Some(i) => {
+                            std::mem::swap(&mut state.reference, &mut state.recent[i].tensor);
+                            state.reference_pts = state.recent[i].pts;
+                            state.utility.on_keep_back(back);
+                            state.scorer.on_keep(false);
+                        }
+                        None => state.gate.drop_reference(),
+                    }
+                }
                 state.gate.forget_candidates();
                 settled
             }
@@ -385,12 +399,18 @@ impl LeanGate {
             let mut held = lock(&self.held);
             if let Some((back, index)) = settled {
                 let at = held.len().checked_sub(1 + back as usize);
-                if let Some(h) = at.and_then(|i| held.get_mut(i)) {
-                    h.meta.keep = true;
-                    h.meta.reason = Reason::Sharper;
-                    h.meta.keyframe_index = index;
-                    h.meta.frames_since_keyframe = 0;
-                    self.frames_kept.fetch_add(1, Ordering::Relaxed);
+                if let Some(i) = at {
+                    if let Some(h) = held.get_mut(i) {
+                        h.meta.keep = true;
+                        h.meta.reason = Reason::Sharper;
+                        h.meta.keyframe_index = index;
+                        h.meta.frames_since_keyframe = 0;
+                        self.frames_kept.fetch_add(1, Ordering::Relaxed);
+                    }
+                    // The frames after it leave after it: their count of keeps includes it.
+                    for h in held.iter_mut().skip(i + 1) {
+                        h.meta.keyframe_index = index;
+                    }
                 }
             }
             held.drain(..).collect()
