@@ -691,6 +691,31 @@ fn the_default_element_holds_three_frames_to_look_back_for_a_sharper_keyframe() 
     assert_eq!(rest.len(), 3, "the held frames leave at EOS");
 }
 
+/// With a variable framerate (caps 0/1) the latency the held frames add follows the frames'
+/// intervals (their durations, else the steps between timestamps): a live source told of none
+/// lost 87 of 90 frames at a synchronised sink (found by a hostile probe).
+#[test]
+fn a_variable_framerate_still_reports_the_held_frames_latency() {
+    for with_duration in [true, false] {
+        let mut h = harness(
+            "mode=annotate sharpness-lookback=3",
+            "video/x-raw,format=RGB,width=64,height=48,framerate=0/1",
+        );
+        for i in 0..4u64 {
+            let mut b = buffer(texture(W, H, i as u32), i * 40);
+            if !with_duration {
+                b.get_mut().unwrap().set_duration(gst::ClockTime::NONE);
+            }
+            h.push(b).unwrap();
+        }
+        let latency = h.query_latency();
+        assert!(
+            latency.is_some_and(|l| l >= gst::ClockTime::from_mseconds(99)),
+            "durations {with_duration}: latency {latency:?} for 3 frames held"
+        );
+    }
+}
+
 /// The default element asks upstream for 3 more buffers (the frames it holds) also when nothing
 /// downstream answers the allocation query (appsink, fakesink, queue, tee): it used to pass on
 /// their "no" and ask for nothing, and a source with a pool of its own minimum + 2 stalled

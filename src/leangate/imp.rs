@@ -145,6 +145,12 @@ pub struct LeanGate {
     held: Mutex<std::collections::VecDeque<Held>>,
     /// One frame's duration from the caps (ns; 0: unknown), for the latency query.
     frame_ns: AtomicU64,
+    /// With a variable framerate (caps 0/1): the longest frame interval seen since the caps (a
+    /// buffer's duration, else the step between timestamps; ns, 0: none yet), so that the
+    /// latency query still covers the frames `sharpness-lookback` holds; and the last
+    /// timestamp (ns, u64::MAX: none). Only the streaming thread writes them.
+    vfr_frame_ns: AtomicU64,
+    vfr_last_pts: AtomicU64,
     /// Refused property values whose warning found no bus (set before the element was in a
     /// pipeline: gst-launch sets properties first); posted at the next start. Taken alone.
     unposted: Mutex<Vec<String>>,
@@ -186,6 +192,35 @@ struct Held {
 }
 
 impl LeanGate {
+    /// With a variable framerate, the held frames' latency follows the longest frame interval
+    /// seen: a longer one than before (by a tenth) is remembered and the pipeline told to query
+    /// the latency again (a hostile probe: a live VFR source lost 87 of 90 frames at a
+    /// synchronised sink, told of no latency while 3 frames were held). No lock is held here.
+    fn track_variable_framerate(&self, buf: &gst::BufferRef) {
+        if self.frame_ns.load(Ordering::Relaxed) != 0 {
+            return;
+        }
+        let pts = buf.pts().map(|t| t.nseconds());
+        let last = self.vfr_last_pts.load(Ordering::Relaxed);
+        if let Some(p) = pts {
+            self.vfr_last_pts.store(p, Ordering::Relaxed);
+        }
+        // A discontinuity (a seek, lost data) is no frame interval.
+        let discont = buf.flags().contains(gst::BufferFlags::DISCONT);
+        let step = pts
+            .filter(|&p| !discont && last != u64::MAX && p > last)
+            .map(|p| p - last);
+        let Some(interval) = buf.duration().map(|d| d.nseconds()).or(step) else {
+            return;
+        };
+        let known = self.vfr_frame_ns.load(Ordering::Relaxed);
+        if interval > known.saturating_add(known / 10) {
+            self.vfr_frame_ns.store(interval, Ordering::Relaxed);
+            let obj = self.obj();
+            let _ = obj.post_message(gst::message::Latency::builder().src(&*obj).build());
+        }
+    }
+
     /// Whether `msg` (a caps refusal) is new this run and should be said on the bus; remembers
     /// it. The lock is released before the caller posts.
     fn first_refusal(&self, msg: &str) -> bool {
@@ -765,6 +800,8 @@ impl BaseTransformImpl for LeanGate {
     fn start(&self) -> Result<(), gst::ErrorMessage> {
         // A new run is told about caps it cannot gate again.
         *lock(&self.refused_caps) = None;
+        self.vfr_frame_ns.store(0, Ordering::Relaxed);
+        self.vfr_last_pts.store(u64::MAX, Ordering::Relaxed);
         // Refusals from before the element had a bus: it has one now.
         let unposted = std::mem::take(&mut *lock(&self.unposted));
         for why in unposted {
@@ -938,6 +975,8 @@ impl BaseTransformImpl for LeanGate {
             0
         };
         self.frame_ns.store(frame_ns, Ordering::Relaxed);
+        self.vfr_frame_ns.store(0, Ordering::Relaxed);
+        self.vfr_last_pts.store(u64::MAX, Ordering::Relaxed);
         // New caps (a new picture geometry, format or rate): the old reference is not
         // comparable any more, nor what the consumer reported about the old pictures.
         state.gate.drop_reference();
@@ -962,9 +1001,11 @@ impl BaseTransformImpl for LeanGate {
             // years) must not panic here.
             let frames = lock(&self.settings).sharpness_lookback as u64;
             let most = gst::ClockTime::MAX.nseconds();
-            let extra = frames
-                .saturating_mul(self.frame_ns.load(Ordering::Relaxed))
-                .min(most);
+            let frame_ns = match self.frame_ns.load(Ordering::Relaxed) {
+                0 => self.vfr_frame_ns.load(Ordering::Relaxed),
+                ns => ns,
+            };
+            let extra = frames.saturating_mul(frame_ns).min(most);
             if extra > 0 {
                 let add = |t: gst::ClockTime| {
                     gst::ClockTime::from_nseconds(t.nseconds().saturating_add(extra).min(most))
@@ -1122,6 +1163,7 @@ impl BaseTransformImpl for LeanGate {
             self.release_held(true);
             return self.parent_submit_input_buffer(is_discont, inbuf);
         }
+        self.track_variable_framerate(&inbuf);
         // Held frames are pushed here, in order; the base class then has nothing to output.
         let mut out = Outbox::default();
         let verdict = self.gate_frame(&inbuf, &fs, &mut out);
