@@ -215,13 +215,13 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
         glib::ParamSpecUInt::builder("sharpness-wait")
             .nick("Wait for a sharper frame")
             .blurb(
-                "When a keep is due on a frame blurrier than 0.8 of the sharpest of the 3 \
-                 frames before it (variance of the Laplacian of the model's picture), \
-                 drop it (reason deferred) and keep the first of the next frames that is \
-                 not, or the last of this many; no buffering, no added latency. With \
-                 sharpness-lookback: the keep settles this many frames later (sooner \
-                 once the utility is halfway to a late keep) on the sharpest frame held, \
-                 before or after the due one. 0 = keep at once",
+                "With sharpness-lookback (3 by default): a keep due on score settles this \
+                 many frames later (sooner once the utility is halfway to a late keep) on \
+                 the sharpest frame held, before or after the due one. With \
+                 sharpness-lookback=0: when a keep is due on a frame blurrier than 0.8 of \
+                 the sharpest of the 3 frames before it (variance of the Laplacian of the \
+                 model's picture), drop it (reason deferred) and keep the first of the next \
+                 frames that is not, or the last of this many; no buffering. 0 = keep at once",
             )
             .maximum(30)
             .default_value(DEFAULT_SHARPNESS_WAIT)
