@@ -348,7 +348,10 @@ fn evo_ape_rmse(py: &Path, gt: &Path, est: &Path) -> f64 {
         "{} missing: `make setup` installs evo into .venv-sfm",
         evo.display()
     );
+    // evo keeps its settings in ~/.evo, made on its first run: the tests leave HOME alone.
+    let home = tempfile::tempdir().unwrap();
     let out = Command::new(&evo)
+        .env("HOME", home.path())
         .arg("tum")
         .args([gt, est])
         .args(["--align", "--correct_scale", "--no_warnings"])
