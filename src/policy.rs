@@ -212,6 +212,9 @@ pub struct Gate {
     sharpness: std::collections::VecDeque<f64>,
     /// Frames a due keep has waited for a sharper frame (0: none waiting).
     waited: u64,
+    /// A keep fell due on a blurred frame within [`GateConfig::sharpness_margin`] and has not
+    /// been made yet (the stream's end settles it: [`Gate::settle_pending`]).
+    margin_due: bool,
     /// Frames decided so far (junk included): the position of the next frame.
     position: u64,
     /// (position, sharpness) of the recent frames dropped on score since the last keep, the
@@ -233,6 +236,7 @@ impl Gate {
             kept: 0,
             sharpness: std::collections::VecDeque::with_capacity(SHARPNESS_HISTORY + 1),
             waited: 0,
+            margin_due: false,
             position: 0,
             candidates: std::collections::VecDeque::new(),
             held: 0,
@@ -278,6 +282,7 @@ impl Gate {
         self.since_keyframe = 0;
         self.sharpness.clear();
         self.waited = 0;
+        self.margin_due = false;
         self.candidates.clear();
     }
 
@@ -368,6 +373,7 @@ impl Gate {
                 && self.blurred(sharpness);
             if margin_wait {
                 reason = None;
+                self.margin_due = true;
             }
         }
         // A keep due on score (now, or settling since an earlier frame) with a look-back: it
@@ -410,6 +416,7 @@ impl Gate {
                 self.has_reference = true;
                 self.candidates.clear();
                 self.waited = 0;
+                self.margin_due = false;
                 self.force_next = false;
                 self.since_keyframe = 0;
                 self.kept += 1;
@@ -447,17 +454,19 @@ impl Gate {
     }
 
     /// The stream ends (EOS) while a keep due on score waits to settle
-    /// ([`GateConfig::sharpness_wait`] with a look-back): it settles now, on the sharpest frame
-    /// held (the due one or a later one). Returns how many frames before the last decided frame
+    /// ([`GateConfig::sharpness_wait`] with a look-back, or a blurred frame within
+    /// [`GateConfig::sharpness_margin`]): it settles now, on the sharpest frame held (the due
+    /// one or a later one). Returns how many frames before the last decided frame
     /// that one is (0: the last) and its keyframe index; `None` when no keep waits.
     pub fn settle_pending(&mut self) -> Option<(u64, u64)> {
-        if self.waited == 0 {
+        if self.waited == 0 && !self.margin_due {
             return None;
         }
         let (p, _) = self.sharpest_candidate()?;
         let last = self.position.checked_sub(1)?;
         self.candidates.clear();
         self.waited = 0;
+        self.margin_due = false;
         self.force_next = false;
         self.since_keyframe = last - p;
         self.kept += 1;
@@ -499,6 +508,7 @@ impl Gate {
         self.frames_since_restart = self.frames_since_restart.saturating_add(1);
         self.candidates.clear();
         self.waited = 0;
+        self.margin_due = false;
         self.force_next = false;
         // This frame was compared with the reference before the keep: its count is from there;
         // the next frames count from the frame kept instead.
@@ -890,6 +900,12 @@ mod tests {
         // A frame that is not blurred keeps at once within the margin.
         step(&mut g, 0.2, 100.0);
         assert_eq!(step(&mut g, 0.51, 85.0), (true, Reason::Score, 0));
+        // The stream ends while a blurred due frame waits: the keep is made on the sharpest
+        // frame held (here the waiting one, the last decided), not lost.
+        step(&mut g, 0.2, 100.0);
+        assert_eq!(step(&mut g, 0.52, 70.0), (false, Reason::Deferred, 0));
+        assert_eq!(g.settle_pending(), Some((0, 5)));
+        assert_eq!(g.settle_pending(), None, "settled once");
         // Never past max-gap: the gap's due keep is made on the blurred frame.
         let mut g = Gate::new(GateConfig {
             sharpness_margin: 0.05,

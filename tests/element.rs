@@ -1540,6 +1540,43 @@ fn a_keep_waiting_to_settle_at_the_end_of_the_stream_is_made() {
     assert_eq!(h.element().unwrap().property::<u64>("frames-kept"), 2);
 }
 
+/// The default (a look-back of 3 and the blur margin): a stream that ends while a keep due on a
+/// blurred frame waits within the margin makes that keep at EOS, on the sharpest frame held
+/// (here the waiting frame itself), instead of losing the stream's last new view.
+#[test]
+fn a_keep_waiting_within_the_margin_at_the_end_of_the_stream_is_made() {
+    let mut h = harness(
+        &format!(
+            "model={} threshold=0.3 mode=annotate sharpness-lookback=3",
+            fixture("mad.onnx")
+        ),
+        &rgb_caps(W, H),
+    );
+    let a = texture(W, H, 1);
+    // Far enough from `a` to be due (mad about 0.33, within 0.3 + 0.05) and blurred.
+    let gradient: Vec<u8> = (0..W * H)
+        .flat_map(|i| {
+            let v = ((i % W) * 255 / (W - 1)) as u8;
+            [v, v, v]
+        })
+        .collect();
+    h.push(buffer(a.clone(), 0)).unwrap();
+    h.push(buffer(a.clone(), 33)).unwrap();
+    h.push(buffer(a, 66)).unwrap();
+    h.push(buffer(gradient, 99)).unwrap();
+    h.push_event(gst::event::Eos::new());
+    let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+    assert_eq!(m.len(), 4);
+    assert!(
+        (0.3..0.35).contains(&m[3].utility),
+        "the test needs a utility within the margin: {:?}",
+        m[3]
+    );
+    assert!(m[3].keep, "the waiting keep was lost: {:?}", m[3]);
+    assert_eq!(m[3].keyframe_index, 2);
+    assert_eq!(h.element().unwrap().property::<u64>("frames-kept"), 2);
+}
+
 /// The same keep settled by a new segment in mid-stream: the stream goes on, and the next frame
 /// is compared with the frame the keep settled on, not the old reference (found by a hostile
 /// probe: the reference stayed where it was, so the next frames were scored against it).
