@@ -1500,28 +1500,34 @@ fn an_absurd_frame_duration_does_not_overflow_the_latency() {
 /// A keep due on score that waits to settle (`sharpness-wait` with `sharpness-lookback`) when the
 /// stream ends settles on the sharpest held frame instead of being lost (found by a hostile
 /// probe: the last keep of a stream, its last new view, was never made).
-#[test]
-fn a_keep_waiting_to_settle_at_the_end_of_the_stream_is_made() {
+/// A harness around `mad.onnx` in annotate mode with `props`, given a still view three times
+/// (frames 0-2: the first kept, then two sharp frames of utility 0) and a far, blurred frame (3:
+/// a smooth full-range gradient, mad about 0.33 from the still view, without edges); the still
+/// view's picture, for more frames.
+fn still_then_blurred(props: &str) -> (gst_check::Harness, Vec<u8>) {
     let mut h = harness(
-        &format!(
-            "model={} threshold=0.05 mode=annotate sharpness-wait=2 sharpness-lookback=4",
-            fixture("mad.onnx")
-        ),
+        &format!("model={} mode=annotate {props}", fixture("mad.onnx")),
         &rgb_caps(W, H),
     );
-    // (Threshold 0.05: the repeated frames, utility 0, are within 0.1 of it, so candidates.)
     let a = texture(W, H, 1);
-    // A smooth full-range gradient: far from `a` (mad about 0.33) and without edges (blurred).
     let gradient: Vec<u8> = (0..W * H)
         .flat_map(|i| {
             let v = ((i % W) * 255 / (W - 1)) as u8;
             [v, v, v]
         })
         .collect();
-    h.push(buffer(a.clone(), 0)).unwrap(); // first
-    h.push(buffer(a.clone(), 33)).unwrap(); // dropped, sharp: a candidate
-    h.push(buffer(a, 66)).unwrap(); // dropped, sharp
-    h.push(buffer(gradient, 99)).unwrap(); // due, blurred: waits to settle
+    for pts in [0, 33, 66] {
+        h.push(buffer(a.clone(), pts)).unwrap();
+    }
+    h.push(buffer(gradient, 99)).unwrap();
+    (h, a)
+}
+
+#[test]
+fn a_keep_waiting_to_settle_at_the_end_of_the_stream_is_made() {
+    // (Threshold 0.05: the repeated frames, utility 0, are within 0.1 of it, so candidates; the
+    // blurred frame is due and waits to settle.)
+    let (mut h, _) = still_then_blurred("threshold=0.05 sharpness-wait=2 sharpness-lookback=4");
     h.push_event(gst::event::Eos::new());
     let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
     let got: Vec<_> = m.iter().map(|m| (m.keep, m.reason)).collect();
@@ -1545,25 +1551,8 @@ fn a_keep_waiting_to_settle_at_the_end_of_the_stream_is_made() {
 /// (here the waiting frame itself), instead of losing the stream's last new view.
 #[test]
 fn a_keep_waiting_within_the_margin_at_the_end_of_the_stream_is_made() {
-    let mut h = harness(
-        &format!(
-            "model={} threshold=0.3 mode=annotate sharpness-lookback=3",
-            fixture("mad.onnx")
-        ),
-        &rgb_caps(W, H),
-    );
-    let a = texture(W, H, 1);
-    // Far enough from `a` to be due (mad about 0.33, within 0.3 + 0.05) and blurred.
-    let gradient: Vec<u8> = (0..W * H)
-        .flat_map(|i| {
-            let v = ((i % W) * 255 / (W - 1)) as u8;
-            [v, v, v]
-        })
-        .collect();
-    h.push(buffer(a.clone(), 0)).unwrap();
-    h.push(buffer(a.clone(), 33)).unwrap();
-    h.push(buffer(a, 66)).unwrap();
-    h.push(buffer(gradient, 99)).unwrap();
+    // The blurred frame is due within 0.3 + 0.05 and waits.
+    let (mut h, _) = still_then_blurred("threshold=0.3 sharpness-lookback=3");
     h.push_event(gst::event::Eos::new());
     let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
     assert_eq!(m.len(), 4);
@@ -1582,24 +1571,7 @@ fn a_keep_waiting_within_the_margin_at_the_end_of_the_stream_is_made() {
 /// probe: the reference stayed where it was, so the next frames were scored against it).
 #[test]
 fn a_keep_settled_by_a_new_segment_moves_the_reference() {
-    let mut h = harness(
-        &format!(
-            "model={} threshold=0.05 mode=annotate sharpness-wait=2 sharpness-lookback=4",
-            fixture("mad.onnx")
-        ),
-        &rgb_caps(W, H),
-    );
-    let a = texture(W, H, 1);
-    let gradient: Vec<u8> = (0..W * H)
-        .flat_map(|i| {
-            let v = ((i % W) * 255 / (W - 1)) as u8;
-            [v, v, v]
-        })
-        .collect();
-    h.push(buffer(a.clone(), 0)).unwrap();
-    h.push(buffer(a.clone(), 33)).unwrap();
-    h.push(buffer(a.clone(), 66)).unwrap();
-    h.push(buffer(gradient, 99)).unwrap(); // due, blurred: waits to settle
+    let (mut h, a) = still_then_blurred("threshold=0.05 sharpness-wait=2 sharpness-lookback=4");
     let mut seg = gst::FormattedSegment::<gst::ClockTime>::new();
     seg.set_start(gst::ClockTime::from_mseconds(132));
     h.push_event(gst::event::Segment::new(&seg));
