@@ -161,6 +161,50 @@ pub struct LeanGate {
     refused_caps: Mutex<Option<String>>,
 }
 
+impl State {
+    /// A keep went to the recent frame `back` frames before the last decided one (a
+    /// `sharpness-lookback` keep, or one settled when the held frames were let go): it is the
+    /// reference now, and the prior's chain goes on from it. Returns its timestamp.
+    fn keep_back(&mut self, back: u64) -> Option<gst::ClockTime> {
+        let at = self.gate.position().checked_sub(1 + back);
+        match self.recent.iter().position(|r| Some(r.position) == at) {
+            Some(i) => {
+                std::mem::swap(&mut self.reference, &mut self.recent[i].tensor);
+                self.reference_pts = self.recent[i].pts;
+                self.utility.on_keep_back(back);
+                self.scorer.on_keep(false);
+                self.reference_pts
+            }
+            // Not remembered (cannot happen: the gate's candidates are these frames); the next
+            // frame starts afresh rather than comparing with the wrong picture.
+            None => {
+                self.gate.drop_reference();
+                None
+            }
+        }
+    }
+}
+
+/// Mark the held frame `back` before the last one kept (reason `sharper`, keep `index`); the
+/// frames after it leave after it, so their count of keeps includes it (their reference and
+/// frames since it stay the ones they were compared with). Whether that frame was held.
+fn mark_kept_back(held: &mut std::collections::VecDeque<Held>, back: u64, index: u64) -> bool {
+    let Some(at) = held.len().checked_sub(1 + back as usize) else {
+        return false;
+    };
+    let Some(h) = held.get_mut(at) else {
+        return false;
+    };
+    h.meta.keep = true;
+    h.meta.reason = Reason::Sharper;
+    h.meta.keyframe_index = index;
+    h.meta.frames_since_keyframe = 0;
+    for h in held.iter_mut().skip(at + 1) {
+        h.meta.keyframe_index = index;
+    }
+    true
+}
+
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
@@ -414,16 +458,7 @@ impl LeanGate {
                 if let Some((back, _)) = settled {
                     // The settled frame is the reference from now on (the stream may go on after
                     // a segment), as for a keep that went back while frames came.
-                    let at = state.gate.position().checked_sub(1 + back);
-                    match state.recent.iter().position(|r| Some(r.position) == at) {
-                        Some(i) => {
-                            std::mem::swap(&mut state.reference, &mut state.recent[i].tensor);
-                            state.reference_pts = state.recent[i].pts;
-                            state.utility.on_keep_back(back);
-                            state.scorer.on_keep(false);
-                        }
-                        None => state.gate.drop_reference(),
-                    }
+                    state.keep_back(back);
                 }
                 state.gate.forget_candidates();
                 settled
@@ -433,19 +468,8 @@ impl LeanGate {
         let ready: Vec<Held> = {
             let mut held = lock(&self.held);
             if let Some((back, index)) = settled {
-                let at = held.len().checked_sub(1 + back as usize);
-                if let Some(i) = at {
-                    if let Some(h) = held.get_mut(i) {
-                        h.meta.keep = true;
-                        h.meta.reason = Reason::Sharper;
-                        h.meta.keyframe_index = index;
-                        h.meta.frames_since_keyframe = 0;
-                        self.frames_kept.fetch_add(1, Ordering::Relaxed);
-                    }
-                    // The frames after it leave after it: their count of keeps includes it.
-                    for h in held.iter_mut().skip(i + 1) {
-                        h.meta.keyframe_index = index;
-                    }
+                if mark_kept_back(&mut held, back, index) {
+                    self.frames_kept.fetch_add(1, Ordering::Relaxed);
                 }
             }
             held.drain(..).collect()
@@ -609,26 +633,15 @@ impl LeanGate {
         if decision.kept_back > 0 {
             // The keep went to a sharper recent frame (held by `submit_input_buffer`): it is the
             // reference now, and the prior's chain goes on from it.
-            let at = position - decision.kept_back;
-            match state.recent.iter().position(|r| r.position == at) {
-                Some(i) => {
-                    gst::trace!(
-                        CAT,
-                        imp = self,
-                        "pts {:?} keep true (sharper: the keep due at pts {:?}, {} frames later)",
-                        state.recent[i].pts,
-                        pts,
-                        decision.kept_back
-                    );
-                    std::mem::swap(&mut state.reference, &mut state.recent[i].tensor);
-                    state.reference_pts = state.recent[i].pts;
-                    state.utility.on_keep_back(decision.kept_back);
-                    state.scorer.on_keep(false);
-                }
-                // Not remembered (cannot happen: the gate's candidates are these frames); the
-                // next frame starts afresh rather than comparing with the wrong picture.
-                None => state.gate.drop_reference(),
-            }
+            let kept_pts = state.keep_back(decision.kept_back);
+            gst::trace!(
+                CAT,
+                imp = self,
+                "pts {:?} keep true (sharper: the keep due at pts {:?}, {} frames later)",
+                kept_pts,
+                pts,
+                decision.kept_back
+            );
             self.frames_kept.fetch_add(1, Ordering::Relaxed);
         } else if decision.candidate && frame_readable && fs.sharpness_lookback > 0 {
             // A candidate for a later keep (the gate says so: dropped on score, or waited on
@@ -1189,20 +1202,7 @@ impl BaseTransformImpl for LeanGate {
             });
             let n = held.len();
             if verdict.kept_back > 0 {
-                if let Some(at) = n.checked_sub(1 + verdict.kept_back as usize) {
-                    if let Some(h) = held.get_mut(at) {
-                        h.meta.keep = true;
-                        h.meta.reason = Reason::Sharper;
-                        h.meta.keyframe_index = verdict.meta.keyframe_index;
-                        h.meta.frames_since_keyframe = 0;
-                    }
-                    // The frames after it leave after it: their count of keeps includes it
-                    // (their reference and frames since it stay the ones they were compared
-                    // with).
-                    for h in held.iter_mut().skip(at + 1) {
-                        h.meta.keyframe_index = verdict.meta.keyframe_index;
-                    }
-                }
+                mark_kept_back(&mut held, verdict.kept_back, verdict.meta.keyframe_index);
             }
             // A frame leaves when it is `sharpness-lookback` frames old (this one included in
             // the count), when no later keep can go back to it any more: one frame out for one
