@@ -1049,19 +1049,21 @@ impl BaseTransformImpl for LeanGate {
     fn sink_event(&self, event: gst::Event) -> bool {
         match event.view() {
             // Frames held for `sharpness-lookback` go before the serialized events that end or
-            // change what they belong to (caps, segment, EOS, stream-start...) with their fate as
-            // it stands; a flush discards them. Custom events (a forced keyframe, a reset), gaps,
-            // tags and TOCs wait in line behind them instead: letting every held frame out at
-            // once would hand a synchronised sink frames due up to the whole look-back later (it
-            // would block the streaming thread that long), and forget what a later keep could go
-            // back to (a parser's bitrate tags changed which frames were kept).
+            // change what they belong to (EOS, caps, segment, stream-start, segment-done,
+            // stream-group-done) with their fate as it stands; a flush discards them. Every other
+            // serialized event (a forced keyframe, a reset, a gap, a tag, a TOC, an application's
+            // own) waits in line behind them instead: letting every held frame out at once would
+            // hand a synchronised sink frames due up to the whole look-back later (it would block
+            // the streaming thread that long), and forget what a later keep could go back to (a
+            // parser's bitrate tags changed which frames were kept).
             gst::EventView::FlushStop(_) => self.release_held(false),
-            gst::EventView::CustomDownstream(_)
-            | gst::EventView::CustomDownstreamSticky(_)
-            | gst::EventView::CustomBoth(_)
-            | gst::EventView::Tag(_)
-            | gst::EventView::Toc(_)
-            | gst::EventView::Gap(_) => {
+            gst::EventView::Eos(_)
+            | gst::EventView::Caps(_)
+            | gst::EventView::Segment(_)
+            | gst::EventView::StreamStart(_)
+            | gst::EventView::SegmentDone(_)
+            | gst::EventView::StreamGroupDone(_) => self.release_held(true),
+            _ if event.is_serialized() => {
                 let queued = match lock(&self.held).back_mut() {
                     Some(last) => {
                         last.events_after.push(event.clone());
@@ -1075,7 +1077,6 @@ impl BaseTransformImpl for LeanGate {
                     return true;
                 }
             }
-            _ if event.is_serialized() => self.release_held(true),
             _ => {}
         }
         match event.view() {
