@@ -1,7 +1,7 @@
-"""Write a Microsoft 7-Scenes clip (its own layout: `frame-XXXXXX.color.jpg`, `.depth.png` with
-millimetres and 65535 = no reading, `.pose.txt` a 4x4 camera-to-world matrix, and
-`camera-intrinsics.txt`) as a TUM-layout sequence that `leangate eval` and `leangate label` read:
-`rgb/`, `depth/` (the files copied unchanged: the tools read 65535 as no reading), `rgb.txt`,
+"""Write a Microsoft 7-Scenes clip (its own layout: `frame-XXXXXX.color.jpg` or `.color.png`,
+`.depth.png` with millimetres and 65535 = no reading, `.pose.txt` a 4x4 camera-to-world matrix, and
+`camera-intrinsics.txt`, or the file `--intrinsics` names) as a TUM-layout sequence that `leangate eval` and `leangate label` read:
+`rgb/`, `depth/` (the files copied unchanged, colour in its own format: the tools read 65535 as no reading), `rgb.txt`,
 `depth.txt`, `groundtruth.txt` (`t tx ty tz qx qy qz qw`, camera-to-world; t = frame index / 30 s)
 and `intrinsics.txt` (`fx fy cx cy 1000`). Every input file is checked (poses rigid, intrinsics
 finite) before anything is written, and the output appears all at once or not at all (a file that
@@ -17,7 +17,9 @@ it from the public repository andyzeng/tsdf-fusion-python, whose history holds r
     python -m training.import_7scenes /tmp/tsdf-data/data ../shared/data/7scenes_redkitchen_long \
         --first 60 --last 999
 
-(`7scenes_redkitchen_dev` is frames 0-59 of the same clip.)
+(`7scenes_redkitchen_dev` is frames 0-59 of the same clip.) The two SUN3D clips of the model card
+(an Asus Xtion in a study room, PNG colour) come from the history of andyzeng/3dmatch-toolbox the
+same way (training/README.md).
 """
 import argparse
 import math
@@ -26,7 +28,8 @@ import shutil
 
 from .seqio import staged, write_lists
 
-HEAD = "# 7-Scenes {scene} (Microsoft Research, non-commercial research terms), frames {a}-{b}, nominal 30 Hz"
+SOURCE = "7-Scenes {scene} (Microsoft Research, non-commercial research terms)"
+HEAD = "# {source}, frames {a}-{b}, nominal 30 Hz"
 
 
 def read_matrix(path):
@@ -77,35 +80,49 @@ def pose_line(path):
     return " ".join(f"{v:.7f}" for v in (m[0][3], m[1][3], m[2][3]) + q)
 
 
-def import_clip(src, out, first, last, scene):
-    """Write frames first..last (inclusive) of the 7-Scenes folder `src` into `out`. Every input
-    file is checked before anything is written."""
-    intr = read_matrix(os.path.join(src, "camera-intrinsics.txt"))
+def colour_file(base, first, last):
+    """The colour image of the frame `base`: `.color.jpg` or `.color.png`, exactly one of them."""
+    found = [base + ext for ext in (".color.jpg", ".color.png") if os.path.isfile(base + ext)]
+    if not found:
+        raise SystemExit(f"{base}.color.jpg (or .color.png) is missing or not a file (frames {first}-{last} requested)")
+    if len(found) > 1:
+        raise SystemExit(f"{base}: both .color.jpg and .color.png exist; which is the frame is unclear")
+    return found[0]
+
+
+def import_clip(src, out, first, last, scene, intrinsics=None, source=None):
+    """Write frames first..last (inclusive) of the 7-Scenes folder `src` into `out` (the
+    intrinsics from `intrinsics`, else `src/camera-intrinsics.txt`; `source` describes the clip
+    in the lists' header). Every input file is checked before anything is written."""
+    intr_path = intrinsics or os.path.join(src, "camera-intrinsics.txt")
+    intr = read_matrix(intr_path)
     if len(intr) != 3 or any(len(r) != 3 for r in intr) or not all(math.isfinite(v) for r in intr for v in r):
-        raise SystemExit(f"{src}/camera-intrinsics.txt: missing, or not a 3x3 matrix of finite numbers")
+        raise SystemExit(f"{intr_path}: missing, or not a 3x3 matrix of finite numbers")
     if intr[0][0] <= 0 or intr[1][1] <= 0:
-        raise SystemExit(f"{src}/camera-intrinsics.txt: the focal lengths fx, fy must be positive")
+        raise SystemExit(f"{intr_path}: the focal lengths fx, fy must be positive")
     if not 0 <= first <= last:
         raise SystemExit(f"--first {first} --last {last}: need 0 <= first <= last")
     names = []
     for k in range(first, last + 1):
         base = os.path.join(src, f"frame-{k:06d}")
-        for ext in (".color.jpg", ".depth.png", ".pose.txt"):
+        colour = colour_file(base, first, last)
+        for ext in (".depth.png", ".pose.txt"):
             if not os.path.isfile(base + ext):
                 raise SystemExit(f"{base + ext} is missing or not a file (frames {first}-{last} requested)")
-        names.append((k, base, pose_line(base + ".pose.txt")))
-    head = HEAD.format(scene=scene, a=first, b=last)
+        names.append((k, base, colour, pose_line(base + ".pose.txt")))
+    head = HEAD.format(source=source or SOURCE.format(scene=scene), a=first, b=last)
     rgb = [head, "# timestamp filename"]
     depth = [head, "# timestamp filename (16-bit PNG, millimetres, 0 or 65535 = no reading)"]
     gt = [head, "# timestamp tx ty tz qx qy qz qw (camera-to-world)"]
     with staged(out) as tmp:
         for d in ("rgb", "depth"):
             os.makedirs(os.path.join(tmp, d))
-        for k, base, pose in names:
+        for k, base, colour, pose in names:
             t = f"{k / 30:.6f}"
-            shutil.copyfile(base + ".color.jpg", os.path.join(tmp, "rgb", f"{k:06d}.jpg"))
+            ext = colour[-3:]
+            shutil.copyfile(colour, os.path.join(tmp, "rgb", f"{k:06d}.{ext}"))
             shutil.copyfile(base + ".depth.png", os.path.join(tmp, "depth", f"{k:06d}.png"))
-            rgb.append(f"{t} rgb/{k:06d}.jpg")
+            rgb.append(f"{t} rgb/{k:06d}.{ext}")
             depth.append(f"{t} depth/{k:06d}.png")
             gt.append(f"{t} {pose}")
         write_lists(tmp, {
@@ -118,13 +135,16 @@ def import_clip(src, out, first, last, scene):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("src", help="a 7-Scenes folder (frame-XXXXXX.color.jpg/.depth.png/.pose.txt, camera-intrinsics.txt)")
+    ap.add_argument("src", help="a 7-Scenes folder (frame-XXXXXX.color.jpg or .color.png, .depth.png, .pose.txt; camera-intrinsics.txt)")
     ap.add_argument("out", help="the TUM-layout sequence to write")
     ap.add_argument("--first", type=int, default=0)
     ap.add_argument("--last", type=int, required=True)
     ap.add_argument("--scene", default="redkitchen", help="scene name for the lists' header")
+    ap.add_argument("--intrinsics", metavar="FILE",
+                    help="the 3x3 camera matrix, when it is not SRC/camera-intrinsics.txt")
+    ap.add_argument("--source", help="what the clip is, for the lists' header (default: 7-Scenes SCENE)")
     a = ap.parse_args()
-    n = import_clip(a.src, a.out, a.first, a.last, a.scene)
+    n = import_clip(a.src, a.out, a.first, a.last, a.scene, a.intrinsics, a.source)
     print(f"{a.out}: {n} frames")
 
 

@@ -1231,13 +1231,44 @@ fn plot_errors_name_the_path() {
     }
 }
 
+/// `seq` written in 7-Scenes' layout into `raw`: each colour file copied as `.color.<its
+/// extension>`, depth as millimetres, 4x4 camera-to-world pose files; the 3x3 camera matrix into
+/// `intrinsics`.
+fn write_7scenes(seq: &leangate_tools::dataset::Sequence, raw: &Path, intrinsics: &Path) {
+    use leangate_tools::dataset::{read_depth_png, write_depth_png};
+    let k = seq.intrinsics.unwrap();
+    std::fs::create_dir_all(raw).unwrap();
+    std::fs::write(
+        intrinsics,
+        format!("{} 0 {}\n0 {} {}\n0 0 1\n", k.fx, k.cx, k.fy, k.cy),
+    )
+    .unwrap();
+    for (i, f) in seq.frames.iter().enumerate() {
+        let base = raw.join(format!("frame-{i:06}"));
+        let ext = f.rgb.extension().unwrap().to_str().unwrap();
+        std::fs::copy(&f.rgb, base.with_extension(format!("color.{ext}"))).unwrap();
+        let depth = read_depth_png(f.depth.as_ref().unwrap(), k.depth_scale).unwrap();
+        write_depth_png(&base.with_extension("depth.png"), &depth, 1000.0).unwrap();
+        let m = f.pose.unwrap().to_homogeneous();
+        let rows: Vec<String> = (0..4)
+            .map(|r| {
+                (0..4)
+                    .map(|c| format!("{:.12e}", m[(r, c)]))
+                    .collect::<Vec<_>>()
+                    .join(" ")
+            })
+            .collect();
+        std::fs::write(base.with_extension("pose.txt"), rows.join("\n") + "\n").unwrap();
+    }
+}
+
 /// `python -m training.import_7scenes` (how `7scenes_redkitchen_long` is made): a synthetic
 /// sequence written in 7-Scenes' own layout (4x4 camera-to-world pose files, millimetre depth,
 /// `camera-intrinsics.txt`) comes back with the same poses, intrinsics and oracle; bad input is
 /// a message naming the file, not a traceback, and writes nothing.
 #[test]
 fn a_7scenes_clip_imported_by_training_import_7scenes_is_judged_like_the_original() {
-    use leangate_tools::dataset::{read_depth_png, write_depth_png, Sequence};
+    use leangate_tools::dataset::Sequence;
     let dir = tempfile::tempdir().unwrap();
     let seq = dir.path().join("seq");
     let out = leangate()
@@ -1257,28 +1288,7 @@ fn a_7scenes_clip_imported_by_training_import_7scenes_is_judged_like_the_origina
     let orig = Sequence::open(&seq).unwrap();
     let k = orig.intrinsics.unwrap();
     let raw = dir.path().join("7scenes");
-    std::fs::create_dir_all(&raw).unwrap();
-    std::fs::write(
-        raw.join("camera-intrinsics.txt"),
-        format!("{} 0 {}\n0 {} {}\n0 0 1\n", k.fx, k.cx, k.fy, k.cy),
-    )
-    .unwrap();
-    for (i, f) in orig.frames.iter().enumerate() {
-        let base = raw.join(format!("frame-{i:06}"));
-        std::fs::copy(&f.rgb, base.with_extension("color.jpg")).unwrap();
-        let depth = read_depth_png(f.depth.as_ref().unwrap(), k.depth_scale).unwrap();
-        write_depth_png(&base.with_extension("depth.png"), &depth, 1000.0).unwrap();
-        let m = f.pose.unwrap().to_homogeneous();
-        let rows: Vec<String> = (0..4)
-            .map(|r| {
-                (0..4)
-                    .map(|c| format!("{:.12e}", m[(r, c)]))
-                    .collect::<Vec<_>>()
-                    .join(" ")
-            })
-            .collect();
-        std::fs::write(base.with_extension("pose.txt"), rows.join("\n") + "\n").unwrap();
-    }
+    write_7scenes(&orig, &raw, &raw.join("camera-intrinsics.txt"));
     let import = |src: &Path, dst: &Path, last: &str| {
         python_module("training.import_7scenes")
             .arg(src)
@@ -1336,6 +1346,96 @@ fn a_7scenes_clip_imported_by_training_import_7scenes_is_judged_like_the_origina
     assert!(!out.status.success());
     assert!(
         err.contains("frame-000007.pose.txt") && !err.contains("Traceback"),
+        "{err}"
+    );
+    assert!(!nothing.exists());
+}
+
+/// The SUN3D clips of the model card come in the same layout with PNG colour and the camera
+/// matrix in a file of its own (`--intrinsics`): the colour is copied as PNG and judged like the
+/// original; a frame with both a JPEG and a PNG is refused by name, writing nothing.
+#[test]
+fn a_clip_with_png_colour_and_intrinsics_elsewhere_is_imported_as_it_is() {
+    use leangate_tools::dataset::Sequence;
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let out = leangate()
+        .args(["synth", "--out"])
+        .arg(&seq)
+        .args(["--seed", "7", "--frames", "40", "--motion", "mixed"])
+        .args(["--width", "160", "--height", "120"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let orig = Sequence::open(&seq).unwrap();
+    assert!(orig
+        .frames
+        .iter()
+        .all(|f| f.rgb.extension().unwrap() == "png"));
+    let raw = dir.path().join("sun3d");
+    let camera = dir.path().join("camera.txt");
+    write_7scenes(&orig, &raw, &camera);
+    let import = |dst: &Path| {
+        python_module("training.import_7scenes")
+            .arg(&raw)
+            .arg(dst)
+            .args(["--first", "0", "--last", "39", "--intrinsics"])
+            .arg(&camera)
+            .args(["--source", "a synthetic clip"])
+            .output()
+            .unwrap()
+    };
+    let imported = dir.path().join("imported");
+    let out = import(&imported);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let back = Sequence::open(&imported).unwrap();
+    assert_eq!(back.frames.len(), 40);
+    for (a, b) in orig.frames.iter().zip(&back.frames) {
+        assert_eq!(b.rgb.extension().unwrap(), "png");
+        assert_eq!(
+            std::fs::read(&a.rgb).unwrap(),
+            std::fs::read(&b.rgb).unwrap()
+        );
+    }
+    let lists = std::fs::read_to_string(imported.join("rgb.txt")).unwrap();
+    assert!(
+        lists.starts_with("# a synthetic clip, frames 0-39"),
+        "{lists}"
+    );
+    let (va, vb) = (eval_json(&seq, &[]), eval_json(&imported, &[]));
+    let oracle = |v: &serde_json::Value| v["policies"]["oracle"]["kept"].as_u64().unwrap();
+    assert!(oracle(&va) >= 2, "{va}");
+    assert_eq!(oracle(&va), oracle(&vb));
+
+    // Without --intrinsics the folder's own camera-intrinsics.txt is asked for, by name.
+    let out = python_module("training.import_7scenes")
+        .arg(&raw)
+        .arg(dir.path().join("nothing"))
+        .args(["--last", "39"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("camera-intrinsics.txt") && !err.contains("Traceback"),
+        "{err}"
+    );
+    // A frame with both a JPEG and a PNG: which one is the frame is not guessed.
+    std::fs::write(raw.join("frame-000004.color.jpg"), b"not used").unwrap();
+    let nothing = dir.path().join("nothing");
+    let out = import(&nothing);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("frame-000004") && err.contains("both") && !err.contains("Traceback"),
         "{err}"
     );
     assert!(!nothing.exists());
