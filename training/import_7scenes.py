@@ -84,7 +84,8 @@ def colour_file(base, first, last):
     """The colour image of the frame `base`: `.color.jpg` or `.color.png`, exactly one of them."""
     found = [base + ext for ext in (".color.jpg", ".color.png") if os.path.isfile(base + ext)]
     if not found:
-        raise SystemExit(f"{base}.color.jpg (or .color.png) is missing or not a file (frames {first}-{last} requested)")
+        raise SystemExit(f"{base}.color.jpg is missing or not a file, and so is its .color.png "
+                         f"(frames {first}-{last} requested)")
     if len(found) > 1:
         raise SystemExit(f"{base}: both .color.jpg and .color.png exist; which is the frame is unclear")
     return found[0]
