@@ -1,9 +1,10 @@
 """Write a Microsoft 7-Scenes clip (its own layout: `frame-XXXXXX.color.jpg` or `.color.png`,
 `.depth.png` with millimetres and 65535 = no reading, `.pose.txt` a 4x4 camera-to-world matrix, and
-`camera-intrinsics.txt`, or the file `--intrinsics` names) as a TUM-layout sequence that `leangate eval` and `leangate label` read:
-`rgb/`, `depth/` (the files copied unchanged, colour in its own format: the tools read 65535 as no reading), `rgb.txt`,
-`depth.txt`, `groundtruth.txt` (`t tx ty tz qx qy qz qw`, camera-to-world; t = frame index / 30 s)
-and `intrinsics.txt` (`fx fy cx cy 1000`). Every input file is checked (poses rigid, intrinsics
+`camera-intrinsics.txt`, or the file `--intrinsics` names) as a TUM-layout sequence that `leangate
+eval` and `leangate label` read: `rgb/`, `depth/` (the files copied unchanged, colour in its own
+format; the tools read 65535 as no reading), `rgb.txt`, `depth.txt`, `groundtruth.txt` (`t tx ty
+tz qx qy qz qw`, camera-to-world; t = frame index / 30 s) and `intrinsics.txt` (`fx fy cx cy
+1000`). Every input file is checked (poses rigid, intrinsics
 finite) before anything is written, and the output appears all at once or not at all (a file that
 cannot be copied leaves it untouched). Standard library only.
 
@@ -145,6 +146,8 @@ def main():
                     help="the 3x3 camera matrix, when it is not SRC/camera-intrinsics.txt")
     ap.add_argument("--source", help="what the clip is, for the lists' header (default: 7-Scenes SCENE)")
     a = ap.parse_args()
+    if a.source is not None and (not a.source.strip() or any(c in a.source for c in "\r\n")):
+        raise SystemExit("--source: one line of text, for the lists' header")
     n = import_clip(a.src, a.out, a.first, a.last, a.scene, a.intrinsics, a.source)
     print(f"{a.out}: {n} frames")
 

@@ -1428,6 +1428,22 @@ fn a_clip_with_png_colour_and_intrinsics_elsewhere_is_imported_as_it_is() {
         err.contains("camera-intrinsics.txt") && !err.contains("Traceback"),
         "{err}"
     );
+    // A header that is not one line (it would become a row of the lists): refused.
+    let out = python_module("training.import_7scenes")
+        .arg(&raw)
+        .arg(dir.path().join("nothing"))
+        .args(["--last", "39", "--intrinsics"])
+        .arg(&camera)
+        .args(["--source", "a clip\n0.5 rgb/000001.png"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("--source") && !err.contains("Traceback"),
+        "{err}"
+    );
+    assert!(!dir.path().join("nothing").exists());
     // A frame with both a JPEG and a PNG: which one is the frame is not guessed.
     std::fs::write(raw.join("frame-000004.color.jpg"), b"not used").unwrap();
     let nothing = dir.path().join("nothing");
