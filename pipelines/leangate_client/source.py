@@ -132,16 +132,26 @@ class _InputCounter:
         self._lock = threading.Lock()
         self.indexes = indexes
         self.count = 0
+        # End-of-stream has reached the gate (seen here before the gate handles it, so before
+        # the frames it still holds come out): every frame is decided.
+        self.eos = False
 
     def probe(self, pad, info):
-        buf = info.get_buffer()
+        Gst = _gst.Gst
+        buf = info.get_buffer() if info.type & Gst.PadProbeType.BUFFER else None
         if buf is not None:
             with self._lock:
-                if buf.pts != _gst.Gst.CLOCK_TIME_NONE:
+                if buf.pts != Gst.CLOCK_TIME_NONE:
                     for index in self.indexes:
                         index.add(buf.pts, self.count)
                 self.count += 1
-        return _gst.Gst.PadProbeReturn.OK
+        elif info.type & Gst.PadProbeType.EVENT_DOWNSTREAM:
+            kind = info.get_event().type
+            if kind == Gst.EventType.EOS:
+                self.eos = True
+            elif kind == Gst.EventType.FLUSH_STOP:
+                self.eos = False
+        return Gst.PadProbeReturn.OK
 
 
 class _DecoderWatch:
@@ -475,11 +485,16 @@ class LeanGateSource:
     def force_keyframe(self) -> bool:
         """Ask the gate to keep the next frame (what a SLAM back end does when it loses
         tracking): a `leangate-force-keyframe` custom event pushed upstream from the appsink.
-        Frames already past the gate (queued for the appsink) are not affected; the forced
-        keep lands on the next frame the gate processes. Returns True when the event reached
-        the gate, False when it did not get there (the pipeline is shutting down).
-        Raises NotRunningError before the source is started, once the stream has ended (EOS:
-        no frame would be kept for it) and after it is closed."""
+        Frames already past the gate (queued for the appsink, or held and decided by its
+        ``sharpness-lookback``) are not affected; the forced keep lands on the next frame the
+        gate processes: with the default ``sharpness-lookback`` of 3, at least the 4th frame
+        after the one in hand (0 makes it the next one, when nothing is queued between).
+        Returns True when the event reached the gate with frames still to come, False when it
+        cannot act: end-of-stream has already reached the gate (on the stream's last frames,
+        which leave the gate after it has decided every frame: the last one, and with
+        ``sharpness-lookback`` N the last N + 1 at least), or the pipeline is shutting down.
+        Raises NotRunningError before the source is started, once the loop has run to the end
+        of the stream (EOS: no frame would be kept for it) and after it is closed."""
         return self._push_upstream("force_keyframe()", FORCE_KEYFRAME_EVENT)
 
     def reset(self) -> bool:
@@ -517,9 +532,10 @@ class LeanGateSource:
     @property
     def ended(self) -> bool:
         """The iteration ran to end-of-stream (the ``for`` loop ended at EOS; not when the
-        caller stopped early, ``max_frames`` stopped it or ``close`` from another thread did). ``force_keyframe``, ``reset`` and
-        ``feedback`` then raise NotRunningError (``state`` ``"ended"``); inside the loop, on
-        the last frame too, they still go to the gate."""
+        caller stopped early, ``max_frames`` stopped it or ``close`` from another thread did).
+        ``force_keyframe``, ``reset`` and ``feedback`` then raise NotRunningError (``state``
+        ``"ended"``); inside the loop, once end-of-stream has reached the gate (on the last
+        frames, which the gate lets out after deciding every frame), they return False."""
         return self._ended
 
     def _push_upstream(self, call: str, name: str, **fields) -> bool:
@@ -529,6 +545,14 @@ class LeanGateSource:
         if self.ended:
             raise self._ended_error(call)
         Gst = _gst.Gst
+        # Once end-of-stream has reached the gate every frame is decided: inside the loop (the
+        # stream's last frames leave the gate after that) the call can act on nothing, and says
+        # so. (EOS arriving between this check and the event is a window of one event's
+        # travel; the call then acts on nothing too.)
+        if self._input.eos:
+            log.info("%s: end-of-stream has reached the gate: no frame is left to act on it", call)
+            return False
+        gate = pipeline.get_by_name("gate")
         st = Gst.Structure.new_empty(name)
         for k, v in fields.items():
             st.set_value(k, v)
@@ -546,7 +570,7 @@ class LeanGateSource:
         # upstream peer): a probe on the gate's source pad sees it arrive. Whether an element
         # further up handles it is beside the point (leangate acts on it, then forwards it to
         # the source, which usually ignores custom events).
-        gate_src = pipeline.get_by_name("gate").get_static_pad("src")
+        gate_src = gate.get_static_pad("src")
         probe = gate_src.add_probe(Gst.PadProbeType.EVENT_UPSTREAM, seen)
         try:
             sink.get_static_pad("sink").push_event(ev)
@@ -575,7 +599,9 @@ class LeanGateSource:
         try:
             self._pipeline, gate, self._sink = self._build()
             self._bus = self._pipeline.get_bus()
-            gate.get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, self._input.probe)
+            gate.get_static_pad("sink").add_probe(
+                Gst.PadProbeType.BUFFER | Gst.PadProbeType.EVENT_DOWNSTREAM, self._input.probe
+            )
             self._started = True
             log.info("plugin: %s", self.plugin)
             log.info("pipeline: %s", self.description)
