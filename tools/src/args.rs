@@ -109,7 +109,7 @@ pub fn property_setting(s: &str) -> Result<(String, String), String> {
     match s.split_once('=') {
         Some((k, v)) if !k.trim().is_empty() => Ok((k.trim().to_string(), v.to_string())),
         _ => Err(format!(
-            "`{s}`: expected PROPERTY=VALUE, e.g. sharpness-wait=0"
+            "`{s}`: expected PROPERTY=VALUE, e.g. sharpness-lookback=0"
         )),
     }
 }

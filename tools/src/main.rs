@@ -166,7 +166,7 @@ enum Command {
               value_parser = clap::value_parser!(u16).range(0..=1000))]
         feedback: Option<u16>,
         /// Set a property of the element the model runs in, as gst-launch would
-        /// (`--set sharpness-wait=0`; repeatable): how to judge the gate with other settings.
+        /// (`--set sharpness-lookback=0`; repeatable): how to judge the gate with other settings.
         /// `mode` stays annotate (the eval reads every frame's verdict).
         #[arg(long = "set", value_name = "PROPERTY=VALUE", value_parser = args::property_setting)]
         set: Vec<(String, String)>,
