@@ -2381,6 +2381,9 @@ fn eval_set_runs_the_element_with_other_properties_and_refuses_bad_ones() {
         ("nosuch=1", "no such property"),
         ("frames-in=3", "read-only"),
         ("sharpness-wait=99", "not a valid value"),
+        ("sharpness-lookback=31", "(it takes 0 to 30)"),
+        ("screen=maybe", "(it takes true or false)"),
+        ("precision=fp16", "(it takes auto, fp32, int8)"),
         ("mode=drop", "annotate"),
         // In GLib's range, refused by the element: not run silently with its default.
         ("threshold=-0.5", "refused it"),

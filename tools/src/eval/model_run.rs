@@ -233,8 +233,9 @@ fn set_from_text(gate: &gst::Element, name: &str, value: &str) -> Result<(), Eva
         .filter(|v| in_range(&pspec, v))
         .ok_or_else(|| {
             EvalError(format!(
-                "--set {name}={value}: not a valid value of {} `{name}`",
-                pspec.value_type().name()
+                "--set {name}={value}: not a valid value of {} `{name}`{}",
+                pspec.value_type().name(),
+                accepted(&pspec).map_or_else(String::new, |a| format!(" (it takes {a})"))
             ))
         })?;
     gate.set_property(name, &v);
@@ -250,6 +251,38 @@ fn set_from_text(gate: &gst::Element, name: &str, value: &str) -> Result<(), Eva
         )));
     }
     Ok(())
+}
+
+/// What a numeric, boolean or enum property takes, in words (`0 to 30`, `true or false`, its
+/// nicks), for the error that refuses a value.
+fn accepted(pspec: &gst::glib::ParamSpec) -> Option<String> {
+    use gst::glib;
+    macro_rules! range {
+        ($($t:ty),*) => {$(
+            if let Some(p) = pspec.downcast_ref::<$t>() {
+                return Some(format!("{} to {}", p.minimum(), p.maximum()));
+            }
+        )*};
+    }
+    range!(
+        glib::ParamSpecUInt,
+        glib::ParamSpecInt,
+        glib::ParamSpecUInt64,
+        glib::ParamSpecInt64,
+        glib::ParamSpecDouble,
+        glib::ParamSpecFloat
+    );
+    if pspec.downcast_ref::<glib::ParamSpecBoolean>().is_some() {
+        return Some("true or false".into());
+    }
+    pspec.downcast_ref::<glib::ParamSpecEnum>().map(|p| {
+        p.enum_class()
+            .values()
+            .iter()
+            .map(|v| v.nick())
+            .collect::<Vec<_>>()
+            .join(", ")
+    })
 }
 
 /// Whether `v` is within `pspec`'s range (GLib would refuse it with a warning otherwise).
