@@ -67,7 +67,10 @@ leangate_summarise() (
             for (i = 1; i <= n; i++) {
                 if (match(stats, k[i] "=\\([a-z0-9]+\\)[^,;]*")) {
                     v = substr(stats, RSTART, RLENGTH)
+                    typed = (v ~ /=\(double\)/)
                     sub(/=\([a-z0-9]+\)/, "=", v)
+                    # A double as GStreamer serialises it (0.40000000000000002): as the user gave it.
+                    if (typed) { eq = index(v, "="); v = substr(v, 1, eq) sprintf("%.6g", substr(v, eq + 1) + 0) }
                     line = line " " v
                 }
             }

@@ -128,9 +128,11 @@ def ensure_plugin(
                 log.info("leangate not in GST_PLUGIN_PATH; using %s", lib)
                 return plugin_file()
     raise SetupError(
-        "GStreamer element `leangate` not found. Build the plugin (`cargo build`) and set "
-        "GST_PLUGIN_PATH to the directory holding libgstleangate.so (e.g. "
-        "export GST_PLUGIN_PATH=$PWD/target/debug), or pass plugin_path= / --plugin-path"
+        "GStreamer element `leangate` not found. Installed with `make install PREFIX=...` "
+        "(other than ~/.local or /usr/local, which GStreamer finds): set "
+        "GST_PLUGIN_PATH=$PREFIX/lib/gstreamer-1.0 (docs/install.md). In a checkout: build it "
+        "(`cargo build`) and set GST_PLUGIN_PATH to the directory holding libgstleangate.so "
+        "(e.g. $PWD/target/debug). Or pass plugin_path= / --plugin-path"
         + (f" (also tried {', '.join(tried)})" if tried else "")
     )
 
