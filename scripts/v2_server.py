@@ -17,8 +17,10 @@ SIGINT/SIGTERM stop it cleanly, and it stops by itself when its parent process g
 import argparse
 import json
 import os
+import shutil
 import signal
 import sys
+import tempfile
 import threading
 import time
 
@@ -108,8 +110,20 @@ def main():
     p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
     p.add_argument("--counts", help="write the rows served per model here (JSON), for tests")
     p.add_argument("--delay-file", help="a file holding a delay per call in ms, for tests")
-    p.add_argument("--workspace", help="PyTriton's workspace (sockets, model store); default: a temporary one")
+    p.add_argument("--workspace", help="PyTriton's workspace (sockets, model store); default: a "
+                   "temporary one in $TMPDIR, removed at exit (PyTriton's own default is under "
+                   "~/.cache/pytriton, which it leaves behind)")
     args = p.parse_args()
+    if args.workspace is not None:
+        return serve(args, args.workspace)
+    tmp = tempfile.mkdtemp(prefix="leangate-v2-server-")
+    try:
+        return serve(args, os.path.join(tmp, "workspace"))  # PyTriton makes the folder itself
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def serve(args, workspace):
 
     config = TritonConfig(
         http_address=args.address,
@@ -130,7 +144,7 @@ def main():
     so = ort.SessionOptions()
     so.intra_op_num_threads = args.threads
     so.inter_op_num_threads = 1
-    with Triton(config=config, workspace=args.workspace) as triton:
+    with Triton(config=config, workspace=workspace) as triton:
         for spec in args.models:
             name, _, path = spec.rpartition("=")
             if not name:

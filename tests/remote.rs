@@ -147,7 +147,7 @@ fn compare(local: &[gstleangate::GateMeta], remote: &[gstleangate::GateMeta]) {
 /// usage events under `~/.cache/Microsoft` when it loads unless `ORT_DISABLE_TELEMETRY` is set
 /// first: the script sets it, so in a fresh HOME it writes nothing there.
 #[test]
-fn the_v2_server_script_leaves_no_onnxruntime_telemetry_in_home() {
+fn the_v2_server_script_leaves_nothing_in_home_or_tmpdir() {
     let py = match v2server::python() {
         Ok(py) => py,
         Err(why) => {
@@ -171,6 +171,49 @@ fn the_v2_server_script_leaves_no_onnxruntime_telemetry_in_home() {
     );
     let left = files_below(home.path());
     assert!(left.is_empty(), "left in HOME: {left:?}");
+
+    // Served as the docs run it (no --workspace) and stopped with SIGTERM: nothing in HOME
+    // (PyTriton's own default workspace is ~/.cache/pytriton, which it leaves behind) nor in
+    // TMPDIR.
+    let tmp = tempfile::tempdir().unwrap();
+    let port = v2server::free_port();
+    let mut child = std::process::Command::new(v2server::python().unwrap())
+        .arg(v2server::repo_root().join("scripts/v2_server.py"))
+        .arg(v2server::repo_root().join("models/leangate-s-head.onnx"))
+        .args(["--http-port", &port.to_string()])
+        .args(["--grpc-port", &v2server::free_port().to_string()])
+        .args(["--metrics-port", &v2server::free_port().to_string()])
+        .env("HOME", home.path())
+        .env("TMPDIR", tmp.path())
+        .env_remove("XDG_CACHE_HOME")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let url = format!("http://127.0.0.1:{port}/v2/models/leangate-s-head/ready");
+    let t0 = Instant::now();
+    let mut ready = false;
+    while !ready && t0.elapsed() < Duration::from_secs(90) {
+        std::thread::sleep(Duration::from_millis(200));
+        ready = ureq::get(&url).call().is_ok();
+        assert!(child.try_wait().unwrap().is_none(), "the server exited");
+    }
+    let running = files_below(tmp.path());
+    std::process::Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    let status = child.wait().unwrap();
+    assert!(ready, "not ready in 90 s");
+    assert!(status.success(), "{status}");
+    assert!(
+        !running.is_empty(),
+        "its workspace is in TMPDIR while it runs"
+    );
+    let left = files_below(home.path());
+    assert!(left.is_empty(), "left in HOME: {left:?}");
+    let left = files_below(tmp.path());
+    assert!(left.is_empty(), "left in TMPDIR: {left:?}");
 }
 
 #[test]
@@ -522,11 +565,17 @@ fn server_killed_mid_stream_fails_open_and_scoring_resumes() {
     }
     // Killed (as a crash): frames keep flowing, kept with reason `error`, none waits long.
     let pgid = server.pgid().unwrap();
+    let backend_dirs = v2server::backend_tmp_dirs(pgid);
+    assert_eq!(backend_dirs.len(), 2, "{backend_dirs:?}");
     server.kill();
     assert!(
         !v2server::group_alive(pgid, Duration::from_secs(5)),
         "the killed server left processes"
     );
+    // Nor folders in /tmp (the Python backend's, which only a clean stop removes).
+    for d in &backend_dirs {
+        assert!(!d.exists(), "{} left behind", d.display());
+    }
     let t_down = Instant::now();
     let mut failed = 0;
     while t_down.elapsed() < Duration::from_secs(2) {

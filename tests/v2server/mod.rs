@@ -225,12 +225,17 @@ impl V2Server {
         remove_shm(pgid);
     }
 
-    /// Kill the server abruptly (SIGKILL to the whole group), as a crash would.
+    /// Kill the server abruptly (SIGKILL to the whole group), as a crash would; then remove what
+    /// a clean stop would have (its shared memory, the Python backend's folders in /tmp).
     pub fn kill(&mut self) {
         if let Some(mut child) = self.child.take() {
+            let folders = backend_tmp_dirs(child.id());
             signal_group(child.id(), "KILL");
             let _ = child.wait();
             remove_shm(child.id());
+            for f in folders {
+                let _ = std::fs::remove_dir_all(f);
+            }
         }
     }
 }
@@ -250,22 +255,87 @@ pub fn group_alive(pgid: u32, within: Duration) -> bool {
     }
 }
 
-/// Any live (non-zombie) process in group `pgid`, from /proc/<pid>/stat.
+/// Any live (non-zombie) process in group `pgid`.
 fn group_members(pgid: u32) -> bool {
+    !members(pgid).is_empty()
+}
+
+/// The /proc folders of the live (non-zombie) processes in group `pgid`, from /proc/<pid>/stat.
+fn members(pgid: u32) -> Vec<PathBuf> {
     let Ok(dir) = std::fs::read_dir("/proc") else {
-        return false;
+        return Vec::new();
     };
-    dir.flatten().any(|e| {
-        let Ok(stat) = std::fs::read_to_string(e.path().join("stat")) else {
-            return false;
+    dir.flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            let Ok(stat) = std::fs::read_to_string(p.join("stat")) else {
+                return false;
+            };
+            // pid (comm) state ppid pgrp ...: comm may hold spaces, so split after the last ')'.
+            let Some(rest) = stat.rfind(')').map(|i| &stat[i + 1..]) else {
+                return false;
+            };
+            let f: Vec<&str> = rest.split_whitespace().collect();
+            f.len() > 2 && f[2] == pgid.to_string() && f[0] != "Z" && f[0] != "X"
+        })
+        .collect()
+}
+
+/// The folders Triton's Python backend makes in /tmp (its path is fixed there, whatever TMPDIR
+/// says) for the server group `pgid`: the model folder its stub runs from
+/// (`/tmp/folderXXXXXX/1/model.py` on the stub's command line) and the `python_env_XXXXXX`
+/// folder made with it (the same instant, within 0.1 s). A clean stop removes both; a SIGKILL
+/// leaves them.
+pub fn backend_tmp_dirs(pgid: u32) -> Vec<PathBuf> {
+    let tmp = std::path::Path::new("/tmp");
+    let mut found = Vec::new();
+    for p in members(pgid) {
+        let Ok(cmd) = std::fs::read(p.join("cmdline")) else {
+            continue;
         };
-        // pid (comm) state ppid pgrp ...: comm may hold spaces, so split after the last ')'.
-        let Some(rest) = stat.rfind(')').map(|i| &stat[i + 1..]) else {
-            return false;
-        };
-        let f: Vec<&str> = rest.split_whitespace().collect();
-        f.len() > 2 && f[2] == pgid.to_string() && f[0] != "Z" && f[0] != "X"
-    })
+        for arg in cmd.split(|&b| b == 0) {
+            let arg = String::from_utf8_lossy(arg);
+            let Some(name) = arg.strip_prefix("/tmp/").and_then(|r| r.split('/').next()) else {
+                continue;
+            };
+            let folder = tmp.join(name);
+            if name.starts_with("folder") && folder.is_dir() && !found.contains(&folder) {
+                found.push(folder);
+            }
+        }
+    }
+    let made = |p: &std::path::Path| {
+        std::fs::metadata(p)
+            .and_then(|m| m.created().or_else(|_| m.modified()))
+            .ok()
+    };
+    let envs: Vec<PathBuf> = std::fs::read_dir(tmp)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with("python_env_"))
+        })
+        .collect();
+    for folder in found.clone() {
+        let Some(t) = made(&folder) else { continue };
+        for env in &envs {
+            let near = made(env).is_some_and(|e| {
+                let d = if e > t {
+                    e.duration_since(t)
+                } else {
+                    t.duration_since(e)
+                };
+                d.is_ok_and(|d| d < Duration::from_millis(100))
+            });
+            if near && !found.contains(env) {
+                found.push(env.clone());
+            }
+        }
+    }
+    found
 }
 
 /// The Python backend's shared-memory regions of the server whose script ran as `pid` (a clean
