@@ -2877,8 +2877,10 @@ for k, v in (("sharpness-wait", limits("sharpness-wait")[1] + 1), ("threshold", 
     except SetupError as e:
         r["refused"].append({"prop": k, "value": repr(v), "limits": None if k == "name" else
                              "[%s, %s]" % limits(k), "error": str(e)})
+# Long enough that the gate has frames left to act on when the loop holds its first one.
+longer = "test://ball?num-buffers=60&width=160&height=120"
 for k, v in (("threshold", limits("threshold")[0]), ("sharpness-wait", limits("sharpness-wait")[1])):
-    with LeanGateSource(spec, model=model, mode="annotate", properties={k: v}) as s:
+    with LeanGateSource(longer, model=model, mode="annotate", properties={k: v}) as s:
         for _ in s:
             r["accepted"].append({"prop": k, "value": v, "set": s.gate.get_property(k),
                                   "forced": s.force_keyframe()})
