@@ -550,7 +550,7 @@ class LeanGateSource:
         # so. (EOS arriving between this check and the event is a window of one event's
         # travel; the call then acts on nothing too.)
         if self._input.eos:
-            log.info("%s: end-of-stream has reached the gate: no frame is left to act on it", call)
+            log.info("%s: end-of-stream has reached the gate: no frame left to act on it", call)
             return False
         gate = pipeline.get_by_name("gate")
         st = Gst.Structure.new_empty(name)
