@@ -265,6 +265,12 @@ impl LeanGate {
         }
     }
 
+    /// A new run or new caps: no variable-framerate interval seen yet.
+    fn forget_frame_intervals(&self) {
+        self.vfr_frame_ns.store(0, Ordering::Relaxed);
+        self.vfr_last_pts.store(u64::MAX, Ordering::Relaxed);
+    }
+
     /// Whether `msg` (a caps refusal) is new this run and should be said on the bus; remembers
     /// it. The lock is released before the caller posts.
     fn first_refusal(&self, msg: &str) -> bool {
@@ -813,8 +819,7 @@ impl BaseTransformImpl for LeanGate {
     fn start(&self) -> Result<(), gst::ErrorMessage> {
         // A new run is told about caps it cannot gate again.
         *lock(&self.refused_caps) = None;
-        self.vfr_frame_ns.store(0, Ordering::Relaxed);
-        self.vfr_last_pts.store(u64::MAX, Ordering::Relaxed);
+        self.forget_frame_intervals();
         // Refusals from before the element had a bus: it has one now.
         let unposted = std::mem::take(&mut *lock(&self.unposted));
         for why in unposted {
@@ -988,8 +993,7 @@ impl BaseTransformImpl for LeanGate {
             0
         };
         self.frame_ns.store(frame_ns, Ordering::Relaxed);
-        self.vfr_frame_ns.store(0, Ordering::Relaxed);
-        self.vfr_last_pts.store(u64::MAX, Ordering::Relaxed);
+        self.forget_frame_intervals();
         // New caps (a new picture geometry, format or rate): the old reference is not
         // comparable any more, nor what the consumer reported about the old pictures.
         state.gate.drop_reference();

@@ -1359,18 +1359,7 @@ fn a_clip_with_png_colour_and_intrinsics_elsewhere_is_imported_as_it_is() {
     use leangate_tools::dataset::Sequence;
     let dir = tempfile::tempdir().unwrap();
     let seq = dir.path().join("seq");
-    let out = leangate()
-        .args(["synth", "--out"])
-        .arg(&seq)
-        .args(["--seed", "7", "--frames", "40", "--motion", "mixed"])
-        .args(["--width", "160", "--height", "120"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    synth(&seq, 40, "mixed", 7);
     let orig = Sequence::open(&seq).unwrap();
     assert!(orig
         .frames
