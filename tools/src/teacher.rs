@@ -88,6 +88,9 @@ pub enum TeacherError {
     NoGroundTruth(String),
     /// A depth image is inconsistent (size mismatch, empty).
     BadDepth(String),
+    /// `intrinsics.txt` does not fit the depth images (a principal point off them, a
+    /// depth_scale that reads no camera's distances); the message names the file.
+    BadIntrinsics(String),
     /// A pair index is out of range.
     IndexOutOfRange {
         /// Requested index.
@@ -103,6 +106,7 @@ impl fmt::Display for TeacherError {
             TeacherError::Dataset(e) => write!(f, "{e}"),
             TeacherError::NoGroundTruth(m) => write!(f, "no ground truth: {m}"),
             TeacherError::BadDepth(m) => write!(f, "bad depth image: {m}"),
+            TeacherError::BadIntrinsics(m) => write!(f, "bad intrinsics: {m}"),
             TeacherError::IndexOutOfRange { index, len } => {
                 write!(f, "frame index {index} out of range ({len} frames)")
             }
@@ -386,7 +390,7 @@ fn check_depth(
     }
     let (cx, cy) = (intr.cx, intr.cy);
     if !(0.0..=w as f64).contains(&cx) || !(0.0..=h as f64).contains(&cy) {
-        return Err(TeacherError::BadDepth(format!(
+        return Err(TeacherError::BadIntrinsics(format!(
             "`{}`: the principal point ({cx}, {cy}) lies outside the {w}x{h} depth images",
             seq.root.join("intrinsics.txt").display()
         )));
@@ -402,7 +406,7 @@ fn check_depth(
         let mid = sample.len() / 2;
         let median = *sample.select_nth_unstable_by(mid, f32::total_cmp).1 as f64;
         if !(MEDIAN_DEPTH_M.0..=MEDIAN_DEPTH_M.1).contains(&median) {
-            return Err(TeacherError::BadDepth(format!(
+            return Err(TeacherError::BadIntrinsics(format!(
                 "`{}`: with depth_scale {} the median depth is {median:.3e} m, outside the \
                  {}..{} m of any camera sequence; depth_scale is depth units per metre (1000 for \
                  millimetres as in 7-Scenes, 5000 for TUM RGB-D)",

@@ -771,6 +771,34 @@ fn eval_refuses_hostile_sequences_naming_the_file() {
         err.contains("median depth") && err.contains("units per metre"),
         "{err}"
     );
+    // Said as what it is: the intrinsics (it was labelled "bad depth image:").
+    assert!(
+        err.contains("bad intrinsics:") && !err.contains("depth image:"),
+        "{err}"
+    );
+    // A principal point off the depth images: the intrinsics too.
+    let off = dir.path().join("principal_point_off");
+    sequence_copy(&seq, &off, |name, text| match name {
+        "intrinsics.txt" => text
+            .lines()
+            .map(|l| match l.starts_with('#') {
+                true => l.to_string(),
+                false => {
+                    let mut v: Vec<&str> = l.split_whitespace().collect();
+                    v[2] = "9999";
+                    v.join(" ")
+                }
+            })
+            .collect::<Vec<_>>()
+            .join("\n"),
+        _ => text,
+    });
+    let err = eval_fails_naming(&off, &off.join("intrinsics.txt"));
+    assert!(
+        err.contains("principal point") && err.contains("bad intrinsics:"),
+        "{err}"
+    );
+    assert!(!err.contains("depth image:"), "{err}");
 
     // In depth.txt two different images at one time are ambiguous: refused, naming the file.
     let two_depths = dir.path().join("two_depths_one_time");
