@@ -2910,3 +2910,105 @@ print(json.dumps(r))
         assert_eq!(a["forced"], true, "{a}");
     }
 }
+
+/// `properties=` values of another type than the property's are converted only when that is
+/// exact, as gst-launch-1.0 reads text (`"false"` for a boolean is False, `"12"` or `"0x10"` for
+/// an integer, `3.0` for an integer is 3), and refused otherwise with a SetupError naming the
+/// property, the value and what the property takes. PyGObject alone converted silently:
+/// `{"reject-junk": "false"}` ran with reject-junk=True (any non-empty string is true),
+/// `{"max-gap": 2.7}` with 2, `{"sharpness-lookback": 3.5}` with 3 and `True` with 1.
+#[test]
+fn wrong_typed_properties_are_refused_or_converted_exactly() {
+    if !python_ok() {
+        return;
+    }
+    let script = r#"
+import json, sys
+from leangate_client import LeanGateSource, SetupError
+model = sys.argv[1]
+r = {"refused": [], "accepted": []}
+for k, v in (("reject-junk", "maybe"), ("reject-junk", 2), ("max-gap", 2.7), ("max-gap", "2.7"),
+             ("max-gap", True), ("sharpness-lookback", 3.5), ("sharpness-lookback", True),
+             ("sharpness-lookback", "three"), ("threshold", True), ("threshold", "half"),
+             ("mode", True), ("mode", "both"), ("model", 3)):
+    try:
+        with LeanGateSource("test://ball?num-buffers=5&width=160&height=120", model=model,
+                            properties={k: v}, max_frames=1) as s:
+            for _ in s:
+                pass
+        r["refused"].append({"prop": k, "value": repr(v), "error": None})
+    except Exception as e:  # (PipelineError: the element got a value it then failed on)
+        r["refused"].append({"prop": k, "value": repr(v), "error": str(e),
+                             "type": type(e).__name__})
+longer = "test://ball?num-buffers=60&width=160&height=120"
+for k, v in (("reject-junk", "false"), ("reject-junk", "FALSE"), ("reject-junk", "no"),
+             ("reject-junk", 0), ("geometry", "0"), ("screen", "f"), ("ort-spinning", "yes"),
+             ("max-gap", "12"), ("max-gap", "0x10"), ("max-gap", 7.0),
+             ("sharpness-lookback", 3.0), ("sharpness-lookback", "5"),
+             ("threshold", "0.25"), ("threshold", 1), ("mode", "annotate"), ("mode", "1")):
+    try:
+        with LeanGateSource(longer, model=model, properties={k: v}) as s:
+            for _ in s:
+                got = s.gate.get_property(k)
+                got = got.value_nick if k == "mode" else got
+                r["accepted"].append({"prop": k, "value": v, "set": got})
+                break
+    except SetupError as e:
+        r["accepted"].append({"prop": k, "value": v, "set": None, "error": str(e)})
+print(json.dumps(r))
+"#;
+    let out = client_script(script, &[model()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let r: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    let refused = r["refused"].as_array().unwrap();
+    assert_eq!(refused.len(), 13, "{r}");
+    for e in refused {
+        let prop = e["prop"].as_str().unwrap();
+        let value = e["value"].as_str().unwrap();
+        let msg = e["error"]
+            .as_str()
+            .unwrap_or_else(|| panic!("{prop}={value} was accepted: {e}"));
+        assert_eq!(e["type"], "SetupError", "{e}");
+        assert!(
+            msg.starts_with(&format!(
+                "bad value {value} for leangate property {prop}: it takes "
+            )),
+            "{msg}"
+        );
+    }
+    let takes = |prop: &str| {
+        refused.iter().find(|e| e["prop"] == prop).unwrap()["error"]
+            .as_str()
+            .unwrap()
+            .to_string()
+    };
+    assert!(takes("max-gap").ends_with("an integer in [0, 4294967295]"));
+    assert!(takes("reject-junk").contains("a boolean (True or False; as text true/false"));
+    assert!(takes("mode").ends_with("one of: annotate, drop"));
+    assert!(takes("threshold").ends_with("a number in [-1.0, 1.0]"));
+    let expected = serde_json::json!([
+        ["reject-junk", false],
+        ["reject-junk", false],
+        ["reject-junk", false],
+        ["reject-junk", false],
+        ["geometry", false],
+        ["screen", false],
+        ["ort-spinning", true],
+        ["max-gap", 12],
+        ["max-gap", 16],
+        ["max-gap", 7],
+        ["sharpness-lookback", 3],
+        ["sharpness-lookback", 5],
+        ["threshold", 0.25],
+        ["threshold", 1.0],
+        ["mode", "annotate"],
+        ["mode", "annotate"],
+    ]);
+    let accepted: Vec<serde_json::Value> = r["accepted"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| serde_json::json!([a["prop"], a["set"]]))
+        .collect();
+    assert_eq!(serde_json::Value::Array(accepted), expected, "{r}");
+}

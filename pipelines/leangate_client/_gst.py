@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import os
+import re
 import weakref
 from typing import Any, Callable, Iterable, List, Optional, Union
 
@@ -173,9 +175,114 @@ def _factory_name(el) -> str:
     return el.get_factory().get_name() if el.get_factory() else el.get_name()
 
 
-def _check_range(el, prop: str, value: Any) -> None:
+#: Text for a boolean property, as GStreamer reads it (gst-launch-1.0, ``gst_value_deserialize``;
+#: case does not matter).
+_BOOLEAN_WORDS = {"true": True, "yes": True, "t": True, "1": True,
+                  "false": False, "no": False, "f": False, "0": False}
+#: Text for an integer property, as GStreamer reads it (``strtoll`` with base 0): decimal,
+#: ``0x`` hexadecimal, or octal with a leading 0 (``010`` is 8, as in gst-launch-1.0).
+_INT_TEXT = re.compile(r"([+-]?)(0[xX][0-9a-fA-F]+|0[0-7]*|[1-9][0-9]*)")
+#: Text for a floating-point property: a decimal number (exponent allowed), inf or nan.
+_FLOAT_TEXT = re.compile(
+    r"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|inf|infinity|nan)", re.IGNORECASE
+)
+
+
+def _int_from_text(text: str) -> Optional[int]:
+    m = _INT_TEXT.fullmatch(text.strip())
+    if m is None:
+        return None
+    sign, body = m.groups()
+    if body[:2] in ("0x", "0X"):
+        v = int(body[2:], 16)
+    elif body.startswith("0"):
+        v = int(body, 8)
+    else:
+        v = int(body)
+    return -v if sign == "-" else v
+
+
+def _integer_types() -> tuple:
+    return (GObject.TYPE_INT, GObject.TYPE_UINT, GObject.TYPE_LONG, GObject.TYPE_ULONG,
+            GObject.TYPE_INT64, GObject.TYPE_UINT64, GObject.TYPE_CHAR, GObject.TYPE_UCHAR)
+
+
+def _coerce(el, prop: str, value: Any) -> Any:
+    """``value`` as the type of ``prop`` takes it, converted only when that is exact, else
+    SetupError naming the property, the value and what the property takes. PyGObject alone
+    converts silently (``True`` or ``2.7`` for an integer gives 1 or 2, any non-empty string
+    for a boolean gives True). Accepted besides values of the property's own type: text as
+    gst-launch-1.0 reads it (``"false"``, ``"yes"``, ``"0x10"``, ``"2.5"``), a whole float for
+    an integer (``3.0``), an integer for a floating-point number, 0 or 1 for a boolean, and an
+    os.PathLike for a string. Properties of other types are left to ``set_property``."""
+    pspec = el.find_property(prop)
+    if pspec is None:
+        return value  # set_property names the unknown property
+    kind = GObject.type_fundamental(pspec.value_type)
+    takes = None
+    if kind == GObject.TYPE_BOOLEAN:
+        if isinstance(value, (bool, np.bool_)):
+            return bool(value)
+        if isinstance(value, str) and value.strip().lower() in _BOOLEAN_WORDS:
+            return _BOOLEAN_WORDS[value.strip().lower()]
+        if isinstance(value, numbers.Integral) and value in (0, 1):
+            return bool(value)
+        takes = "a boolean (True or False; as text true/false, yes/no, t/f or 1/0)"
+    elif kind in _integer_types():
+        v: Any = None
+        if isinstance(value, (bool, np.bool_)):
+            v = None
+        elif isinstance(value, numbers.Integral):
+            v = int(value)
+        elif isinstance(value, numbers.Real):
+            f = float(value)
+            v = int(f) if math.isfinite(f) and f.is_integer() else None
+        elif isinstance(value, str):
+            v = _int_from_text(value)
+        if v is not None:
+            return v
+        takes = f"an integer in [{pspec.minimum}, {pspec.maximum}]"
+    elif kind in (GObject.TYPE_FLOAT, GObject.TYPE_DOUBLE):
+        if isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)):
+            try:
+                return float(value)
+            except OverflowError:  # an int beyond any double
+                pass
+        if isinstance(value, str) and _FLOAT_TEXT.fullmatch(value.strip()):
+            return float(value.strip())
+        takes = f"a number in [{pspec.minimum}, {pspec.maximum}]"
+    elif kind == GObject.TYPE_ENUM:
+        nicks = _enum_nicks(el, prop)
+        values = pspec.enum_class.__enum_values__
+        if isinstance(value, str) and value in nicks:
+            return value
+        if isinstance(value, str):  # a value's name, as the element registered it
+            for v in values.values():
+                if value == v.value_name:
+                    return v.value_nick
+        if (isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+                and int(value) in values):
+            return int(value)
+        if isinstance(value, str) and _int_from_text(value) in values:  # "1", as gst-launch
+            return _int_from_text(value)
+        takes = f"one of: {', '.join(nicks)}"
+    elif kind == GObject.TYPE_STRING:
+        if value is None or isinstance(value, str):
+            return value
+        if isinstance(value, os.PathLike):
+            return os.fspath(value)
+        takes = "a string"
+    else:
+        return value
+    raise SetupError(
+        f"bad value {value!r} for {_factory_name(el)} property {prop}: it takes {takes}"
+    )
+
+
+def _check_range(el, prop: str, value: Any, given: Any = None) -> None:
     """SetupError for a number outside the range of ``prop``'s GParamSpec (GLib would only
-    print a warning and leave the property as it was), or NaN for a floating-point one."""
+    print a warning and leave the property as it was), or NaN for a floating-point one.
+    ``given``: the value as the caller gave it (text, say), named in the message."""
     pspec = el.find_property(prop)
     if pspec is None or isinstance(value, bool) or not isinstance(value, (int, float)):
         return  # unknown property or not a number: set_property says what is wrong
@@ -191,15 +298,17 @@ def _check_range(el, prop: str, value: Any) -> None:
         bad = not lo <= v <= hi
     if bad:
         raise SetupError(
-            f"bad value {value!r} for {_factory_name(el)} property {prop}: "
-            f"it must be in [{lo}, {hi}]"
+            f"bad value {value if given is None else given!r} for {_factory_name(el)} "
+            f"property {prop}: it must be in [{lo}, {hi}]"
         )
 
 
 def _set(el, prop: str, value: Any) -> None:
     """``el.set_property`` with a SetupError (naming the accepted values, or the accepted range
-    of a number) for a bad value."""
-    _check_range(el, prop, value)
+    of a number) for a bad value: a value of another type is converted only when that is exact
+    (``_coerce``), and a number is checked against the property's range."""
+    given, value = value, _coerce(el, prop, value)
+    _check_range(el, prop, value, given)
     try:
         el.set_property(prop, value)
     except (TypeError, ValueError, OverflowError) as e:

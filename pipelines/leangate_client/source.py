@@ -200,8 +200,11 @@ class LeanGateSource:
     properties (None = the element's default; ``model=None`` is the embedded student
     leangate-s). ``stats_interval``: seconds between periodic `leangate-stats` messages (None:
     only at EOS). ``properties``: any other element properties by their GStreamer names, e.g.
-    ``{"threads": 2, "device-id": 1}``; a value of the wrong type or out of the property's range
-    is a SetupError, and so is ``name`` (the element is the source's ``gate``).
+    ``{"threads": 2, "device-id": 1}``; a value is converted to the property's type only when
+    that is exact (text as gst-launch-1.0 reads it, such as ``"false"`` or ``"12"``; ``3.0`` for
+    an integer), and a value of another type (``2.7`` or ``True`` for an integer, ``"maybe"``
+    for a boolean) or out of the property's range is a SetupError, and so is ``name`` (the
+    element is the source's ``gate``).
 
     ``max_frames`` stops after that many frames have been handed to the caller (the pipeline is
     then shut down without EOS, so no end-of-stream statistics are posted). Stopping the
