@@ -2281,6 +2281,321 @@ print(json.dumps(r))
     assert!(staging_dirs(tmp.path()).is_empty() && staging_dirs(&d).is_empty());
 }
 
+/// A signal at any step of `--save-kept DIR --overwrite`'s swap leaves DIR as it was or
+/// completely the new run's, never a mix, and no staging folder: Ctrl-C, SIGTERM and SIGHUP all
+/// wait for the swap's end and then end the run (exit 130, 143, 129). The CLI runs in one
+/// Python process, its file operations counted from the moment `close()` would write the tables;
+/// run after run the process sends itself the signal (kill(2), rotating SIGTERM, SIGHUP and
+/// SIGINT) just after the first, second, ... of them, until a run ends with none left to count:
+/// every step of the swap is hit. Each of the three ways the swap can go is walked: DIR and the
+/// staging folder trading places in one `renameat2(RENAME_EXCHANGE)`, two renames where the
+/// system has no exchange, and file by file when the staging folder lies inside DIR (DIR a
+/// mount point). DIR holds files of the user's (a file, a folder) beside the earlier run's.
+/// A signal just before `finish` (while `close()` stops the pipeline) saves nothing. Before,
+/// SIGTERM at the swap's start left DIR without its tables, mixing both runs' images, and the
+/// staging folder beside it.
+#[test]
+fn save_kept_a_signal_at_any_step_of_the_swap_leaves_dir_old_or_new() {
+    if !python_ok() || !have_elements(&["jpegenc", "multifilesink", "tee"]) {
+        return;
+    }
+    let script = r#"
+import hashlib, json, os, shutil, signal, sys
+from leangate_client import _outdir, cli, keyframes
+
+model, top = sys.argv[1:]
+signal.signal(signal.SIGINT, signal.default_int_handler)  # not an inherited "ignore"
+d = os.path.join(top, "kf")
+pristine = os.path.join(top, "pristine")
+
+def args(src):
+    return [src, "--model", model, "--threshold", "0.001", "--quiet", "--overwrite",
+            "--save-kept", d]
+
+def snapshot(p):
+    """Every file under p with its bytes; the tables without inference_us (a timing)."""
+    out = {}
+    for root, dirs, files in os.walk(p):
+        for n in files:
+            q = os.path.join(root, n)
+            with open(q, "rb") as f:
+                data = f.read()
+            if n == "keyframes.json":
+                doc = json.loads(data)
+                for r in doc["frames"]:
+                    del r["inference_us"]
+                data = json.dumps(doc).encode()
+            elif n == "keyframes.csv":
+                data = b"\n".join(l.rsplit(b",", 1)[0] for l in data.splitlines())
+            out[os.path.relpath(q, p)] = hashlib.sha1(data).hexdigest()
+    return out
+
+assert cli.main(args("test://ball?num-buffers=12&width=64&height=48")) == 0
+with open(os.path.join(d, "notes.txt"), "w") as f:
+    f.write("mine")
+os.mkdir(os.path.join(d, "colmap"))
+with open(os.path.join(d, "colmap", "database.db"), "w") as f:
+    f.write("mine too")
+shutil.copytree(d, pristine)
+old = snapshot(d)
+NEW = args("test://ball?num-buffers=6&width=80&height=60")
+assert cli.main(NEW) == 0
+new = snapshot(d)
+assert new != old and "notes.txt" in new and "colmap/database.db" in new
+
+MUTATIONS = ("unlink", "rename", "replace", "link", "rmdir", "mkdir", "chmod", "chown",
+             "setxattr", "symlink", "remove")
+state = {"active": False, "count": 0, "at": None, "sig": None, "sent": False}
+def counted(f):
+    def call(*a, **k):
+        r = f(*a, **k)
+        if state["active"]:
+            state["count"] += 1
+            if state["count"] == state["at"]:
+                state["sent"] = True
+                os.kill(os.getpid(), state["sig"])
+        return r
+    return call
+for n in MUTATIONS:
+    setattr(os, n, counted(getattr(os, n)))
+if hasattr(_outdir, "exchange"):  # (absent before the swap was made one step)
+    _outdir.exchange = counted(_outdir.exchange)
+finish = keyframes.KeptFrameSaver.finish
+def finish_counted(self, *a, **k):
+    state["active"] = True
+    try:
+        if state["at"] == 0:  # before finish: while close() is about to call it
+            state["sent"] = True
+            os.kill(os.getpid(), state["sig"])
+        return finish(self, *a, **k)
+    finally:
+        state["active"] = False
+keyframes.KeptFrameSaver.finish = finish_counted
+
+variants = {
+    "exchange": lambda: None,
+    "two renames": lambda: setattr(_outdir, "exchange", counted(lambda a, b: False)),
+    "file by file": lambda: setattr(os.path, "ismount", lambda p, _m=os.path.ismount:
+                                    os.path.realpath(p) == os.path.realpath(d) or _m(p)),
+}
+sigs = [signal.SIGTERM, signal.SIGHUP, signal.SIGINT]
+runs = []
+for variant, setup in variants.items():
+    setup()
+    at = 0
+    while True:
+        shutil.rmtree(d)
+        shutil.copytree(pristine, d)
+        sig = sigs[at % 3]
+        state.update(count=0, at=at, sig=sig, sent=False)
+        status = cli.main(NEW)
+        snap = snapshot(d)
+        left = sorted(set(os.listdir(top)) - {"kf", "pristine"})
+        for n in left:
+            shutil.rmtree(os.path.join(top, n), ignore_errors=True)
+        runs.append({"variant": variant, "at": at, "signal": signal.Signals(sig).name,
+                     "sent": state["sent"], "steps": state["count"], "status": status,
+                     "dir": "old" if snap == old else "new" if snap == new else sorted(snap),
+                     "left": left})
+        if not state["sent"] or at > 200:
+            break
+        at += 1
+print("result: " + json.dumps(runs))
+"#;
+    let tmp = tempfile::tempdir().unwrap();
+    let out = client_script(script, &[model(), tmp.path().display().to_string()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = stdout(&out);
+    let line = text
+        .lines()
+        .find_map(|l| l.strip_prefix("result: "))
+        .unwrap_or_else(|| panic!("no result in:\n{text}"));
+    let runs: Vec<serde_json::Value> = serde_json::from_str(line).unwrap();
+    let mut wrong = Vec::new();
+    for variant in ["exchange", "two renames", "file by file"] {
+        let v: Vec<&serde_json::Value> = runs.iter().filter(|r| r["variant"] == variant).collect();
+        let last = v.last().unwrap();
+        assert_eq!(last["sent"], false, "{last}");
+        let steps = last["steps"].as_u64().unwrap();
+        assert!(steps >= 10, "{variant}: {steps} steps");
+        assert_eq!(v.len() as u64, steps + 2, "{variant}: every step hit");
+        let mut signals = BTreeSet::new();
+        for r in &v {
+            let at = r["at"].as_u64().unwrap();
+            // Before finish: nothing saved; during the swap: the signal waits for its end.
+            let (status, dir) = match (r["sent"].as_bool().unwrap(), r["signal"].as_str()) {
+                (false, _) => (0, "new"),
+                (true, Some("SIGTERM")) => (143, if at == 0 { "old" } else { "new" }),
+                (true, Some("SIGHUP")) => (129, if at == 0 { "old" } else { "new" }),
+                (true, _) => (130, if at == 0 { "old" } else { "new" }),
+            };
+            if r["status"] != status || r["dir"] != dir || r["left"] != serde_json::json!([]) {
+                wrong.push(format!(
+                    "{variant}, {} after step {at}: exit {} (not {status}), DIR {} (not {dir}), \
+                     left beside it: {}",
+                    r["signal"].as_str().unwrap(),
+                    r["status"],
+                    r["dir"],
+                    r["left"]
+                ));
+            }
+            if at > 0 && r["sent"] == true {
+                signals.insert(r["signal"].as_str().unwrap().to_string());
+            }
+        }
+        assert_eq!(signals.len(), 3, "{variant}: {signals:?}");
+    }
+    assert!(
+        wrong.is_empty(),
+        "{} of {} runs:\n{}",
+        wrong.len(),
+        runs.len(),
+        wrong.join("\n")
+    );
+    let err = stderr(&out);
+    assert!(
+        err.contains("error: terminated")
+            && err.contains("error: interrupted")
+            && err.contains(&format!(
+                "error: the kept frames had been saved to {} before that",
+                tmp.path().join("kf").display()
+            )),
+        "{err}"
+    );
+}
+
+/// `--save-kept DIR` checked from outside: whether DIR holds its tables (`keyframes.csv`,
+/// `keyframes.json`) and a file of the user's, looked up over and over while `--overwrite` runs
+/// replace an earlier run of about 1,500 images. A reader never finds DIR without them (before,
+/// the swap deleted the earlier tables first and DIR had none for a good part of a second). A
+/// SIGTERM or SIGHUP sent with `kill` as soon as the run's tables appear in its staging folder
+/// (the swap begins) ends the run with 143 or 129, DIR either as it was or the new run's,
+/// complete (every image its tables list, in the new run's size, and no other), and no
+/// staging folder left.
+#[test]
+fn save_kept_overwrite_readers_always_find_dir_complete() {
+    if !python_ok() || !have_elements(&["jpegenc", "multifilesink", "tee"]) {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let kf = tmp.path().join("key frames");
+    let kf_s = kf.to_str().unwrap();
+    let source = |w: u32| format!("test://ball?num-buffers=1500&width={w}&height=48");
+    let out = client_module(&[
+        &source(64),
+        "--threshold",
+        "0.001",
+        "--quiet",
+        "--save-kept",
+        kf_s,
+    ]);
+    assert!(out.status.success());
+    std::fs::write(kf.join("notes.txt"), "mine").unwrap();
+    // DIR complete: the tables list every kf_* image in it, each `width` wide; notes.txt kept.
+    let complete = |width: u32| -> bool {
+        let Ok(text) = std::fs::read_to_string(kf.join("keyframes.csv")) else {
+            return false;
+        };
+        let listed: BTreeSet<String> = text
+            .lines()
+            .skip(1)
+            .map(|l| l.split(',').next().unwrap().to_string())
+            .collect();
+        let doc: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(kf.join("keyframes.json")).unwrap())
+                .unwrap();
+        let images: BTreeSet<String> = dir_names(&kf)
+            .into_iter()
+            .filter(|n| n.starts_with("kf_"))
+            .collect();
+        listed == images
+            && doc["kept"] == images.len()
+            && images.len() > 1000
+            && std::fs::read_to_string(kf.join("notes.txt")).unwrap() == "mine"
+            && images.iter().all(|n| {
+                paths::jpeg_size(&std::fs::read(kf.join(n)).unwrap()).map(|s| s.0) == Some(width)
+            })
+    };
+    assert!(complete(64));
+    let plugins = paths::plugin_dir();
+    for (i, (signal, code)) in [(None, 0), (Some("-TERM"), 143), (Some("-HUP"), 129)]
+        .into_iter()
+        .enumerate()
+    {
+        let before = snapshot(&kf);
+        let width = 80 + 16 * i as u32;
+        let mut c = command("env");
+        c.args(["--default-signal=INT,TERM,HUP", PYTHON])
+            .env("PYTHONPATH", pkg_dir())
+            .env("GST_PLUGIN_PATH", plugins.path())
+            .args(["-m", "leangate_client", &source(width)])
+            .args([
+                "--threshold",
+                "0.001",
+                "--quiet",
+                "--overwrite",
+                "--save-kept",
+                kf_s,
+            ])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped());
+        let mut child = c.spawn().expect("spawn");
+        let start = std::time::Instant::now();
+        let (mut looks, mut missing, mut sent) = (0u64, Vec::new(), false);
+        while child.try_wait().unwrap().is_none() {
+            looks += 1;
+            for n in ["keyframes.csv", "keyframes.json", "notes.txt"] {
+                if !kf.join(n).exists() {
+                    missing.push((start.elapsed().as_millis(), n));
+                }
+            }
+            if let (Some(sig), false) = (signal, sent) {
+                let swapping = staging_dirs(tmp.path())
+                    .iter()
+                    .any(|s| tmp.path().join(s).join("keyframes.json").exists());
+                if swapping {
+                    let id = child.id().to_string();
+                    assert!(Command::new("kill")
+                        .args([sig, &id])
+                        .status()
+                        .unwrap()
+                        .success());
+                    sent = true;
+                }
+            }
+            assert!(start.elapsed().as_secs() < 120, "the run did not end");
+            std::thread::sleep(std::time::Duration::from_micros(200));
+        }
+        let out = child.wait_with_output().unwrap();
+        let replaced = snapshot(&kf) != before;
+        eprintln!(
+            "run {i} ({signal:?}, {looks} looks): {}, DIR replaced: {replaced}\n{}",
+            out.status,
+            stderr(&out)
+        );
+        assert!(
+            missing.is_empty(),
+            "a reader found DIR without {:?} ({} times)",
+            missing.first(),
+            missing.len()
+        );
+        assert_eq!(staging_dirs(tmp.path()), Vec::<String>::new());
+        assert_eq!(signal.is_some(), sent, "the swap was seen");
+        // (A signal that came only once the run had ended, its summary printed, kills the
+        // process as it would any other: rare, and not what this checks.)
+        let late = std::os::unix::process::ExitStatusExt::signal(&out.status).is_some()
+            && stdout(&out).contains("summary:");
+        assert!(
+            out.status.code() == Some(code) || late,
+            "{signal:?}: {}",
+            out.status
+        );
+        if signal.is_none() || replaced {
+            assert!(complete(width), "DIR mixed: {:?}", dir_names(&kf).len());
+        }
+    }
+}
+
 /// The README's `LeanGateMeta` table names every field of the meta on a real buffer (the
 /// GstStructure names) and every key of the dict the Python client yields for it (its own
 /// column), and nothing else, so that neither can drift from the docs; each Python key is its

@@ -7,14 +7,20 @@ Output files (``leangate-client --csv``, ``reconstruct.py --json`` and ``--ply``
 ``check_output_file`` refuses, before any work, a path that is an input, lies where the run
 writes otherwise, is a directory or has no directory to go in; ``AtomicFile`` writes it to a
 temporary file beside it and moves that over it (``os.replace``) only when the run succeeded, so
-a failed or interrupted run leaves the previous file as it was."""
+a failed or interrupted run leaves the previous file as it was.
+
+Swaps: ``interrupts_deferred`` holds Ctrl-C, SIGTERM and SIGHUP back while an output is put in
+place; ``exchange`` trades two directories in one step (``--save-kept DIR``, keyframes.py)."""
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import os
 import secrets
 import signal
+import sys
 import threading
 from typing import Iterable, Iterator, List, Optional, Tuple
 
@@ -64,28 +70,92 @@ def check_output_subdir(out_dir: str, sub: str) -> None:
         )
 
 
+#: The signals that end a run (Ctrl-C, and SIGTERM and SIGHUP, which the command lines handle
+#: as Ctrl-C) and that ``interrupts_deferred`` holds back.
+DEFERRED_SIGNALS = tuple(
+    getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)
+)
+
+
 @contextlib.contextmanager
-def _sigint_deferred() -> Iterator[None]:
-    """Hold a Ctrl-C (SIGINT) back until the block is done (the few renames that swap a run's
-    output into place), then deliver it. Only the main thread can do that; elsewhere a no-op."""
+def interrupts_deferred() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT), SIGTERM and SIGHUP back until the block is done (the renames that
+    swap a run's output into place and the removal of what it replaced), then act on them as
+    their handlers would have, in the order they came (a handler that raises, such as Ctrl-C's
+    KeyboardInterrupt, ends the delivery there; the default action of SIGTERM or SIGHUP kills
+    the process, as it would have). A signal whose handler was not set from Python (C code's,
+    which cannot be restored from here) is left alone. Only the main thread can do this;
+    elsewhere a no-op."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     got: List[int] = []
+
+    def hold(sig, frame):
+        if sig not in got:
+            got.append(sig)
+
+    old = {}
     try:
-        old = signal.signal(signal.SIGINT, lambda sig, frame: got.append(sig))
+        for sig in DEFERRED_SIGNALS:
+            if signal.getsignal(sig) is not None:
+                old[sig] = signal.signal(sig, hold)
     except (ValueError, OSError):
+        for sig, h in old.items():
+            signal.signal(sig, h)
         yield
         return
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, old)
-        if got:
-            if callable(old):
-                old(signal.SIGINT, None)
-            elif old == signal.SIG_DFL:
-                os.kill(os.getpid(), signal.SIGINT)
+        for sig, h in old.items():
+            signal.signal(sig, h)
+        for sig in got:
+            h = old[sig]
+            if callable(h):
+                h(sig, None)
+            elif h == signal.SIG_DFL:
+                os.kill(os.getpid(), sig)
+
+
+# -- swapping a directory ----------------------------------------------------------------------
+_RENAME_EXCHANGE = 2  # linux/fs.h
+_renameat2: Optional[object] = None  # libc's renameat2, False when there is none
+
+
+def _libc_renameat2():
+    global _renameat2
+    if _renameat2 is None:
+        _renameat2 = False
+        if sys.platform.startswith("linux"):
+            try:
+                libc = ctypes.CDLL(None, use_errno=True)
+                f = libc.renameat2  # glibc 2.28, musl 1.2.2
+                f.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p,
+                              ctypes.c_uint]
+                f.restype = ctypes.c_int
+                _renameat2 = f
+            except (OSError, AttributeError):
+                pass
+    return _renameat2 or None
+
+
+def exchange(a: str, b: str) -> bool:
+    """Swap the two existing paths ``a`` and ``b`` (same filesystem) in one step: Linux's
+    ``renameat2(RENAME_EXCHANGE)``, so that at every instant each name is the one or the
+    other, complete. False when the system or the filesystem cannot (no renameat2: another
+    system, an old libc or kernel; a filesystem without it); OSError when it can but refuses
+    (permissions, a mount point: EBUSY, EXDEV)."""
+    f = _libc_renameat2()
+    if f is None:
+        return False
+    at_fdcwd = -100
+    if f(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
+        return False
+    raise OSError(err, os.strerror(err), a, None, b)
 
 
 # -- output files ------------------------------------------------------------------------------
@@ -219,7 +289,7 @@ class AtomicFile:
         try:
             self.close()
             if self.temp is not None:
-                with _sigint_deferred():
+                with interrupts_deferred():
                     os.replace(self.temp, self.target)
                     self.temp = None
         except BaseException:

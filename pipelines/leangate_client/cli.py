@@ -7,15 +7,15 @@ stdout is the product: one line per received frame (unless --quiet) and a ``summ
 
 With ``--save-kept DIR`` every kept frame is also written to DIR as an image (``--format jpg|png``)
 with ``keyframes.csv`` and ``keyframes.json`` of their meta, and a progress line goes to stderr.
-The run is staged beside DIR and moved into it only when it succeeds: a run that fails or is
-interrupted leaves DIR as it was. ``--csv OUT`` likewise: checked before the run (not the input,
-not inside the --save-kept DIR, its directory exists), written beside OUT and moved over it only
-when the run succeeds.
+The run is staged beside DIR, which it replaces in one step only when it succeeds: a run that
+fails or is interrupted leaves DIR as it was, and a reader sees DIR complete, old or new.
+``--csv OUT`` likewise: checked before the run (not the input, not inside the --save-kept DIR,
+its directory exists), written beside OUT and moved over it only when the run succeeds.
 
 Diagnostics go through ``logging`` to stderr (warnings by default; -v info, -vv debug).
 Exit status: 0 on success, 1 on a pipeline error, 2 on a usage/setup error (missing file,
 missing plugin, missing Python bindings, an output that cannot be written), 130 when
-interrupted (Ctrl-C), 143 on SIGTERM.
+interrupted (Ctrl-C), 143 on SIGTERM, 129 on SIGHUP.
 """
 
 from __future__ import annotations
@@ -158,8 +158,8 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
                     help="write every kept frame to DIR as kf_000000.jpg, ... with "
                     f"{CSV_NAME} and {JSON_NAME} of their meta (frame, pts_ns, utility, reason, "
                     "...); DIR is created, and must be empty unless --overwrite. The run goes to "
-                    "a staging directory beside DIR and replaces DIR's content only when it "
-                    "succeeds: a failed or interrupted run leaves DIR as it was")
+                    "a staging directory beside DIR that takes DIR's place in one step only when "
+                    "the run succeeds: a failed or interrupted run leaves DIR as it was")
     ap.add_argument("--format", choices=tuple(FORMATS), default="jpg",
                     help="image format of --save-kept (jpg: quality 95; png: lossless, "
                     "compression level 1)")
@@ -196,7 +196,8 @@ def main(
 
     # SIGTERM and SIGHUP (a service stopped, `timeout`, a closed terminal) end the run the way
     # Ctrl-C does: the pipeline is stopped and a --save-kept run leaves DIR as it was and its
-    # staging folder removed.
+    # staging folder removed. During the swap that puts the run in DIR's place all three wait
+    # for its end (_outdir.interrupts_deferred): DIR is then the new run's.
     with terminated_like_ctrl_c():
         return _run(ap, args)
 
@@ -384,4 +385,6 @@ def _failed(source: Optional[LeanGateSource], status: int) -> int:
             log.debug("while stopping: %s", e)
         if saver.discarded:
             log.error("nothing saved: %s is as it was before this run", saver.directory)
+        elif saver.committed:  # a signal during the swap waited for its end
+            log.error("the kept frames had been saved to %s before that", saver.directory)
     return status

@@ -15,18 +15,22 @@ has closed (``post-messages``), and the tables list exactly those files.
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import logging
 import os
 import re
+import secrets
 import shutil
+import stat
 import tempfile
 import threading
 from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
 
 from . import _gst
 from ._gst import PathLike, _make, _set
-from ._outdir import _sigint_deferred
+from . import _outdir
+from ._outdir import interrupts_deferred
 from .errors import PipelineError, SetupError
 from .meta import ROW_COLUMNS, csv_value, json_value, meta_dict, meta_row
 
@@ -162,6 +166,34 @@ def prepare_dir(directory: PathLike, overwrite: bool = False) -> str:
     return d
 
 
+def _unused_name(parent: str, prefix: str) -> str:
+    """A name in ``parent`` starting with ``prefix`` that nothing has (to rename a folder to)."""
+    while True:
+        p = os.path.join(parent, prefix + secrets.token_hex(4))
+        if not os.path.lexists(p):
+            return p
+
+
+def _unlink_quietly(p: str) -> None:
+    try:
+        os.unlink(p)
+    except OSError:
+        pass
+
+
+def _copy_xattrs(src: str, dst: str) -> None:
+    """Give ``dst`` the extended attributes of ``src`` (its ACLs among them), as far as allowed."""
+    try:
+        names = os.listxattr(src)
+    except (OSError, AttributeError):
+        return
+    for n in names:
+        try:
+            os.setxattr(dst, n, os.getxattr(src, n))
+        except OSError:
+            pass
+
+
 class KeptFrameSaver:
     """Writes the frames leaving `leangate` with ``keep`` set into ``directory`` as
     ``kf_000000.jpg``, ``kf_000001.jpg``, ... (or ``.png``), and at ``finish`` the tables
@@ -200,6 +232,7 @@ class KeptFrameSaver:
         self.csv_path = os.path.join(self.directory, CSV_NAME)
         self.json_path = os.path.join(self.directory, JSON_NAME)
         self.staging: Optional[str] = None  # made by attach
+        self._keep_staging = False  # the swap failed: this run's files stay in staging
         self.committed = False
         self.discarded = False
         self.limit: Optional[int] = None  # at most this many images (the source's max_frames)
@@ -215,11 +248,17 @@ class KeptFrameSaver:
         return self.committed or self.discarded
 
     def _make_staging(self) -> str:
+        """A new staging directory beside DIR (on its filesystem: the swap renames it into
+        DIR's place), or inside DIR when DIR is a mount point or its parent is on another
+        filesystem or cannot be written (then ``_commit`` moves the files in one by one)."""
         d = self.directory
-        parent = os.path.dirname(d)
+        real = os.path.realpath(d)  # DIR a symbolic link: the folder it names is replaced
+        parent = os.path.dirname(real)
         try:
-            if os.stat(parent).st_dev == os.stat(d).st_dev:
-                return tempfile.mkdtemp(prefix=f".{os.path.basename(d)}{STAGING_TAG}", dir=parent)
+            if not os.path.ismount(real) and os.stat(parent).st_dev == os.stat(real).st_dev:
+                return tempfile.mkdtemp(
+                    prefix=f".{os.path.basename(real)}{STAGING_TAG}", dir=parent
+                )
         except OSError:
             pass  # the parent cannot be written: stage inside DIR (same filesystem too)
         try:
@@ -339,32 +378,56 @@ class KeptFrameSaver:
             "frames": [{k: json_value(r[k]) for k in COLUMNS} for r in rows],
         }
         try:
-            with open(os.path.join(self.staging, CSV_NAME), "w", newline="") as f:
-                w = csv.writer(f)
-                w.writerow(COLUMNS)
-                for r in rows:
-                    w.writerow([csv_value(r[k]) for k in COLUMNS])
-            with open(os.path.join(self.staging, JSON_NAME), "w") as f:
-                json.dump(doc, f, indent=1)
-                f.write("\n")
-        except OSError as e:
-            self.discard()
-            raise PipelineError(
-                f"cannot write the kept frames' meta: {e}; {self.directory} is left as it was"
-            ) from None
-        self._commit([r["image"] for r in rows])
+            try:
+                with open(os.path.join(self.staging, CSV_NAME), "w", newline="") as f:
+                    w = csv.writer(f)
+                    w.writerow(COLUMNS)
+                    for r in rows:
+                        w.writerow([csv_value(r[k]) for k in COLUMNS])
+                with open(os.path.join(self.staging, JSON_NAME), "w") as f:
+                    json.dump(doc, f, indent=1)
+                    f.write("\n")
+            except OSError as e:
+                raise PipelineError(
+                    f"cannot write the kept frames' meta: {e}; {self.directory} is left as it was"
+                ) from None
+            self._commit([r["image"] for r in rows])
+        except BaseException:
+            # Ctrl-C, SIGTERM or SIGHUP before the swap (during it they wait for its end), or
+            # an error: nothing saved, the staging directory removed. A swap that failed
+            # (PipelineError naming the staging directory) keeps this run's files there.
+            if not self.committed:
+                self.discard()
+            raise
         log.info("wrote %d images, %s and %s to %s", len(rows), CSV_NAME, JSON_NAME,
                  self.directory)
 
     def _commit(self, images: List[str]) -> None:
-        """Swap the staged run into ``directory``: the earlier tables go first (so that an
-        interrupted swap leaves no table claiming a complete set), then the images are moved
-        in, the earlier images this run did not replace are deleted, and the tables come last."""
+        """Put the staged run (``images`` and the tables, all in ``staging``) in ``directory``'s
+        place. Ctrl-C, SIGTERM and SIGHUP wait for the end of it (``interrupts_deferred``).
+
+        With the staging directory beside DIR (the usual case) the swap is all at once for a
+        reader: the files of DIR that are not the earlier run's output are hard-linked into
+        the staging directory (folders and what cannot be linked are moved across right after
+        the swap), which gets DIR's mode and owner, and then trades places with DIR in one
+        ``renameat2(RENAME_EXCHANGE)`` (Linux), so that DIR is at every instant either the
+        earlier complete folder or the new complete one, tables included. Where the system
+        cannot exchange, two renames do it (DIR aside, the staging directory in its place),
+        and DIR is missing, never mixed, for the instant between them. Then the earlier folder
+        is emptied of what the earlier run wrote and removed.
+
+        With the staging directory inside DIR (DIR is a mount point, or its parent is on
+        another filesystem or cannot be written), or when DIR's owner cannot be given to a
+        new folder, the files are moved in one by one: the earlier tables go first (so that
+        an interrupted swap leaves no table claiming a complete set), then the images, the
+        earlier images this run did not replace are deleted, and the tables come last."""
         d, staging = self.directory, self.staging
         assert staging is not None
         try:
-            old, strange = earlier_output(d, sorted(os.listdir(d)))
+            entries = sorted(os.listdir(d))
+            old, strange = earlier_output(d, entries)
         except OSError as e:
+            self._keep_staging = True
             raise PipelineError(
                 f"cannot move the kept frames into {d}: {e}; this run's images and tables are "
                 f"in {staging}"
@@ -380,44 +443,153 @@ class KeptFrameSaver:
                 f"({_shown(old + strange)}; another run saving into it?): not replaced without "
                 "--overwrite (overwrite=True); this run's images and tables are discarded"
             )
-        try:
-            if strange:  # appeared during the run
-                raise OSError(f"{d} now holds files the client did not write: {_shown(strange)}")
-            with _sigint_deferred():
-                for n in (JSON_NAME, CSV_NAME):
-                    if n in old:
-                        os.unlink(os.path.join(d, n))
-                for n in images:
-                    os.replace(os.path.join(staging, n), os.path.join(d, n))
-                new = set(images)
-                for n in old:
-                    if n not in new and n not in (CSV_NAME, JSON_NAME):
-                        os.unlink(os.path.join(d, n))
-                for n in (CSV_NAME, JSON_NAME):
-                    os.replace(os.path.join(staging, n), os.path.join(d, n))
-        except OSError as e:
-            raise PipelineError(
-                f"cannot move the kept frames into {d}: {e}; this run's images and tables are "
-                f"in {staging}"
-            ) from None
-        self.committed = True
-        shutil.rmtree(staging, ignore_errors=True)
+        with interrupts_deferred():
+            try:
+                if strange:  # appeared during the run
+                    raise OSError(
+                        f"{d} now holds files the client did not write: {_shown(strange)}"
+                    )
+                replaced = self._swap(d, staging, entries, old)
+                if replaced is None:
+                    self._move_in(d, staging, images, old)
+            except OSError as e:
+                self._keep_staging = True
+                raise PipelineError(
+                    f"cannot move the kept frames into {d}: {e}; this run's images and tables "
+                    f"are in {staging}"
+                ) from None
+            self.committed = True
+            if replaced is not None:
+                self._remove_replaced(d, replaced, old)
+            else:
+                shutil.rmtree(staging, ignore_errors=True)
         if old:
             log.info("replaced an earlier run's output in %s (%d files)", d, len(old))
 
+    def _swap(self, d: str, staging: str, entries: List[str], old: List[str]) -> Optional[str]:
+        """Trade DIR for the staging directory beside it (see ``_commit``); return where the
+        earlier DIR now is, or None when the swap cannot be done (staging inside DIR, DIR's
+        owner cannot be kept) and nothing was changed. OSError when it failed: DIR is then as
+        it was."""
+        real = os.path.realpath(d)
+        if os.path.dirname(staging) != os.path.dirname(real):
+            return None  # staged inside DIR
+        st, sst = os.stat(real), os.stat(staging)
+        if (st.st_uid, st.st_gid) != (sst.st_uid, sst.st_gid):
+            try:
+                os.chown(staging, st.st_uid, st.st_gid)
+            except OSError:
+                return None  # a new folder would not be DIR's owner's
+        own = set(old)
+        linked = []
+        for n in entries:
+            if n in own:
+                continue
+            src = os.path.join(real, n)
+            try:
+                if not os.path.isdir(src) or os.path.islink(src):
+                    os.link(src, os.path.join(staging, n), follow_symlinks=False)
+                    linked.append(n)
+            except OSError:
+                pass  # moved across after the swap
+        _copy_xattrs(real, staging)
+        os.chmod(staging, stat.S_IMODE(st.st_mode))  # last: DIR's mode may forbid writing
+        try:
+            cwd_is_dir = os.path.samestat(os.stat("."), st)
+        except OSError:
+            cwd_is_dir = False
+        try:
+            if _outdir.exchange(staging, real):
+                replaced = staging
+            else:  # no exchange here: DIR aside, the staging directory in its place
+                replaced = _unused_name(
+                    os.path.dirname(real), f".{os.path.basename(real)}{STAGING_TAG}"
+                )
+                os.rename(real, replaced)
+                try:
+                    os.rename(staging, real)
+                except OSError:
+                    os.rename(replaced, real)
+                    raise
+        except OSError as e:
+            os.chmod(staging, 0o700)
+            for n in linked:  # the links are this run's; DIR keeps its files
+                _unlink_quietly(os.path.join(staging, n))
+            if e.errno in (errno.EACCES, errno.EPERM, errno.EBUSY):
+                return None  # DIR cannot be renamed: file by file
+            raise
+        if cwd_is_dir:  # this process stood in DIR: it follows DIR to the new folder
+            os.chdir(real)
+        return replaced
+
+    def _remove_replaced(self, d: str, replaced: str, old: List[str]) -> None:
+        """Empty the earlier DIR (at ``replaced`` after the swap) and remove it: the earlier
+        run's output is deleted; what else it holds (a folder, a file that could not be
+        linked, one made during the swap) is moved into the new DIR; a second link of a file
+        the new DIR has is dropped. Anything that cannot go is left there, with a warning."""
+        real = os.path.realpath(d)
+        own = set(old)
+        try:
+            names = os.listdir(replaced)
+        except OSError as e:
+            log.warning("cannot list the replaced folder %s: %s", replaced, e.strerror)
+            return
+        # The earlier tables last: a reader that opened the earlier DIR just before the swap
+        # finds them as long as its images are there.
+        names.sort(key=lambda n: n in (CSV_NAME, JSON_NAME))
+        left = []
+        for n in names:
+            p, q = os.path.join(replaced, n), os.path.join(real, n)
+            try:
+                if n in own:
+                    os.unlink(p)
+                elif os.path.lexists(q):
+                    if os.path.samestat(os.lstat(p), os.lstat(q)):
+                        os.unlink(p)  # the same file, linked into the new DIR
+                    else:
+                        left.append(n)
+                else:
+                    os.rename(p, q)
+            except OSError:
+                left.append(n)
+        try:
+            os.rmdir(replaced)
+        except OSError:
+            log.warning(
+                "%s holds what was in %s and could not be moved back (%s): look there",
+                replaced, d, _shown(sorted(left)) or "?",
+            )
+
+    def _move_in(self, d: str, staging: str, images: List[str], old: List[str]) -> None:
+        """The swap file by file (staging inside DIR): see ``_commit``."""
+        for n in (JSON_NAME, CSV_NAME):
+            if n in old:
+                os.unlink(os.path.join(d, n))
+        for n in images:
+            os.replace(os.path.join(staging, n), os.path.join(d, n))
+        new = set(images)
+        for n in old:
+            if n not in new and n not in (CSV_NAME, JSON_NAME):
+                os.unlink(os.path.join(d, n))
+        for n in (CSV_NAME, JSON_NAME):
+            os.replace(os.path.join(staging, n), os.path.join(d, n))
+
     def discard(self) -> None:
         """The run failed or was interrupted: delete the staging directory and leave
-        ``directory`` as it was before (removed again when this saver created it)."""
-        if self.done:
+        ``directory`` as it was before (removed again when this saver created it). Not after
+        ``finish`` (done), nor when its swap failed (this run's files stay in the staging
+        directory its error named)."""
+        if self.done or self._keep_staging:
             return
         self.discarded = True
         with self._lock:
             self.rows = []
-        if self.staging is not None:
-            shutil.rmtree(self.staging, ignore_errors=True)
-        for p in self._created:
-            try:
-                os.rmdir(p)
-            except OSError:
-                break
+        with interrupts_deferred():  # a second Ctrl-C does not leave half a staging folder
+            if self.staging is not None:
+                shutil.rmtree(self.staging, ignore_errors=True)
+            for p in self._created:
+                try:
+                    os.rmdir(p)
+                except OSError:
+                    break
         log.info("nothing saved: %s is as it was before this run", self.directory)

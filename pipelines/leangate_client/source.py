@@ -344,6 +344,9 @@ class LeanGateSource:
         self._bus = None
         self._started = False
         self._closed = False  # close() was called: the source does not run (again)
+        # One close() at a time (another thread's waits): a close() that finds the pipeline
+        # gone discards a run no earlier close() finished, which must not be one still closing.
+        self._close_lock = threading.RLock()
         # the run did not complete (an exception left the iteration or the `with` block, or
         # start failed): close() then discards the saved frames instead of committing them
         self._aborted = False
@@ -627,11 +630,16 @@ class LeanGateSource:
         failed. When the run did not complete (a pipeline error, or an exception, such as
         KeyboardInterrupt, that left the iteration or the ``with`` block), nothing is saved:
         the directory is left as it was."""
+        with self._close_lock:
+            self._close()
+
+    def _close(self) -> None:
         if self._pipeline is None:
-            if not self._closed:
-                self._closed = True
-                if self.saver is not None:  # never ran: nothing to save
-                    self.saver.discard()
+            self._closed = True
+            if self.saver is not None:
+                # Never ran, or an earlier close() was interrupted (Ctrl-C, SIGTERM) before it
+                # could finish: nothing to save (a no-op after finish or discard).
+                self.saver.discard()
             return
         self._closed = True
         Gst = _gst.Gst
