@@ -17,37 +17,33 @@
 //! 7. otherwise drop (reason `score`).
 //!
 //! Sharper keyframes (each frame's sharpness given to [`Gate::decide_with`]; without it, the
-//! oracle or a model failure, nothing below applies):
-//! - Sharpest of the recent frames ([`GateConfig::sharpness_lookback`] > 0): a keep due on score
-//!   (rule 5) on a frame blurrier than [`LOOKBACK_RATIO`] of the sharpest usable frame among the
-//!   `sharpness_lookback` frames before it (dropped since the last keep) goes to that sharper
-//!   frame instead: [`Decision::kept_back`] says how many frames back it is, the current frame is
-//!   dropped (reason `score`), and the earlier frame is kept with reason `sharper` and becomes the
-//!   reference. The element holds that many frames to make this possible (its latency grows by as
-//!   many frame durations). Only frames whose utility came within [`LOOKBACK_NEAR`] of the
-//!   threshold are candidates: a keep goes back to a frame that was nearly due itself, not to
-//!   one that saw little new (on fast motion, where the utility leaps from frame to frame, there
-//!   is then nothing to go back to, and the keep is made where it fell due).
-//! - With a look-back, [`GateConfig::sharpness_margin`] > 0 and no
-//!   [`GateConfig::sharpness_wait`] (the element's default): a keep due on score on a blurred
-//!   frame (below [`SHARPER_RATIO`] of the sharpest of the [`SHARPNESS_HISTORY`] frames before
-//!   it) is not made while the utility is below `threshold + sharpness_margin`: the frame is
-//!   dropped with reason `deferred` (and held as a candidate), and the keep falls to the next
-//!   frame that is not so blurred or whose utility passes the margin, and from there, through
-//!   the look-back, to the sharpest nearly-due frame held. Never past `max_gap` drops.
-//! - With [`GateConfig::sharpness_wait`] > 0 as well, the keep settles that many frames later:
-//!   the due frame and the next `sharpness_wait - 1` are dropped with reason `deferred` (whatever
-//!   their utility: the keep was due) and held as candidates, and the frame after them is kept
-//!   unless it is blurrier than [`LOOKBACK_RATIO`] of the sharpest candidate still held, which is
-//!   kept instead (before or after the due frame). So the keep goes to the sharpest frame of a
-//!   window around the due frame. A frame whose utility has reached [`settle_cap`] (halfway to
-//!   a late keep) settles the keep at once, the same way.
-//! - [`GateConfig::sharpness_wait`] alone (no look-back, no buffering): a keep due on a frame
-//!   blurrier than [`SHARPER_RATIO`] of the sharpest of the [`SHARPNESS_HISTORY`] frames before
-//!   it waits, the frame dropped with reason `deferred`, and goes to the first following frame
-//!   that is not that blurry, or to the last one the wait allows.
-//!
-//! Keeps for any other reason end a wait.
+//! oracle or a model failure, nothing below applies). One rule: **a keep due on score goes to
+//! the sharpest nearly-due frame still held, and is never owed past the frames held.**
+//! - *Where a keep goes.* With a look-back ([`GateConfig::sharpness_lookback`] > 0) the caller
+//!   holds that many frames, and the gate remembers which of them were dropped with a utility
+//!   within [`LOOKBACK_NEAR`] of the threshold (the candidates: frames that were nearly due
+//!   themselves, not ones that saw little new). A keep made on score stays on the frame in hand
+//!   when that frame is nearly due and at least [`LOOKBACK_RATIO`] as sharp as the sharpest
+//!   candidate held; otherwise it goes to that candidate: [`Decision::kept_back`] says how many
+//!   frames back, the frame in hand is dropped, and the earlier one is kept with reason
+//!   `sharper` and becomes the reference.
+//! - *When a keep waits.* A keep due on score may be owed instead of made at once: the frame is
+//!   dropped with reason `deferred` (and is a candidate), and each later frame either settles the
+//!   keep (then it goes where the first point says) or waits too. Which frames wait:
+//!   - the blur margin (a look-back, [`GateConfig::sharpness_margin`] > 0, no
+//!     [`GateConfig::sharpness_wait`]; the element's default): a frame that is blurred (below
+//!     [`SHARPER_RATIO`] of the sharpest of the [`SHARPNESS_HISTORY`] frames before it) while
+//!     its utility is below `threshold + sharpness_margin`;
+//!   - the settle (a look-back and `sharpness_wait` > 0): the first `sharpness_wait` frames from
+//!     the due one, unless a frame's utility reaches [`settle_cap`] (halfway to a late keep);
+//!   - the wait alone (`sharpness_wait` > 0, no look-back, nothing held): a blurred frame, at
+//!     most `sharpness_wait` of them (blurred against the frames before the wait); the keep
+//!     lands on the frame that settles it.
+//! - *Never owed past what is held.* An owed keep settles, whatever the rules above say, at
+//!   `max_gap` drops, on the last frame before the due frame would leave the frames held, and
+//!   when the caller lets the held frames go (end of stream, a new segment or caps:
+//!   [`Gate::settle_pending`]). A keep for any other reason (first, forced, warm-up, error,
+//!   max-gap) is made where it falls and ends a wait.
 //!
 //! Every kept frame becomes the new reference.
 
@@ -208,21 +204,33 @@ pub struct Gate {
     since_keyframe: u64,
     force_next: bool,
     kept: u64,
-    /// Sharpness of the last usable frames, newest last.
+    /// Sharpness of the last usable frames, newest last (without those a wait alone went
+    /// through: [`Gate::defer`]).
     sharpness: std::collections::VecDeque<f64>,
-    /// Frames a due keep has waited for a sharper frame (0: none waiting).
-    waited: u64,
-    /// A keep fell due on a blurred frame within [`GateConfig::sharpness_margin`] and has not
-    /// been made yet (the stream's end settles it: [`Gate::settle_pending`]).
-    margin_due: bool,
+    /// The position of the frame a keep fell due on that has not been made yet (it waits for a
+    /// sharper frame); `None`: no keep is owed.
+    owed: Option<u64>,
     /// Frames decided so far (junk included): the position of the next frame.
     position: u64,
-    /// (position, sharpness) of the recent frames dropped on score since the last keep, the
-    /// candidates of [`GateConfig::sharpness_lookback`], oldest first.
+    /// (position, sharpness) of the nearly-due frames dropped since the last keep that are still
+    /// held, the candidates a keep may go to, oldest first.
     candidates: std::collections::VecDeque<(u64, f64)>,
-    /// The look-back in force at the last decision: the frames before the next one that are
-    /// still held (the element let older ones go then), so the farthest a keep may go back.
+    /// The look-back in force at the last decision: how many of the frames before the next one
+    /// the caller still holds (it let older ones go then), so the farthest a keep may go back.
     held: u64,
+}
+
+/// How a keep due on score waits for a sharper frame (from [`GateConfig`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Wait {
+    /// Made at once (possibly on a sharper held frame).
+    Never,
+    /// While the frame is blurred and within `threshold + sharpness_margin` (look-back).
+    Margin,
+    /// `sharpness_wait` frames from the due one (look-back).
+    Settle,
+    /// While the frame is blurred, at most `sharpness_wait` frames (nothing held).
+    Blurred,
 }
 
 impl Gate {
@@ -235,8 +243,7 @@ impl Gate {
             force_next: false,
             kept: 0,
             sharpness: std::collections::VecDeque::with_capacity(SHARPNESS_HISTORY + 1),
-            waited: 0,
-            margin_due: false,
+            owed: None,
             position: 0,
             candidates: std::collections::VecDeque::new(),
             held: 0,
@@ -271,7 +278,7 @@ impl Gate {
     }
 
     /// Whether `max_gap` drops in a row were made since the last keep: the next frame is kept
-    /// (`max-gap`), or, when a keep is due on its score, kept without waiting for a sharper one.
+    /// (`max-gap`), or, when a keep is due or owed, that keep is made without waiting.
     fn gap_reached(&self) -> bool {
         self.cfg.max_gap > 0 && self.since_keyframe >= self.cfg.max_gap
     }
@@ -281,8 +288,7 @@ impl Gate {
         self.has_reference = false;
         self.since_keyframe = 0;
         self.sharpness.clear();
-        self.waited = 0;
-        self.margin_due = false;
+        self.owed = None;
         self.candidates.clear();
     }
 
@@ -298,9 +304,17 @@ impl Gate {
         self.position
     }
 
-    /// The recent frames can no longer be kept instead of a later one (the element let them go).
+    /// The caller let the held frames go without their owed keep ([`Gate::settle_pending`]
+    /// first when they leave downstream): no keep can go to them, and none is owed any more.
     pub fn forget_candidates(&mut self) {
         self.candidates.clear();
+        self.owed = None;
+    }
+
+    /// `n` keeps the gate counted never left the caller (held frames a flush discarded): the
+    /// count, and so the next keyframe index, goes back by as many.
+    pub fn discard_kept(&mut self, n: u64) {
+        self.kept = self.kept.saturating_sub(n);
     }
 
     /// Keep the next frame whatever its score (`leangate-force-keyframe`).
@@ -313,15 +327,20 @@ impl Gate {
         self.decide_with(score, None)
     }
 
-    /// Decide the fate of the next frame, given its sharpness
-    /// ([`crate::quality::sharpness`]) for [`GateConfig::sharpness_wait`].
-    pub fn decide_with(&mut self, score: Score, sharpness: Option<f64>) -> Decision {
-        let position = self.position;
-        self.position += 1;
-        let lookback = self.cfg.sharpness_lookback.min(MAX_LOOKBACK);
-        // A look-back raised since the last frame reaches no further back than what is held.
-        let reach = lookback.min(self.held);
-        self.held = lookback;
+    /// How a keep due on score waits, from the configuration.
+    fn wait_rule(&self) -> Wait {
+        let lookback = self.cfg.sharpness_lookback.min(MAX_LOOKBACK) > 0;
+        match (lookback, self.cfg.sharpness_wait > 0) {
+            (true, true) => Wait::Settle,
+            (true, false) if self.cfg.sharpness_margin > 0.0 => Wait::Margin,
+            (false, true) => Wait::Blurred,
+            _ => Wait::Never,
+        }
+    }
+
+    /// Drop the candidates the caller no longer holds: with `reach` frames held before
+    /// `position`, those before `position - reach`.
+    fn prune(&mut self, position: u64, reach: u64) {
         while self
             .candidates
             .front()
@@ -329,10 +348,45 @@ impl Gate {
         {
             self.candidates.pop_front();
         }
+    }
+
+    /// Decide the fate of the next frame, given its sharpness
+    /// ([`crate::quality::sharpness`]) for the sharpness rules (module doc).
+    pub fn decide_with(&mut self, score: Score, sharpness: Option<f64>) -> Decision {
+        let position = self.position;
+        self.position += 1;
+        let lookback = self.cfg.sharpness_lookback.min(MAX_LOOKBACK);
+        // A look-back raised since the last frame reaches no further back than what is held.
+        let reach = lookback.min(self.held);
+        self.held = lookback;
+        self.prune(position, reach);
+        let decision = self.decide_frame(position, reach, score, sharpness);
+        // What the caller holds after this frame: the candidates follow it.
+        self.prune(self.position, lookback);
+        decision
+    }
+
+    fn decide_frame(
+        &mut self,
+        position: u64,
+        reach: u64,
+        score: Score,
+        sharpness: Option<f64>,
+    ) -> Decision {
+        let lookback = self.cfg.sharpness_lookback.min(MAX_LOOKBACK) > 0;
         if score == Score::Junk {
-            // Not a frame of the stream's pictures: no reference, warm-up or keep changes.
+            // Not a frame of the stream's pictures: no reference, warm-up or keep changes, but
+            // an owed keep is made before its due frame leaves the frames held.
             if self.has_reference {
                 self.since_keyframe += 1;
+            }
+            if let (Some(q), true) = (self.owed, lookback) {
+                if position - q >= reach || self.gap_reached() {
+                    if let Some((p, _)) = self.sharpest_candidate() {
+                        return self.keep_back(position, p, Reason::Junk);
+                    }
+                    self.owed = None;
+                }
             }
             return Decision {
                 keep: false,
@@ -343,7 +397,11 @@ impl Gate {
                 candidate: false,
             };
         }
-        let mut reason = if score == Score::Failed && !self.has_reference {
+        let utility = match score {
+            Score::Utility(u) if u.is_finite() => Some(u),
+            _ => None,
+        };
+        let reason = if score == Score::Failed && !self.has_reference {
             // An unreadable frame with no reference (the stream's first, or one after another
             // unreadable frame) is kept as what it is: it cannot become the reference.
             Some(Reason::Error)
@@ -354,69 +412,46 @@ impl Gate {
         } else if self.frames_since_restart < self.cfg.warmup {
             Some(Reason::Warmup)
         } else {
-            match score {
-                Score::Failed => Some(Reason::Error),
-                Score::Utility(u) if !u.is_finite() => Some(Reason::Error),
-                Score::Utility(u) if u >= self.cfg.threshold => Some(Reason::Score),
-                _ if self.gap_reached() => Some(Reason::MaxGap),
+            match utility {
+                None => Some(Reason::Error),
+                Some(u) if u >= self.cfg.threshold => Some(Reason::Score),
                 _ => None,
             }
         };
-        // With a look-back, a keep due on a blurred frame within the margin waits for a sharper
-        // frame (or a clearly due one); this frame stays a candidate to go back to.
-        let mut margin_wait = false;
-        if let (Some(Reason::Score), Score::Utility(u)) = (reason, score) {
-            margin_wait = lookback > 0
-                && self.cfg.sharpness_wait == 0
-                && u < self.cfg.threshold + self.cfg.sharpness_margin
-                && !self.gap_reached()
-                && self.blurred(sharpness);
-            if margin_wait {
-                reason = None;
-                self.margin_due = true;
-            }
-        }
-        // A keep due on score (now, or settling since an earlier frame) with a look-back: it
-        // settles `sharpness_wait` frames later, on the sharpest frame held. Never past
-        // `max_gap` drops: a keep due then is made now (or goes back), not deferred.
-        let due = reason == Some(Reason::Score) || (reason.is_none() && self.waited > 0);
-        let gap_due = self.gap_reached();
-        if due && lookback > 0 {
-            if let (Some(s), Some((p, b))) = (sharpness, self.sharpest_candidate()) {
-                let cap = settle_cap(self.cfg.threshold);
-                let near_late = matches!(score, Score::Utility(u) if u >= cap);
-                if self.waited < self.cfg.sharpness_wait && !near_late && !gap_due {
-                    return self.settle_later(position, s);
+        let nearly_due = utility.is_some_and(|u| u >= self.cfg.threshold - LOOKBACK_NEAR);
+        // A keep due on score now, or owed since an earlier frame and not overtaken by a keep
+        // for another reason.
+        let due = reason == Some(Reason::Score) || (reason.is_none() && self.owed.is_some());
+        let reason = match (reason, due, sharpness) {
+            (_, true, Some(s)) => {
+                let q = self.owed.unwrap_or(position);
+                if self.waits(q, position, reach, utility, s) {
+                    return self.defer(q, s, nearly_due && lookback);
                 }
-                if s < LOOKBACK_RATIO * b {
-                    return self.keep_back(position, p, s);
+                // Settled here: on the sharpest nearly-due frame held.
+                if let Some((p, b)) = self.sharpest_candidate() {
+                    if !nearly_due || s < LOOKBACK_RATIO * b {
+                        self.remember_sharpness(Some(s));
+                        return self.keep_back(position, p, Reason::Score);
+                    }
                 }
+                Some(Reason::Score)
             }
-            reason = Some(Reason::Score);
-        }
-        // Without a look-back, a keep due on a blurred frame waits for a sharper one.
-        let mut deferred = false;
-        if due && lookback == 0 && self.cfg.sharpness_wait > 0 {
-            if self.blurred(sharpness) && self.waited < self.cfg.sharpness_wait && !gap_due {
-                reason = None;
-                deferred = true;
-                self.waited += 1;
-            } else {
-                reason = Some(Reason::Score);
-            }
-        }
-        // The frames a keep waits through are not the baseline they are compared with: a run of
-        // blurred frames must not become the measure of what is sharp.
-        if !deferred {
-            self.remember_sharpness(sharpness);
-        }
+            // An owed keep and a frame without sharpness: to the sharpest candidate held.
+            (None, true, None) => match self.sharpest_candidate() {
+                Some((p, _)) => return self.keep_back(position, p, Reason::Score),
+                None => Some(Reason::Score),
+            },
+            (None, false, _) if self.gap_reached() => Some(Reason::MaxGap),
+            (r, _, _) => r,
+        };
+        self.remember_sharpness(sharpness);
         self.frames_since_restart = self.frames_since_restart.saturating_add(1);
         match reason {
             Some(reason) => {
                 self.has_reference = true;
                 self.candidates.clear();
-                self.waited = 0;
-                self.margin_due = false;
+                self.owed = None;
                 self.force_next = false;
                 self.since_keyframe = 0;
                 self.kept += 1;
@@ -431,19 +466,13 @@ impl Gate {
             }
             None => {
                 self.since_keyframe += 1;
-                let near = matches!(score, Score::Utility(u)
-                    if u >= self.cfg.threshold - LOOKBACK_NEAR);
-                let candidate = sharpness.is_some() && !deferred && lookback > 0 && near;
+                let candidate = sharpness.is_some() && lookback && nearly_due;
                 if let (Some(s), true) = (sharpness, candidate) {
                     self.candidates.push_back((position, s));
                 }
                 Decision {
                     keep: false,
-                    reason: if deferred || margin_wait {
-                        Reason::Deferred
-                    } else {
-                        Reason::Score
-                    },
+                    reason: Reason::Score,
                     keyframe_index: self.kept,
                     frames_since_keyframe: self.since_keyframe,
                     kept_back: 0,
@@ -453,27 +482,76 @@ impl Gate {
         }
     }
 
-    /// The stream ends (EOS) while a keep due on score waits to settle
-    /// ([`GateConfig::sharpness_wait`] with a look-back, or a blurred frame within
-    /// [`GateConfig::sharpness_margin`]): it settles now, on the sharpest frame held (the due
-    /// one or a later one). Returns how many frames before the last decided frame
-    /// that one is (0: the last) and its keyframe index; `None` when no keep waits.
-    pub fn settle_pending(&mut self) -> Option<(u64, u64)> {
-        if self.waited == 0 && !self.margin_due {
-            return None;
+    /// Whether the keep due since position `q` waits on this frame (at `position`, utility
+    /// `u`, sharpness `s`) rather than settling here (module doc, "When a keep waits").
+    fn waits(&self, q: u64, position: u64, reach: u64, u: Option<f64>, s: f64) -> bool {
+        if self.gap_reached() {
+            return false;
         }
-        let (p, _) = self.sharpest_candidate()?;
+        let waited = position - q;
+        let below = |limit: f64| u.is_none_or(|u| u < limit);
+        match self.wait_rule() {
+            Wait::Never => false,
+            Wait::Margin => {
+                waited < reach
+                    && self.blurred(Some(s))
+                    && below(self.cfg.threshold + self.cfg.sharpness_margin)
+            }
+            Wait::Settle => {
+                waited < self.cfg.sharpness_wait.min(reach) && below(settle_cap(self.cfg.threshold))
+            }
+            Wait::Blurred => waited < self.cfg.sharpness_wait && self.blurred(Some(s)),
+        }
+    }
+
+    /// The keep due since `q` waits: this frame (sharpness `s`) is dropped as `deferred`, a
+    /// candidate when `candidate`. It joins the measure of what is sharp unless nothing is held
+    /// (the wait alone, which may outlast [`SHARPNESS_HISTORY`]: a run of blurred frames must not
+    /// become the measure of what is sharp); with a look-back the wait ends within the frames
+    /// held, and the keep goes to the sharpest of them anyway.
+    fn defer(&mut self, q: u64, s: f64, candidate: bool) -> Decision {
+        let position = self.position - 1;
+        if self.wait_rule() != Wait::Blurred {
+            self.remember_sharpness(Some(s));
+        }
+        self.owed = Some(q);
+        self.frames_since_restart = self.frames_since_restart.saturating_add(1);
+        self.since_keyframe += 1;
+        if candidate {
+            self.candidates.push_back((position, s));
+        }
+        Decision {
+            keep: false,
+            reason: Reason::Deferred,
+            keyframe_index: self.kept,
+            frames_since_keyframe: self.since_keyframe,
+            kept_back: 0,
+            candidate,
+        }
+    }
+
+    /// The caller lets the held frames go (end of stream, a new segment or caps, the look-back
+    /// switched off) while a keep is owed: it is made now, on the sharpest candidate still held.
+    /// Returns how many frames before the last decided frame that one is (0: the last) and its
+    /// keyframe index; `None` when no keep is owed.
+    pub fn settle_pending(&mut self) -> Option<(u64, u64)> {
+        self.owed?;
+        self.prune(self.position, self.held);
         let last = self.position.checked_sub(1)?;
+        let Some((p, _)) = self.sharpest_candidate() else {
+            self.owed = None;
+            return None;
+        };
         self.candidates.clear();
-        self.waited = 0;
-        self.margin_due = false;
+        self.owed = None;
         self.force_next = false;
+        self.has_reference = true;
         self.since_keyframe = last - p;
         self.kept += 1;
         Some((last - p, self.kept))
     }
 
-    /// The sharpest candidate of the look-back (the earliest of equals).
+    /// The sharpest candidate still held (the earliest of equals).
     fn sharpest_candidate(&self) -> Option<(u64, f64)> {
         self.candidates
             .iter()
@@ -484,40 +562,26 @@ impl Gate {
             })
     }
 
-    /// The keep due settles on a later frame: this one (sharpness `s`) is dropped as `deferred`
-    /// and held as a candidate.
-    fn settle_later(&mut self, position: u64, s: f64) -> Decision {
-        self.waited += 1;
-        self.remember_sharpness(Some(s));
-        self.frames_since_restart = self.frames_since_restart.saturating_add(1);
-        self.since_keyframe += 1;
-        self.candidates.push_back((position, s));
-        Decision {
-            keep: false,
-            reason: Reason::Deferred,
-            keyframe_index: self.kept,
-            frames_since_keyframe: self.since_keyframe,
-            kept_back: 0,
-            candidate: true,
+    /// The keep due on this frame (dropped with `reason`) goes to the candidate at `p`.
+    fn keep_back(&mut self, position: u64, p: u64, reason: Reason) -> Decision {
+        if reason != Reason::Junk {
+            self.frames_since_restart = self.frames_since_restart.saturating_add(1);
         }
-    }
-
-    /// The keep due on this frame (sharpness `s`, dropped) goes to the candidate at `p`.
-    fn keep_back(&mut self, position: u64, p: u64, s: f64) -> Decision {
-        self.remember_sharpness(Some(s));
-        self.frames_since_restart = self.frames_since_restart.saturating_add(1);
         self.candidates.clear();
-        self.waited = 0;
-        self.margin_due = false;
+        self.owed = None;
         self.force_next = false;
         // This frame was compared with the reference before the keep: its count is from there;
         // the next frames count from the frame kept instead.
-        let compared = self.since_keyframe + 1;
+        let compared = if reason == Reason::Junk {
+            self.since_keyframe
+        } else {
+            self.since_keyframe + 1
+        };
         self.since_keyframe = position - p;
         self.kept += 1;
         Decision {
             keep: false,
-            reason: Reason::Score,
+            reason,
             keyframe_index: self.kept,
             frames_since_keyframe: compared,
             kept_back: position - p,
@@ -846,7 +910,7 @@ mod tests {
         assert_eq!(step(&mut g, 0.55, 30.0).1, Reason::Deferred);
         g.force_keyframe();
         assert_eq!(step(&mut g, 0.6, 30.0), (true, Reason::Forced, 0, 0));
-        // Nothing held to compare with (the due frame follows a keep): kept at once.
+        // A due frame halfway to a late keep right after a keep: nothing to wait for.
         assert_eq!(step(&mut g, 0.6, 30.0), (true, Reason::Score, 0, 0));
         // Without a look-back the wait keeps its own rule: the first frame not blurred.
         let mut w = Gate::new(GateConfig {
@@ -917,7 +981,7 @@ mod tests {
         step(&mut g, 0.2, 100.0);
         assert!(step(&mut g, 0.52, 10.0).0);
         // With sharpness-wait (the settle mode, which has its own rule) or without a look-back
-        // the margin does nothing.
+        // the margin does nothing: the settle waits its length whatever the sharpness...
         let mut g = Gate::new(GateConfig {
             sharpness_margin: 0.05,
             sharpness_wait: 2,
@@ -925,7 +989,9 @@ mod tests {
         });
         g.decide(Score::NoReference);
         step(&mut g, 0.2, 100.0);
-        assert_eq!(step(&mut g, 0.52, 10.0), (true, Reason::Score, 0));
+        assert_eq!(step(&mut g, 0.52, 100.0), (false, Reason::Deferred, 0));
+        assert_eq!(step(&mut g, 0.53, 100.0), (false, Reason::Deferred, 0));
+        assert_eq!(step(&mut g, 0.53, 100.0), (true, Reason::Score, 0));
         let mut g = Gate::new(GateConfig {
             sharpness_margin: 0.05,
             sharpness_lookback: 0,
@@ -961,6 +1027,101 @@ mod tests {
         }
         g.decide_with(Score::Utility(0.45), Some(10.0));
         assert_eq!(g.decide_with(Score::Utility(0.6), Some(5.0)).kept_back, 11);
+    }
+
+    fn margin_gate() -> Gate {
+        Gate::new(GateConfig {
+            sharpness_lookback: 3,
+            sharpness_margin: 0.05,
+            ..Default::default()
+        })
+    }
+
+    /// (keep, reason, kept_back) of one frame.
+    fn at(g: &mut Gate, u: f64, s: f64) -> (bool, Reason, u64) {
+        let d = g.decide_with(Score::Utility(u), Some(s));
+        (d.keep, d.reason, d.kept_back)
+    }
+
+    #[test]
+    fn a_keep_owed_when_the_held_frames_are_let_go_settles_on_a_frame_still_held() {
+        // Issue 53, 1: frame 1 sharp and nearly due (0.45), frames 2-3 see little, frame 4 due
+        // but blurred, so owed; the stream ends. Frame 1 left the three frames held when frame 4
+        // came: the keep settles on frame 4 (the last decided), not on frame 1.
+        let mut g = margin_gate();
+        g.decide_with(Score::NoReference, Some(100.0));
+        assert_eq!(at(&mut g, 0.45, 100.0), (false, Reason::Score, 0));
+        at(&mut g, 0.1, 100.0);
+        at(&mut g, 0.1, 100.0);
+        assert_eq!(at(&mut g, 0.52, 50.0), (false, Reason::Deferred, 0));
+        assert_eq!(g.settle_pending(), Some((0, 2)));
+        assert_eq!(g.kept(), 2);
+        // While frame 1 is still held (one frame later), it is the one.
+        let mut g = margin_gate();
+        g.decide_with(Score::NoReference, Some(100.0));
+        at(&mut g, 0.45, 100.0);
+        at(&mut g, 0.1, 100.0);
+        assert_eq!(at(&mut g, 0.52, 50.0), (false, Reason::Deferred, 0));
+        assert_eq!(g.settle_pending(), Some((2, 2)));
+        // Let go without it (a flush): nothing is owed after.
+        let mut g = margin_gate();
+        g.decide_with(Score::NoReference, Some(100.0));
+        at(&mut g, 0.1, 100.0);
+        at(&mut g, 0.52, 50.0);
+        g.forget_candidates();
+        assert_eq!(g.settle_pending(), None);
+        assert_eq!(at(&mut g, 0.3, 100.0), (false, Reason::Score, 0));
+    }
+
+    #[test]
+    fn an_owed_keep_is_never_abandoned_when_the_utility_dips() {
+        // Issue 53, 2: frame 4 due (0.52) but blurred, owed; the next frames are sharp at 0.30.
+        // The first of them settles the keep: it is not nearly due, so the keep goes back to the
+        // owed frame 4.
+        let mut g = margin_gate();
+        g.decide_with(Score::NoReference, Some(100.0));
+        for _ in 0..3 {
+            at(&mut g, 0.1, 100.0);
+        }
+        assert_eq!(at(&mut g, 0.52, 50.0), (false, Reason::Deferred, 0));
+        let d = g.decide_with(Score::Utility(0.3), Some(100.0));
+        assert_eq!((d.keep, d.kept_back, d.keyframe_index), (false, 1, 2));
+        for _ in 0..5 {
+            assert_eq!(at(&mut g, 0.3, 100.0), (false, Reason::Score, 0));
+        }
+        assert_eq!(g.kept(), 2);
+        // Blurred frames after it: the keep waits while the owed frame is held, and is made on
+        // the last frame before it would leave (3 frames held), back to it.
+        let mut g = margin_gate();
+        g.decide_with(Score::NoReference, Some(100.0));
+        at(&mut g, 0.1, 100.0);
+        assert_eq!(at(&mut g, 0.52, 50.0), (false, Reason::Deferred, 0));
+        assert_eq!(at(&mut g, 0.3, 40.0), (false, Reason::Deferred, 0));
+        assert_eq!(at(&mut g, 0.3, 40.0), (false, Reason::Deferred, 0));
+        assert_eq!(at(&mut g, 0.3, 40.0), (false, Reason::Score, 3));
+        // A junk frame at that point makes it the same way.
+        let mut g = margin_gate();
+        g.decide_with(Score::NoReference, Some(100.0));
+        at(&mut g, 0.1, 100.0);
+        at(&mut g, 0.52, 50.0);
+        at(&mut g, 0.3, 40.0);
+        assert_eq!(g.decide(Score::Junk).kept_back, 0);
+        let d = g.decide(Score::Junk);
+        assert_eq!((d.keep, d.reason, d.kept_back), (false, Reason::Junk, 3));
+        assert_eq!(g.kept(), 2);
+        // The next frames count from the frame kept.
+        let d = g.decide_with(Score::Utility(0.2), Some(100.0));
+        assert_eq!((d.keyframe_index, d.frames_since_keyframe), (2, 4));
+    }
+
+    #[test]
+    fn discarded_keeps_are_not_counted() {
+        let mut g = margin_gate();
+        g.decide_with(Score::NoReference, Some(100.0));
+        at(&mut g, 0.9, 100.0);
+        g.discard_kept(1);
+        g.restart();
+        assert_eq!(g.decide(Score::NoReference).keyframe_index, 2);
     }
 
     #[test]

@@ -1697,3 +1697,199 @@ fn refusals(src: &str, what: &str) -> Vec<String> {
         })
         .collect()
 }
+
+/// Issue 53's streams: 64x48 RGB frames scored by `red.onnx` (the utility is the red channel's
+/// mean, 0-1) with a checkerboard of 16-pixel squares in green and blue whose amplitude sets the
+/// sharpness (a blurred frame has a fifth of the sharp one's contrast).
+fn red_frame(utility: f64, sharp: bool) -> Vec<u8> {
+    let r = (utility * 255.0).round() as u8;
+    let amp: i32 = if sharp { 100 } else { 20 };
+    (0..W * H)
+        .flat_map(|i| {
+            let (x, y) = (i % W, i / W);
+            let v = if (x / 16 + y / 16) % 2 == 0 {
+                128 + amp
+            } else {
+                128 - amp
+            } as u8;
+            [r, v, v]
+        })
+        .collect()
+}
+
+/// A harness around `red.onnx` with the default look-back (3 frames held) and `props`.
+fn red_harness(props: &str) -> gst_check::Harness {
+    harness(
+        &format!("model={} sharpness-lookback=3 {props}", fixture("red.onnx")),
+        &rgb_caps(W, H),
+    )
+}
+
+/// Push frames (utility, sharp) from frame number `first` on, 33 ms apart.
+fn push_red(h: &mut gst_check::Harness, first: u64, frames: &[(f64, bool)]) {
+    for (k, &(u, sharp)) in frames.iter().enumerate() {
+        h.push(buffer(red_frame(u, sharp), (first + k as u64) * 33))
+            .unwrap();
+    }
+}
+
+/// Issue 53, 1: frame 2 sharp and nearly due (0.45), frames 3-4 at 0.1, frame 5 due (0.52) but
+/// blurred, so its keep waits within the margin; then the stream ends.
+const NEARLY_DUE_THEN_BLURRED_DUE: [(f64, bool); 6] = [
+    (0.1, true),
+    (0.1, true),
+    (0.45, true),
+    (0.1, true),
+    (0.1, true),
+    (0.52, false),
+];
+
+fn kept_frames(metas: &[gstleangate::GateMeta]) -> Vec<(usize, Reason, u64)> {
+    metas
+        .iter()
+        .enumerate()
+        .filter(|(_, m)| m.keep)
+        .map(|(i, m)| (i, m.reason, m.keyframe_index))
+        .collect()
+}
+
+/// A keep owed when the held frames are let go settles on the sharpest frame still held (frame
+/// 5), not on frame 2, which had already left: found by a hostile probe, where the keep went to
+/// frame 2 after it was out, so no frame after frame 0 was ever marked kept.
+#[test]
+fn a_keep_owed_at_the_end_of_the_stream_settles_on_a_frame_still_held() {
+    for mode in ["annotate", "drop"] {
+        let mut h = red_harness(&format!("mode={mode}"));
+        push_red(&mut h, 0, &NEARLY_DUE_THEN_BLURRED_DUE);
+        h.push_event(gst::event::Eos::new());
+        let out = drain(&mut h);
+        let m: Vec<_> = out.iter().map(meta).collect();
+        let pts: Vec<_> = out.iter().map(|b| b.pts().unwrap().mseconds()).collect();
+        if mode == "annotate" {
+            assert_eq!(m[5].utility.mul_add(100.0, 0.0).round(), 52.0, "{:?}", m[5]);
+            assert_eq!(
+                kept_frames(&m),
+                vec![(0, Reason::First, 1), (5, Reason::Sharper, 2)],
+                "{m:?}"
+            );
+        } else {
+            assert_eq!(pts, vec![0, 165], "drop mode delivers frames 0 and 5");
+        }
+        assert_eq!(h.element().unwrap().property::<u64>("frames-kept"), 2);
+    }
+    // The same with the settle mode (sharpness-wait=2).
+    let mut h = red_harness("mode=annotate sharpness-wait=2");
+    push_red(&mut h, 0, &NEARLY_DUE_THEN_BLURRED_DUE);
+    h.push_event(gst::event::Eos::new());
+    let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+    assert_eq!(
+        kept_frames(&m),
+        vec![(0, Reason::First, 1), (5, Reason::Sharper, 2)]
+    );
+}
+
+/// The same keep settled by a new segment: the frames after it are compared with frame 5 and
+/// count its keep.
+#[test]
+fn a_keep_owed_at_a_new_segment_settles_on_a_frame_still_held_and_the_next_frames_follow_it() {
+    let mut h = red_harness("mode=annotate");
+    push_red(&mut h, 0, &NEARLY_DUE_THEN_BLURRED_DUE);
+    let mut seg = gst::FormattedSegment::<gst::ClockTime>::new();
+    seg.set_start(gst::ClockTime::from_mseconds(198));
+    h.push_event(gst::event::Segment::new(&seg));
+    push_red(&mut h, 6, &[(0.1, true); 3]);
+    h.push_event(gst::event::Eos::new());
+    let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+    assert_eq!(
+        kept_frames(&m),
+        vec![(0, Reason::First, 1), (5, Reason::Sharper, 2)]
+    );
+    for f in &m[6..9] {
+        assert_eq!(f.reference_pts, Some(gst::ClockTime::from_mseconds(165)));
+        assert_eq!(f.keyframe_index, 2);
+    }
+}
+
+/// Switching the look-back off mid-stream lets the held frames go: the owed keep settles there.
+#[test]
+fn a_keep_owed_when_the_lookback_is_switched_off_settles_on_a_frame_still_held() {
+    let mut h = red_harness("mode=annotate");
+    push_red(&mut h, 0, &NEARLY_DUE_THEN_BLURRED_DUE);
+    h.element()
+        .unwrap()
+        .set_property("sharpness-lookback", 0u32);
+    push_red(&mut h, 6, &[(0.1, true)]);
+    let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+    assert_eq!(
+        kept_frames(&m),
+        vec![(0, Reason::First, 1), (5, Reason::Sharper, 2)]
+    );
+    assert_eq!(m[6].reference_pts, Some(gst::ClockTime::from_mseconds(165)));
+}
+
+/// And at a real caps change: the next `first` keep's index follows the keeps made.
+#[test]
+fn a_keep_owed_at_a_caps_change_settles_and_the_next_index_follows_it() {
+    let mut h = red_harness("mode=annotate");
+    push_red(&mut h, 0, &NEARLY_DUE_THEN_BLURRED_DUE);
+    h.set_src_caps_str("video/x-raw,format=RGB,width=64,height=48,framerate=15/1");
+    push_red(&mut h, 6, &[(0.1, true)]);
+    h.push_event(gst::event::Eos::new());
+    let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+    assert_eq!(
+        kept_frames(&m),
+        vec![
+            (0, Reason::First, 1),
+            (5, Reason::Sharper, 2),
+            (6, Reason::First, 3)
+        ]
+    );
+    assert_eq!(h.element().unwrap().property::<u64>("frames-kept"), 3);
+}
+
+/// Issue 53, 2: frame 4 due (0.52) but blurred waits within the margin; the utility then dips
+/// (frames 5-10 sharp at 0.30). The keep is made all the same, on frame 4 (the one nearly-due
+/// frame held), not abandoned.
+#[test]
+fn a_keep_owed_is_made_when_the_utility_dips() {
+    let mut h = red_harness("mode=annotate");
+    let mut frames = vec![(0.1, true); 4];
+    frames.push((0.52, false));
+    frames.extend([(0.3, true); 6]);
+    push_red(&mut h, 0, &frames);
+    h.push_event(gst::event::Eos::new());
+    let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+    assert_eq!(
+        kept_frames(&m),
+        vec![(0, Reason::First, 1), (4, Reason::Sharper, 2)]
+    );
+    assert_eq!(
+        m[10].reference_pts,
+        Some(gst::ClockTime::from_mseconds(132))
+    );
+}
+
+/// Issue 53, 3: a flushing seek discards the held frames, a keep among them: it is not counted,
+/// and the keyframe index after the flush follows the keeps delivered.
+#[test]
+fn a_keep_discarded_by_a_flush_is_not_counted() {
+    let mut h = red_harness("");
+    // Frame 0 kept (first) and delivered; frame 3 kept and still held.
+    push_red(
+        &mut h,
+        0,
+        &[(0.1, true), (0.1, true), (0.1, true), (0.9, true)],
+    );
+    h.push_event(gst::event::FlushStart::new());
+    h.push_event(gst::event::FlushStop::new(true));
+    h.push_event(gst::event::Segment::new(&gst::FormattedSegment::<
+        gst::ClockTime,
+    >::new()));
+    assert_eq!(h.element().unwrap().property::<u64>("frames-kept"), 1);
+    push_red(&mut h, 10, &[(0.1, true), (0.1, true)]);
+    h.push_event(gst::event::Eos::new());
+    let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+    let got: Vec<_> = m.iter().map(|m| (m.reason, m.keyframe_index)).collect();
+    assert_eq!(got, vec![(Reason::First, 1), (Reason::First, 2)]);
+    assert_eq!(h.element().unwrap().property::<u64>("frames-kept"), 2);
+}

@@ -418,13 +418,16 @@ impl LeanGate {
 
     /// Push frames leaving the look-back (`sharpness-lookback`), in order: kept ones (every one
     /// in annotate mode) with their LeanGateMeta, a gap for each dropped one. No lock is held.
+    /// A kept frame that could not be pushed (flushing, downstream gone) is not counted, nor
+    /// are the kept frames after it, which go nowhere either.
     fn output_held(
         &self,
         ready: Vec<Held>,
         mode: GateMode,
     ) -> Result<gst::FlowSuccess, gst::FlowError> {
         let src = self.obj().src_pad().clone();
-        for h in ready {
+        let mut ready = ready.into_iter();
+        while let Some(h) = ready.next() {
             if !h.meta.keep && mode == GateMode::Drop {
                 if let Some(pts) = h.buf.pts().or(h.buf.dts()) {
                     let gap = gst::event::Gap::builder(pts)
@@ -433,11 +436,16 @@ impl LeanGate {
                     let _ = src.push_event(gap);
                 }
             } else {
+                let kept = h.meta.keep;
                 let mut buf = h.buf;
                 if let Err(e) = h.meta.attach(buf.make_mut()) {
                     gst::warning!(CAT, imp = self, "cannot attach LeanGateMeta: {e}");
                 }
-                src.push(buf)?;
+                if let Err(e) = src.push(buf) {
+                    let lost = u64::from(kept) + ready.filter(|h| h.meta.keep).count() as u64;
+                    self.uncount_kept(lost);
+                    return Err(e);
+                }
             }
             for event in h.events_after {
                 let _ = src.push_event(event);
@@ -446,47 +454,82 @@ impl LeanGate {
         Ok(gst::FlowSuccess::Ok)
     }
 
+    /// `n` kept frames never left the element (a flush discarded them while held, or their push
+    /// failed): `frames-kept` and the next keyframe index do not count them. Takes `state`.
+    fn uncount_kept(&self, n: u64) {
+        if n == 0 {
+            return;
+        }
+        let _ = self
+            .frames_kept
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |k| {
+                Some(k.saturating_sub(n))
+            });
+        if let Some(state) = lock(&self.state).as_mut() {
+            state.gate.discard_kept(n);
+        }
+    }
+
     /// Let every held frame go with its fate as it stands (pushed when `push`, else discarded:
     /// a flush), and tell the gate they can no longer be kept instead of a later frame.
     fn release_held(&self, push: bool) {
         if lock(&self.held).is_empty() {
             return;
         }
-        // A keep due on score that waits to settle (`sharpness-wait` with a look-back) is made
-        // now, on the sharpest frame held, instead of being lost with the stream's end.
+        if !push {
+            // A flush: the held frames go nowhere, so their keeps were never made.
+            let discarded = std::mem::take(&mut *lock(&self.held));
+            let kept = discarded.iter().filter(|h| h.meta.keep).count() as u64;
+            drop(discarded);
+            if let Some(state) = lock(&self.state).as_mut() {
+                state.gate.forget_candidates();
+            }
+            self.uncount_kept(kept);
+            return;
+        }
+        // A keep owed (waiting for a sharper frame) is made now, on the sharpest frame still
+        // held, instead of being lost with the stream's end.
         let settled = match lock(&self.state).as_mut() {
             Some(state) => {
-                let settled = if push {
-                    state.gate.settle_pending()
-                } else {
-                    None
-                };
-                if let Some((back, _)) = settled {
-                    // The settled frame is the reference from now on (the stream may go on after
-                    // a segment), as for a keep that went back while frames came.
-                    state.keep_back(back);
-                }
+                let settled = state.gate.settle_pending();
+                // The settled frame is the reference from now on (the stream may go on after a
+                // segment), as for a keep that went back while frames came.
+                let settled = settled.map(|(back, index)| (back, index, state.keep_back(back)));
                 state.gate.forget_candidates();
                 settled
             }
             None => None,
         };
-        let ready: Vec<Held> = {
+        let (ready, marked): (Vec<Held>, bool) = {
             let mut held = lock(&self.held);
-            if let Some((back, index)) = settled {
-                if mark_kept_back(&mut held, back, index) {
+            let marked = settled.is_some_and(|(back, index, _)| {
+                let marked = mark_kept_back(&mut held, back, index);
+                if marked {
                     self.frames_kept.fetch_add(1, Ordering::Relaxed);
                 }
-            }
-            held.drain(..).collect()
+                marked
+            });
+            (held.drain(..).collect(), marked)
         };
-        if ready.is_empty() {
-            return;
+        if settled.is_some() && !marked {
+            // Not held (cannot happen: the gate settles on a frame it knows is held): the keep
+            // was not made, so it is not counted.
+            if let Some(state) = lock(&self.state).as_mut() {
+                state.gate.discard_kept(1);
+            }
         }
-        if push {
-            let mode = self.frame_settings().mode;
-            let _ = self.output_held(ready, mode);
+        if let Some((back, _, pts)) = settled {
+            gst::trace!(
+                CAT,
+                imp = self,
+                "pts {} keep true (sharper: settled when the held frames were let go, {} frames \
+                 before the last)",
+                pts.display(),
+                back
+            );
         }
+        let mode = self.frame_settings().mode;
+        let _ = self.output_held(ready, mode);
     }
 
     /// Preprocess the buffer into `state.current`.
@@ -643,9 +686,9 @@ impl LeanGate {
             gst::trace!(
                 CAT,
                 imp = self,
-                "pts {:?} keep true (sharper: the keep due at pts {:?}, {} frames later)",
-                kept_pts,
-                pts,
+                "pts {} keep true (sharper: the keep due at pts {}, {} frames later)",
+                kept_pts.display(),
+                pts.display(),
                 decision.kept_back
             );
             self.frames_kept.fetch_add(1, Ordering::Relaxed);
@@ -700,8 +743,8 @@ impl LeanGate {
         gst::trace!(
             CAT,
             imp = self,
-            "pts {:?} utility {:.4} keep {} ({}, {})",
-            pts,
+            "pts {} utility {:.4} keep {} ({}, {})",
+            pts.display(),
             utility,
             decision.keep,
             decision.reason,
