@@ -15,7 +15,7 @@ use gstleangate::GateConfig;
 use leangate_tools::args;
 use leangate_tools::dataset::{RgbFormat, Sequence};
 use leangate_tools::eval;
-use leangate_tools::output::OutputFile;
+use leangate_tools::output::{Inputs, OutputFile};
 use leangate_tools::synth::{self, MotionSpec, Replay, ReplayEnd, SensorConfig, SynthConfig};
 use leangate_tools::teacher::{self, Teacher, TeacherConfig};
 
@@ -346,6 +346,8 @@ fn run(cli: Cli) -> Res {
                 std::fs::read_to_string(d.join("rgb.txt"))
                     .is_ok_and(|t| t.starts_with(synth::HEADER_PREFIX))
             })?;
+            // An earlier output is replaced whole: textures or a trajectory inside it would go.
+            Inputs::new(cfg.input_files()).refuse("--out", &out, true)?;
             let s = synth::render_sequence(&cfg, stage.path())?;
             stage.commit()?;
             eprintln!(
@@ -645,18 +647,18 @@ fn eval_cmd(
         }
         seen.push((flag, key));
     }
+    let several = sequences.len() > 1 || phases > 1;
     // Nothing the eval reads may be what it writes: `--json SEQ/rgb.txt` would replace the list,
     // `--trajectory-dir SEQ` its groundtruth.txt, before anything is judged.
     let inputs = eval::input_files(sequences, model.path)?;
     for (flag, path) in outputs {
         if let Some(p) = path {
-            if inputs.hit(p, false).is_some() {
-                return Err(format!(
-                    "{flag} `{}`: is an input of this eval (it would be overwritten); choose \
-                     another path",
-                    p.display()
-                )
-                .into());
+            inputs.refuse(flag, p, false)?;
+            // With several sequences, --plot and --contact-sheet write one file per sequence.
+            if several && matches!(flag, "--plot" | "--contact-sheet") {
+                for (k, s) in sequences.iter().enumerate() {
+                    inputs.refuse(flag, &per_sequence_path(p, k, s), false)?;
+                }
             }
         }
     }
@@ -676,24 +678,14 @@ fn eval_cmd(
             // truth; a COLMAP folder per run.
             let runs = eval::POLICIES.iter().chain(&["dense"]);
             if let Some(d) = &one.trajectory_dir {
-                refuse_input(
-                    "--trajectory-dir",
-                    &d.join("groundtruth.txt"),
-                    &inputs,
-                    false,
-                )?;
+                inputs.refuse("--trajectory-dir", &d.join("groundtruth.txt"), false)?;
                 for p in runs.clone() {
-                    refuse_input(
-                        "--trajectory-dir",
-                        &d.join(format!("{p}.txt")),
-                        &inputs,
-                        false,
-                    )?;
+                    inputs.refuse("--trajectory-dir", &d.join(format!("{p}.txt")), false)?;
                 }
             }
             if let Some(d) = &one.work_dir {
                 for p in runs {
-                    refuse_input("--sfm-dir", &d.join(p), &inputs, true)?;
+                    inputs.refuse("--sfm-dir", &d.join(p), true)?;
                 }
             }
         }
@@ -726,7 +718,6 @@ fn eval_cmd(
             }
         }
     };
-    let several = sequences.len() > 1 || phases > 1;
     // Which sequences the sweep can run on, known before the long part: alone, a sequence the
     // teacher cannot judge is an error now; among several, it is evaluated without a sweep (said
     // below its table) and the summed curves cover the others.
@@ -783,20 +774,11 @@ fn eval_cmd(
                 )?;
                 bar.finish_and_clear();
             }
-            // One file per sequence when there are several: NAME-K-SEQ.ext beside the given path.
             let per_sequence = |p: &Path| -> PathBuf {
-                if !several {
-                    return p.to_path_buf();
+                match several {
+                    true => per_sequence_path(p, k, sequence),
+                    false => p.to_path_buf(),
                 }
-                let stem = p
-                    .file_stem()
-                    .map(|s| s.to_string_lossy())
-                    .unwrap_or_default();
-                let ext = p
-                    .extension()
-                    .map(|s| format!(".{}", s.to_string_lossy()))
-                    .unwrap_or_default();
-                p.with_file_name(format!("{stem}-{}-{name}{ext}", k + 1))
             };
             print_summary(&report);
             if report.reconstruction.is_some() {
@@ -924,16 +906,7 @@ fn check_csv_out(out: Option<&Path>, sequence: &Path, pairs: Option<&Path>) -> R
     let Some(p) = out else { return Ok(()) };
     check_output("--out", p)?;
     let inputs = eval::input_files(&[sequence.to_path_buf()], pairs)?;
-    if let Some(i) = inputs.hit(p, false) {
-        return Err(format!(
-            "--out `{}`: is `{}`, an input of this command (it would be overwritten); choose \
-             another path",
-            p.display(),
-            i.display()
-        )
-        .into());
-    }
-    Ok(())
+    Ok(inputs.refuse("--out", p, false)?)
 }
 
 /// An output file `path` can be written: not a directory, in a directory that exists.
@@ -949,22 +922,6 @@ fn check_output(flag: &str, path: &Path) -> Res {
         )
         .into()),
         _ => Ok(()),
-    }
-}
-
-/// Refuses an output that would overwrite an input of the eval: a file that is one of `inputs`
-/// (by its canonical path, or the same file by a hard link), or, for a folder the eval writes
-/// into (`dir`), one that holds an input file anywhere below it.
-fn refuse_input(flag: &str, path: &Path, inputs: &eval::Inputs, dir: bool) -> Res {
-    match inputs.hit(path, dir) {
-        Some(i) => Err(format!(
-            "{flag}: the eval would write `{}`, which holds or is `{}`, an input of this eval; \
-             choose a folder of its own",
-            path.display(),
-            i.display()
-        )
-        .into()),
-        None => Ok(()),
     }
 }
 
@@ -1133,6 +1090,20 @@ const EVAL_LEGEND: &str = "columns:
     run (the element in a pipeline, with the eval's own decoding)
   oracle: the same gate driven by the exact teacher (the upper bound); stride, pixel_diff,
     motion, overlap: cheap gates tuned to the model's kept count (an equal budget)";
+
+/// With several sequences, the file `--plot` or `--contact-sheet` writes for the `k`-th
+/// (0-based): NAME-K-SEQ.ext beside the given path.
+fn per_sequence_path(p: &Path, k: usize, sequence: &Path) -> PathBuf {
+    let stem = p
+        .file_stem()
+        .map(|s| s.to_string_lossy())
+        .unwrap_or_default();
+    let ext = p
+        .extension()
+        .map(|s| format!(".{}", s.to_string_lossy()))
+        .unwrap_or_default();
+    p.with_file_name(format!("{stem}-{}-{}{ext}", k + 1, sequence_name(sequence)))
+}
 
 /// The last component of a sequence's path (its name in titles and file names).
 fn sequence_name(sequence: &Path) -> String {

@@ -213,6 +213,68 @@ impl OutputDir {
     }
 }
 
+/// What a command reads: files (and folders, such as `synth --textures`) by canonical path and
+/// by (device, inode), so that another spelling of a path or a hard link to an input is that
+/// input too. The one check every command that writes makes before any work ([`Inputs::refuse`]):
+/// no output may be an input, and no folder it writes or replaces may hold one.
+#[derive(Debug, Clone, Default)]
+pub struct Inputs {
+    pub paths: std::collections::BTreeSet<PathBuf>,
+    /// (device, inode) of each input that exists, with its canonical path.
+    pub ids: std::collections::HashMap<(u64, u64), PathBuf>,
+}
+
+impl Inputs {
+    /// The inputs among `files` that exist (one that does not cannot be overwritten).
+    pub fn new(files: impl IntoIterator<Item = PathBuf>) -> Inputs {
+        use std::os::unix::fs::MetadataExt;
+        let mut inputs = Inputs::default();
+        for f in files {
+            let Ok(real) = f.canonicalize() else { continue };
+            if let Ok(m) = std::fs::metadata(&real) {
+                inputs.ids.entry((m.dev(), m.ino())).or_insert(real.clone());
+            }
+            inputs.paths.insert(real);
+        }
+        inputs
+    }
+
+    /// The input `path` is (by any spelling, or a hard link), or with `dir`, the first input
+    /// lying in the folder `path` (or being it).
+    pub fn hit(&self, path: &Path, dir: bool) -> Option<PathBuf> {
+        use std::os::unix::fs::MetadataExt;
+        let real = path.canonicalize().ok()?; // not there yet: it cannot be an input
+        if dir {
+            return self.paths.iter().find(|i| i.starts_with(&real)).cloned();
+        }
+        if self.paths.contains(&real) {
+            return Some(real);
+        }
+        let m = std::fs::metadata(&real).ok()?;
+        self.ids.get(&(m.dev(), m.ino())).cloned()
+    }
+
+    /// Refuses `path`, the output of `flag` (with `dir`: a folder the command writes into or
+    /// replaces whole), when it is an input or holds one: the error names both.
+    pub fn refuse(&self, flag: &str, path: &Path, dir: bool) -> Result<(), String> {
+        match (self.hit(path, dir), dir) {
+            (None, _) => Ok(()),
+            (Some(i), false) => Err(format!(
+                "{flag} `{}` is an input of this command (`{}`): it would be overwritten; \
+                 choose another path",
+                path.display(),
+                i.display()
+            )),
+            (Some(i), true) => Err(format!(
+                "{flag} `{}` holds an input of this command, `{}`, which writing the folder \
+                 would overwrite or delete; move the input out or choose another folder",
+                path.display(),
+                i.display()
+            )),
+        }
+    }
+}
+
 /// The process's file-creation mask (read by setting it and putting it back).
 fn umask() -> u32 {
     // SAFETY: umask only swaps the process's mask; it is put back at once.

@@ -2260,6 +2260,34 @@ fn eval_never_overwrites_its_inputs() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(own.is_file());
+    // With several sequences --plot writes PIC-K-SEQ.png per sequence: one of those names is an
+    // image of the second sequence here (it was overwritten by that sequence's plot).
+    let b = dir.path().join("b");
+    synth(&b, 6, "pan", 5);
+    let image = dir.path().join("pic-2-b.png");
+    std::fs::copy(b.join("rgb/000000.png"), &image).unwrap();
+    let list = std::fs::read_to_string(b.join("rgb.txt")).unwrap();
+    let list = list.replacen("rgb/000000.png", image.to_str().unwrap(), 1);
+    std::fs::write(b.join("rgb.txt"), list).unwrap();
+    let bytes = std::fs::read(&image).unwrap();
+    let plot = dir.path().join("pic.png");
+    let out = run(&[
+        "--sequence",
+        b.to_str().unwrap(),
+        "--plot",
+        plot.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--plot") && err.contains("pic-2-b.png") && err.contains("is an input"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read(&image).unwrap(),
+        bytes,
+        "the image was overwritten"
+    );
 }
 
 /// Frames without ground truth are gated like every other and not judged: with the poses of
@@ -2710,6 +2738,92 @@ fn synth_replaces_only_its_own_earlier_output() {
     );
 }
 
+/// Every file under `dir` with its bytes (links followed), by path relative to `dir`.
+fn tree(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                let rel = p.strip_prefix(dir).unwrap().to_string_lossy().into_owned();
+                out.insert(rel, std::fs::read(&p).unwrap());
+            }
+        }
+    }
+    out
+}
+
+/// `synth --out` replaces an earlier output whole: textures or a replayed trajectory inside it
+/// were deleted with it (`synth --out room --textures room/photos --motion replay:room/traj.txt`
+/// exited 0 and both were gone). Refused before any work, naming the input and the folder;
+/// nothing is deleted or left beside it. The same inputs outside the folder are used.
+#[test]
+fn synth_refuses_an_out_folder_that_holds_its_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let room = dir.path().join("room");
+    synth(&room, 10, "pan", 5);
+    let photos = room.join("photos");
+    std::fs::create_dir(&photos).unwrap();
+    std::fs::copy(room.join("rgb/000000.png"), photos.join("a.png")).unwrap();
+    std::fs::copy(room.join("groundtruth.txt"), room.join("traj.txt")).unwrap();
+    let before = tree(&room);
+    let run = |extra: &[String]| {
+        leangate()
+            .args([
+                "synth", "--frames", "3", "--width", "32", "--height", "24", "--out",
+            ])
+            .arg(&room)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let textures = format!("--textures={}", photos.display());
+    let replay = |f: &str| format!("--motion=replay:{}", room.join(f).display());
+    for (extra, input) in [
+        (vec![textures.clone(), replay("traj.txt")], "photos"),
+        (vec![textures.clone()], "photos"),
+        (vec![replay("traj.txt")], "traj.txt"),
+        // The earlier output's own trajectory: read, then replaced with the folder.
+        (vec![replay("groundtruth.txt")], "groundtruth.txt"),
+    ] {
+        let out = run(&extra);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{extra:?}: {err}");
+        assert!(
+            err.contains("--out")
+                && err.contains(&room.display().to_string())
+                && err.contains(input)
+                && err.contains("an input of this command"),
+            "{extra:?}: {err}"
+        );
+        assert!(tree(&room) == before, "{extra:?}: the folder changed");
+        assert_eq!(
+            std::fs::read_dir(dir.path()).unwrap().count(),
+            1,
+            "{extra:?}: something was left beside the folder"
+        );
+    }
+    // Moved out of the folder, the same inputs make a new sequence in it.
+    let kept = dir.path().join("kept");
+    std::fs::create_dir(&kept).unwrap();
+    std::fs::rename(&photos, kept.join("photos")).unwrap();
+    std::fs::rename(room.join("traj.txt"), kept.join("traj.txt")).unwrap();
+    let out = run(&[
+        format!("--textures={}", kept.join("photos").display()),
+        format!("--motion=replay:{}", kept.join("traj.txt").display()),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(room.join("rgb/000002.png").is_file());
+    assert!(kept.join("photos/a.png").is_file() && kept.join("traj.txt").is_file());
+}
+
 /// What `eval` can refuse from its options alone it refuses before the run: a picture format it
 /// cannot write, a file where a folder goes, SfM settings without `--reconstruct`, two
 /// thresholds. And `--precision` works with the plugin on GStreamer's path (its enum type is
@@ -2822,7 +2936,7 @@ fn eval_never_overwrites_the_files_its_model_reads() {
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(1), "{model} --json {target}: {err}");
         assert!(
-            err.contains("is an input of this eval") && err.contains(target),
+            err.contains("an input of this command") && err.contains(target),
             "{err}"
         );
     }

@@ -40,6 +40,7 @@ pub mod overlap;
 pub mod reconstruct;
 mod report;
 
+pub use crate::output::Inputs;
 pub use baselines::{
     oracle_gate, pixel_diff_for_budget, pixel_diff_gate, stride_for_budget, stride_gate,
 };
@@ -519,39 +520,7 @@ pub fn input_files(sequences: &[PathBuf], model: Option<&Path>) -> Result<Inputs
             files.extend(f.depth.clone());
         }
     }
-    use std::os::unix::fs::MetadataExt;
-    Ok(Inputs {
-        paths: files.iter().filter_map(|f| f.canonicalize().ok()).collect(),
-        ids: files
-            .iter()
-            .filter_map(|f| std::fs::metadata(f).ok())
-            .map(|m| (m.dev(), m.ino()))
-            .collect(),
-    })
-}
-
-/// What [`input_files`] found: the canonical paths, and the files' (device, inode), so that a
-/// hard link to an input is an input too.
-#[derive(Debug, Clone, Default)]
-pub struct Inputs {
-    pub paths: std::collections::BTreeSet<PathBuf>,
-    pub ids: std::collections::HashSet<(u64, u64)>,
-}
-
-impl Inputs {
-    /// The input `path` is, or under (`dir`) which an input lies.
-    pub fn hit(&self, path: &Path, dir: bool) -> Option<PathBuf> {
-        use std::os::unix::fs::MetadataExt;
-        let real = path.canonicalize().ok()?; // not there yet: it cannot be an input
-        if dir {
-            return self.paths.iter().find(|i| i.starts_with(&real)).cloned();
-        }
-        if self.paths.contains(&real) {
-            return Some(real);
-        }
-        let m = std::fs::metadata(&real).ok()?;
-        self.ids.contains(&(m.dev(), m.ino())).then_some(real)
-    }
+    Ok(Inputs::new(files))
 }
 
 /// Whether the teacher can judge a sweep on the sequence at `path` (depth, poses and

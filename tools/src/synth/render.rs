@@ -118,6 +118,18 @@ impl SynthConfig {
             depth_scale: 1000.0,
         }
     }
+
+    /// What a render reads: the `textures` folder and its images, the replayed trajectory. No
+    /// output may be or hold one of them ([`crate::output::Inputs`]).
+    pub fn input_files(&self) -> Vec<PathBuf> {
+        let mut files = Vec::new();
+        if let Some(dir) = &self.textures {
+            files.push(dir.clone());
+            files.extend(crate::dataset::list_images(dir).unwrap_or_default());
+        }
+        files.extend(self.replay.as_ref().map(|r| r.path.clone()));
+        files
+    }
 }
 
 /// What [`render_sequence`] produced, with timings.
