@@ -201,7 +201,9 @@ enum Command {
         #[arg(long, default_value_t = 1, value_name = "N", value_parser = args::phases)]
         phases: usize,
         /// Report progress on standard error also when it is not a terminal (a log, CI): a line
-        /// per stage and every tenth of it. On a terminal a progress bar is always shown.
+        /// per stage and every tenth of it; with --reconstruct, a line per step of each
+        /// reconstruction (its frames, each COLMAP stage, the outcome). On a terminal a progress
+        /// bar is always shown.
         #[arg(long)]
         progress: bool,
         #[arg(long, default_value_t = 160, value_parser = args::working_width)]
@@ -718,6 +720,30 @@ fn eval_cmd(
             }
         }
     };
+    // The reconstructions (--reconstruct): a bar of the policies reconstructed, or with
+    // --progress elsewhere a line per step of each (its frames, each COLMAP stage, the outcome).
+    let sfm_bar = match lines {
+        true => indicatif::ProgressBar::hidden(),
+        false => indicatif::ProgressBar::new(0),
+    };
+    sfm_bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{msg:>14} [{bar:40}] {pos}/{len} reconstructions, {elapsed} so far",
+        )
+        .unwrap()
+        .progress_chars("=> "),
+    );
+    let show_sfm = |k: usize, runs: usize, policy: &str, step: &str| {
+        sfm_bar.set_message(format!("sfm {policy}"));
+        sfm_bar.set_length(runs as u64);
+        sfm_bar.set_position(k as u64);
+        if lines {
+            match k < runs {
+                true => eprintln!("leangate eval: sfm {}/{runs} {policy}: {step}", k + 1),
+                false => eprintln!("leangate eval: sfm {runs}/{runs} {step}"),
+            }
+        }
+    };
     // Which sequences the sweep can run on, known before the long part: alone, a sequence the
     // teacher cannot judge is an error now; among several, it is evaluated without a sweep (said
     // below its table) and the summed curves cover the others.
@@ -770,9 +796,9 @@ fn eval_cmd(
                     &mut report,
                     &data,
                     &sfm,
-                    &mut show,
+                    show_sfm,
                 )?;
-                bar.finish_and_clear();
+                sfm_bar.finish_and_clear();
             }
             let per_sequence = |p: &Path| -> PathBuf {
                 match several {
@@ -1177,7 +1203,22 @@ fn print_reconstruction(r: &eval::EvalReport) {
             .unwrap_or_default();
         say!("model: SfM {speed:.2}x faster than dense{e2e} at {ate:.2}x dense's ATE");
     }
+    // What the columns mean, under the first reconstruction table of a run.
+    static LEGEND: std::sync::Once = std::sync::Once::new();
+    LEGEND.call_once(|| say!("{RECONSTRUCTION_LEGEND}"));
 }
+
+/// The legend of the `--reconstruct` table's columns, printed once per run under the first one.
+const RECONSTRUCTION_LEGEND: &str = "reconstruction columns:
+  kept: frames given to COLMAP (dense: every K-th frame); registered: of those, frames posed in
+    the largest model; models: models COLMAP built that hold frames no larger one has (more
+    than 1: the reconstruction fell apart)
+  ATE cm: RMSE of the registered camera centres against the ground truth after a similarity
+    alignment (with scale; - without ground truth or under 3 frames); ATE/dns: that ATE / dense's
+  SfM s: COLMAP's own time (features, matching, mapping); speed-up: dense's SfM s / the
+    policy's; gate s: the gate's own time (model: its pipeline; stride, dense: 0; - not
+    measured: the oracle needs the teacher, the cheap gates run on the eval's thumbnails);
+    end-to-end: dense's SfM s / (gate s + SfM s)";
 
 fn print_sweep(points: &[eval::SweepPoint]) {
     say!(

@@ -404,6 +404,10 @@ fn eval_reconstruct_reports_every_policy_and_a_dense_reference() {
     assert!(out.status.success());
     assert_tmpdir_untouched(tmp.path(), "leangate eval --reconstruct");
     assert!(stdout.contains("reconstruction (COLMAP"), "{stdout}");
+    assert!(
+        !stderr.contains("leangate eval:"),
+        "no --progress: {stderr}"
+    );
     let v = read_json(&json);
     let info = &v["reconstruction"];
     assert_eq!(info["dense_every"], 6);
@@ -496,6 +500,97 @@ fn eval_reconstruct_reports_every_policy_and_a_dense_reference() {
         (evo - ate / 100.0).abs() < 2e-6 + 1e-3 * evo,
         "evo {evo} m, eval {ate} cm"
     );
+}
+
+/// `eval --reconstruct` runs COLMAP for minutes: with `--progress` (standard error not a
+/// terminal here) each reconstruction says its frames, each COLMAP stage and its outcome (it
+/// printed one line per policy, counted as "frames"); its table has a legend under it, as the
+/// eval's table has. Without `--progress`, no progress lines.
+#[test]
+fn eval_reconstruct_says_its_progress_and_explains_its_columns() {
+    let (Some(seq), Some(_)) = (shared_data("7scenes_redkitchen_dev"), sfm_python()) else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_leangate"))
+        .env("TMPDIR", tmp.path())
+        .args(["eval", "--sequence"])
+        .arg(&seq)
+        .args(["--reconstruct", "--dense-every", "6", "--progress"])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    eprintln!("{stdout}\n{stderr}");
+    assert!(out.status.success());
+    assert_tmpdir_untouched(tmp.path(), "leangate eval --reconstruct --progress");
+    let runs = leangate_tools::eval::POLICIES.len() + 1;
+    for (k, name) in leangate_tools::eval::POLICIES
+        .iter()
+        .copied()
+        .chain(["dense"])
+        .enumerate()
+    {
+        let at = format!("leangate eval: sfm {}/{runs} {name}: ", k + 1);
+        let steps: Vec<&str> = stderr
+            .lines()
+            .filter_map(|l| l.strip_prefix(at.as_str()))
+            .collect();
+        assert!(
+            steps
+                .first()
+                .is_some_and(|s| s.ends_with(" frame") || s.ends_with(" frames")),
+            "{name}: {steps:?}"
+        );
+        assert!(
+            steps.last().is_some_and(|s| s.contains(" registered, ")),
+            "{name}: {steps:?}"
+        );
+    }
+    // The dense reference (10 frames) goes through every COLMAP stage.
+    let dense: Vec<&str> = stderr
+        .lines()
+        .filter_map(|l| {
+            l.strip_prefix(format!("leangate eval: sfm {runs}/{runs} dense: ").as_str())
+        })
+        .collect();
+    for stage in [
+        "10 frames",
+        "SIFT features of 10 images",
+        "exhaustive matching",
+        "incremental mapping",
+        "mapping: the initial pair and ",
+        "10 of 10 registered, 1 model, ",
+    ] {
+        assert!(
+            dense.iter().any(|s| s.starts_with(stage)),
+            "{stage}: {dense:?}"
+        );
+    }
+    assert!(
+        stderr.contains(&format!("leangate eval: sfm {runs}/{runs} done")),
+        "{stderr}"
+    );
+    // The legend, once, every column of the table explained.
+    assert_eq!(
+        stdout.matches("reconstruction columns:").count(),
+        1,
+        "{stdout}"
+    );
+    let legend = &stdout[stdout.find("reconstruction columns:").unwrap()..];
+    for col in [
+        "kept:",
+        "registered:",
+        "models:",
+        "ATE cm:",
+        "ATE/dns:",
+        "SfM s:",
+        "speed-up:",
+        "gate s:",
+        "end-to-end:",
+    ] {
+        assert!(legend.contains(col), "{col} not explained: {legend}");
+    }
 }
 
 #[test]

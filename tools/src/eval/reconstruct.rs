@@ -292,14 +292,18 @@ fn frame_list(frames: &[(usize, Option<PathBuf>)]) -> String {
 }
 
 /// Run the consumer on `frames` (`(index, image path)`; the path None for a video frame, which
-/// the consumer decodes) of `input`, in `out_dir`.
+/// the consumer decodes) of `input`, in `out_dir`. `progress` hears each COLMAP stage as the
+/// consumer starts it ([`consumer_step`]): feature extraction, matching, mapping and, every
+/// tenth of the frames, how many the mapping has registered.
 pub fn run_consumer(
     python: &Path,
     input: &Path,
     frames: &[(usize, Option<PathBuf>)],
     out_dir: &Path,
     cfg: &SfmConfig,
+    mut progress: impl FnMut(&str),
 ) -> Result<ConsumerResult, EvalError> {
+    use std::io::BufRead;
     let script = consumer_script()?;
     std::fs::create_dir_all(out_dir)
         .map_err(|e| EvalError(format!("`{}`: {e}", out_dir.display())))?;
@@ -309,7 +313,8 @@ pub fn run_consumer(
     let json = out_dir.join("result.json");
     let mut frames_arg = std::ffi::OsString::from("@");
     frames_arg.push(&list);
-    let out = Command::new(python)
+    // -v: the consumer says each stage on its standard error, read here as it comes.
+    let mut child = Command::new(python)
         .arg(&script)
         .arg(input)
         .arg("--frames")
@@ -320,14 +325,71 @@ pub fn run_consumer(
         .arg(&json)
         .args(["--matcher", &cfg.matcher])
         .args(["--max-features", &cfg.max_features.to_string()])
-        .output()
+        .arg("-v")
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
         .map_err(|e| EvalError(format!("cannot run `{}`: {e}", python.display())))?;
-    if !out.status.success() {
-        return Err(EvalError(consumer_failure(&out.status, &out.stderr)));
+    let mut stderr = Vec::new();
+    if let Some(pipe) = child.stderr.take() {
+        let mut reader = std::io::BufReader::new(pipe);
+        let mut line = Vec::new();
+        let mut registered_tenth = None;
+        while reader.read_until(b'\n', &mut line).is_ok_and(|n| n > 0) {
+            let text = String::from_utf8_lossy(&line);
+            if let Some(step) = consumer_step(text.trim_end(), frames.len(), &mut registered_tenth)
+            {
+                progress(&step);
+            }
+            stderr.append(&mut line);
+        }
+    }
+    let status = child
+        .wait()
+        .map_err(|e| EvalError(format!("`{}`: {e}", python.display())))?;
+    if !status.success() {
+        return Err(EvalError(consumer_failure(&status, &stderr)));
     }
     let text = std::fs::read_to_string(&json)
         .map_err(|e| EvalError(format!("`{}`: {e}", json.display())))?;
     serde_json::from_str(&text).map_err(|e| EvalError(format!("`{}`: {e}", json.display())))
+}
+
+/// A line of the consumer's standard error (`reconstruct: LEVEL: message`) as a progress step,
+/// or None: the start of each COLMAP stage (`SIFT features of N images ...`, `exhaustive
+/// matching: N pairs`, `incremental mapping`); the mapping's `N images registered` once per
+/// tenth of the `frames` (`registered_tenth` remembers the last one said); warnings.
+pub fn consumer_step(
+    line: &str,
+    frames: usize,
+    registered_tenth: &mut Option<usize>,
+) -> Option<String> {
+    if let Some((_, m)) = line.split_once(": warning: ") {
+        return Some(format!("warning: {m}"));
+    }
+    let (_, m) = line.split_once(": info: ")?;
+    if let Some(rest) = m.strip_prefix("mapping: ") {
+        let n: usize = rest.split(' ').next()?.parse().ok()?;
+        let tenth = (n * 10).checked_div(frames).unwrap_or(0);
+        if *registered_tenth == Some(tenth) {
+            return None;
+        }
+        *registered_tenth = Some(tenth);
+        return Some(format!(
+            "mapping: the initial pair and {n} more of the {frames} frames registered"
+        ));
+    }
+    const STAGES: [&str; 4] = [
+        "SIFT features of ",
+        "exhaustive matching",
+        "sequential matching",
+        "incremental mapping",
+    ];
+    STAGES
+        .iter()
+        .any(|s| m.starts_with(s))
+        .then(|| m.to_string())
 }
 
 /// What to say when the consumer failed: its `error:` lines (the consumer reports COLMAP's
@@ -339,7 +401,12 @@ fn consumer_failure(status: &std::process::ExitStatus, stderr: &[u8]) -> String 
         .filter_map(|l| l.split_once(": error: ").map(|(_, m)| m.trim()))
         .collect();
     let text = if errors.is_empty() {
-        let tail: Vec<&str> = stderr.lines().rev().take(15).collect();
+        let tail: Vec<&str> = stderr
+            .lines()
+            .filter(|l| !l.contains(": info: "))
+            .rev()
+            .take(15)
+            .collect();
         tail.into_iter().rev().collect::<Vec<_>>().join("\n")
     } else {
         errors.join("; ")
@@ -400,13 +467,15 @@ type FrameInfo = (Option<PathBuf>, Option<f64>, Option<Isometry3<f64>>);
 /// Reconstruct every policy's kept frames (`data.kept`) and a `dense` reference, one after the
 /// other, and add the fields to `report.policies` (the `dense` entry is created). A policy whose
 /// reconstruction fails gets `sfm_error` and the others go on; the result is an error only when
-/// every policy failed. `progress(stage, done, total)` counts policies.
+/// every policy failed. `progress(k, runs, policy, step)` says each step of the `k`-th of the
+/// `runs` reconstructions (0-based): its start (`N frames`), each COLMAP stage ([`consumer_step`])
+/// and its outcome; `k == runs` at the end.
 pub fn add_reconstruction(
     path: &Path,
     report: &mut EvalReport,
     data: &PlotData,
     cfg: &SfmConfig,
-    mut progress: impl FnMut(&str, usize, usize),
+    mut progress: impl FnMut(usize, usize, &str, &str),
 ) -> Result<(), EvalError> {
     let (python, version) = preflight(cfg)?;
     let source = Source::open(path)?;
@@ -460,16 +529,31 @@ pub fn add_reconstruction(
     let total = runs.len();
     let mut failures = Vec::new();
     for (k, (name, keep)) in runs.iter().enumerate() {
-        progress(&format!("sfm {name}"), k, total);
         let frames: Vec<(usize, Option<PathBuf>)> = keep
             .iter()
             .enumerate()
             .filter(|(_, k)| **k)
             .map(|(i, _)| (i, frames_of[i].0.clone()))
             .collect();
+        let plural = if frames.len() == 1 { "" } else { "s" };
+        progress(k, total, name, &format!("{} frame{plural}", frames.len()));
         let t0 = std::time::Instant::now();
-        let fields = match run_consumer(&python, path, &frames, &root.join(name), cfg) {
+        let step = |s: &str| progress(k, total, name, s);
+        let fields = match run_consumer(&python, path, &frames, &root.join(name), cfg, step) {
             Ok(res) => {
+                progress(
+                    k,
+                    total,
+                    name,
+                    &format!(
+                        "{} of {} registered, {} model{}, {:.1} s",
+                        res.registered,
+                        frames.len(),
+                        res.models,
+                        if res.models == 1 { "" } else { "s" },
+                        t0.elapsed().as_secs_f64()
+                    ),
+                );
                 let (mut est, mut truth, mut trajectory) = (Vec::new(), Vec::new(), Vec::new());
                 for f in res.frames.iter().filter(|f| f.registered) {
                     let Some(c) = f.center else { continue };
@@ -497,6 +581,7 @@ pub fn add_reconstruction(
                 serde_json::to_value(&outcome).unwrap()
             }
             Err(e) => {
+                progress(k, total, name, "failed");
                 eprintln!("leangate: warning: reconstructing policy {name} failed: {e}");
                 failures.push(format!("{name}: {e}"));
                 json!({ "sfm_error": e.0 })
@@ -508,7 +593,7 @@ pub fn add_reconstruction(
             entry.extend(fields);
         }
     }
-    progress("sfm", total, total);
+    progress(total, total, "", "done");
     if failures.len() == total {
         return Err(EvalError(format!(
             "--reconstruct: every policy failed: {}",
