@@ -1114,8 +1114,11 @@ const EVAL_LEGEND: &str = "columns:
     within +-3 of each (variance of the Laplacian at 320x240; JSON also `kept_blurred`, the share
     below one half); rmse: the policy's utility against the teacher's tau; fps: frames/s of the model
     run (the element in a pipeline, with the eval's own decoding)
-  oracle: the same gate driven by the exact teacher (the upper bound); stride, pixel_diff,
-    motion, overlap: cheap gates tuned to the model's kept count (an equal budget)";
+  oracle: the gate driven by the exact teacher (the upper bound on utility), deciding each frame
+    at once, without the look-back and blind to sharpness: its keeps are not picked for
+    sharpness, and one where tau jumps past 0.667 in a single frame (fast motion) is late
+  stride, pixel_diff, motion, overlap: cheap gates tuned to the model's kept count (an equal
+    budget)";
 
 /// With several sequences, the file `--plot` or `--contact-sheet` writes for the `k`-th
 /// (0-based): NAME-K-SEQ.ext beside the given path.

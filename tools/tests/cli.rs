@@ -2396,6 +2396,14 @@ fn eval_prints_a_legend_of_its_columns_once() {
     ] {
         assert!(text.contains(col), "{col} not explained: {text}");
     }
+    // The oracle, "the upper bound", has late keeps and blurred keeps (1 and 0.60 on
+    // tum_fr1_desk): the legend says why (it decides each frame at once, without the look-back,
+    // blind to sharpness; a jump in tau past 0.667 within one frame makes its keep late).
+    let legend = &text[text.find("columns:").unwrap()..];
+    let oracle = &legend[legend.find("oracle:").expect(legend)..];
+    for why in ["without the look-back", "sharpness", "0.667", "late"] {
+        assert!(oracle.contains(why), "{why}: {oracle}");
+    }
     let v = leangate().arg("--version").output().unwrap();
     let v = String::from_utf8_lossy(&v.stdout);
     assert_eq!(v.trim(), format!("leangate {}", env!("CARGO_PKG_VERSION")));
