@@ -11,6 +11,9 @@
 #         CAPS            camera caps to request, default "video/x-raw,width=640,height=480"
 #         MAX_GAP         keep at least one frame every N (default 30: a live SLAM front end
 #                         should never starve)
+#         LOOKBACK        sharpness-lookback (default: the element's 3 frames held, 100 ms at
+#                         30 frames/s); LOOKBACK=0 when latency matters (docs/element.md,
+#                         "Live cameras")
 #
 # Equivalent gst-launch line (-m prints the periodic `leangate-stats` messages: one per second
 # of stream time here, via stats-interval):
@@ -34,6 +37,11 @@ THRESHOLD="${2:-}"
 SINK="${SINK:-videoconvert ! autovideosink sync=false}"
 CAPS="${CAPS:-video/x-raw,width=640,height=480}"
 MAX_GAP="${MAX_GAP:-30}"
+LOOKBACK="${LOOKBACK:-}"
+case "$LOOKBACK" in
+    "" | [0-9] | [12][0-9] | 30) ;;
+    *) echo "error: LOOKBACK=$LOOKBACK: sharpness-lookback takes 0 to 30 frames" >&2; exit 2 ;;
+esac
 leangate_require_plugin
 
 # The pipeline's words (CAPS and SINK split as gst-launch would; the device and the model quoted
@@ -42,7 +50,7 @@ set -f
 # shellcheck disable=SC2206
 WORDS=(v4l2src "device=$(gst_quote "$DEVICE")" ! $CAPS ! videoconvert !
     leangate ${MODEL_PROP:+"$MODEL_PROP"} ${THRESHOLD:+threshold=$THRESHOLD} max-gap="$MAX_GAP"
-    stats-interval=1000000000 ! $SINK)
+    ${LOOKBACK:+sharpness-lookback=$LOOKBACK} stats-interval=1000000000 ! $SINK)
 set +f
 PIPELINE="${WORDS[*]}"
 

@@ -364,3 +364,7 @@ else
   say "$link_note; set GST_PLUGIN_PATH=$PLUGIN_DIR for GStreamer to find the plugin"
 fi
 say "LeanGate in $PREFIX (plugin $INSTALLED_PLUGIN, ONNX Runtime in $LIB_DIR, $BIN_DIR/leangate and $BIN_DIR/leangate-client, model card $PREFIX/share/doc/leangate/models/README.md); what was written is listed in $MANIFEST"
+case ":$PATH:" in
+  *":$BIN_DIR:"*) ;;
+  *) say "$BIN_DIR is not on PATH: add it (export PATH=\"$BIN_DIR:\$PATH\") to run leangate and leangate-client by name" ;;
+esac

@@ -713,6 +713,20 @@ fn camera_pipeline_parses() {
     for e in ["v4l2src", "videoconvert", "leangate"] {
         assert!(elements.contains(e), "{e} missing from {elements:?}");
     }
+    assert!(!text.contains("sharpness-lookback"), "{text}");
+    // LOOKBACK=0 for a live camera where latency matters; a bad value is refused.
+    let mut c = command("bash");
+    c.args(["pipelines/camera.sh", "--check"])
+        .env("LOOKBACK", "0");
+    let out = run(c);
+    assert!(out.status.success());
+    assert!(stdout(&out).contains(" max-gap=30 sharpness-lookback=0 "));
+    let mut c = command("bash");
+    c.args(["pipelines/camera.sh", "--check"])
+        .env("LOOKBACK", "31");
+    let out = run(c);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(stderr(&out).contains("LOOKBACK=31"), "{}", stderr(&out));
 }
 
 #[test]
