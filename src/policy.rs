@@ -35,7 +35,9 @@
 //!     [`SHARPER_RATIO`] of the sharpest of the [`SHARPNESS_HISTORY`] frames before it) while
 //!     its utility is below `threshold + sharpness_margin`;
 //!   - the settle (a look-back and `sharpness_wait` > 0): the first `sharpness_wait` frames from
-//!     the due one, unless a frame's utility reaches [`settle_cap`] (halfway to a late keep);
+//!     the due one (at most the look-back), unless a frame's utility reaches [`settle_cap`]
+//!     (halfway to a late keep), and only when a candidate is held before the due frame (a
+//!     utility that leapt past the threshold, fast motion, keeps at once);
 //!   - the wait alone (`sharpness_wait` > 0, no look-back, nothing held): a blurred frame, at
 //!     most `sharpness_wait` of them (blurred against the frames before the wait); the keep
 //!     lands on the frame that settles it.
@@ -497,8 +499,12 @@ impl Gate {
                     && self.blurred(Some(s))
                     && below(self.cfg.threshold + self.cfg.sharpness_margin)
             }
+            // The settle waits for a utility that rose to the threshold, a nearly-due frame held
+            // before the due one; one that leapt past it (fast motion) is kept at once.
             Wait::Settle => {
-                waited < self.cfg.sharpness_wait.min(reach) && below(settle_cap(self.cfg.threshold))
+                waited < self.cfg.sharpness_wait.min(reach)
+                    && below(settle_cap(self.cfg.threshold))
+                    && (waited > 0 || !self.candidates.is_empty())
             }
             Wait::Blurred => waited < self.cfg.sharpness_wait && self.blurred(Some(s)),
         }
@@ -910,7 +916,7 @@ mod tests {
         assert_eq!(step(&mut g, 0.55, 30.0).1, Reason::Deferred);
         g.force_keyframe();
         assert_eq!(step(&mut g, 0.6, 30.0), (true, Reason::Forced, 0, 0));
-        // A due frame halfway to a late keep right after a keep: nothing to wait for.
+        // Nothing held to compare with (the due frame follows a keep): kept at once.
         assert_eq!(step(&mut g, 0.6, 30.0), (true, Reason::Score, 0, 0));
         // Without a look-back the wait keeps its own rule: the first frame not blurred.
         let mut w = Gate::new(GateConfig {
@@ -981,7 +987,7 @@ mod tests {
         step(&mut g, 0.2, 100.0);
         assert!(step(&mut g, 0.52, 10.0).0);
         // With sharpness-wait (the settle mode, which has its own rule) or without a look-back
-        // the margin does nothing: the settle waits its length whatever the sharpness...
+        // the margin does nothing (the settle, with nothing nearly due held, keeps at once).
         let mut g = Gate::new(GateConfig {
             sharpness_margin: 0.05,
             sharpness_wait: 2,
@@ -989,9 +995,7 @@ mod tests {
         });
         g.decide(Score::NoReference);
         step(&mut g, 0.2, 100.0);
-        assert_eq!(step(&mut g, 0.52, 100.0), (false, Reason::Deferred, 0));
-        assert_eq!(step(&mut g, 0.53, 100.0), (false, Reason::Deferred, 0));
-        assert_eq!(step(&mut g, 0.53, 100.0), (true, Reason::Score, 0));
+        assert_eq!(step(&mut g, 0.52, 10.0), (true, Reason::Score, 0));
         let mut g = Gate::new(GateConfig {
             sharpness_margin: 0.05,
             sharpness_lookback: 0,
