@@ -16,6 +16,8 @@
 //! - remote scoring on a KServe V2 server: [`RemoteScorer`], [`RemoteOptions`], [`Backend`]
 //!   (module [`remote`], its HTTP client in [`remote::client`]);
 //! - the geometric prior (chained homographies → the teacher's overlap): module [`geometry`];
+//! - the pair overlap itself from depth and a relative pose (`S = min(f_m, f_u)`, the teacher's
+//!   one implementation): module [`overlap`];
 //! - what a frame's utility is made of (the model's score fused with the prior): [`Utility`];
 //! - whether a frame carries a usable picture (junk never becomes a keyframe): module [`quality`];
 //! - the element type [`LeanGate`] and its property enums.
@@ -26,6 +28,7 @@ mod default_model;
 pub mod geometry;
 mod leangate;
 mod meta;
+pub mod overlap;
 mod policy;
 mod preprocess;
 pub mod quality;

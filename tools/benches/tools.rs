@@ -5,7 +5,7 @@
 use std::time::Instant;
 
 use leangate_tools::synth::{self, MotionProfile, Scene, SensorConfig, SynthConfig};
-use leangate_tools::teacher::{self, DepthView, Teacher, TeacherConfig};
+use leangate_tools::teacher::{self, DepthView, DepthViewExt, Teacher, TeacherConfig};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));

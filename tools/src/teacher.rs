@@ -1,54 +1,26 @@
 //! The teacher: MASt3R-SLAM's keyframe criterion computed exactly from ground-truth depth and
 //! poses.
 //!
-//! # Definition
-//!
-//! For a pair (current frame `i`, keyframe `j`), each pixel of `i` with a valid depth is
-//! unprojected, moved by the relative pose into `j`'s camera and projected into `j`. The match
-//! is *valid* when it lands inside `j` on a pixel with valid depth and the two 3-D points (the
-//! transformed point of `i`, and `j`'s own unprojected point at that pixel, both in `j`'s
-//! camera frame) are closer than `max_dist_m` (0.1 m by default). Then
-//!
-//! * `f_m` = valid matches / valid-depth pixels of `i`;
-//! * `f_u` = distinct pixels of `j` hit by valid matches / valid-depth pixels of `j`;
-//! * `S = min(f_m, f_u)`, `tau = 1 - S` (utility: 0 = nothing new, 1 = all new).
-//!
-//! If `i` or `j` has no valid depth pixel, `S = 0` (`tau = 1`).
-//!
-//! # Conventions
-//!
-//! OpenCV/TUM camera frame (x right, y down, z forward); poses camera-to-world; pixel `(u, v)`
-//! at integer coordinates of pixel centres; projection `u = fx X/Z + cx` rounded to the nearest
-//! integer; inside when `0 <= u < W`, `0 <= v < H` and `Z > 0`.
-//!
-//! # Working resolution
-//!
-//! Depth is subsampled by an integer step `k = max(1, round(W / working_width))`: every `k`-th
-//! pixel of every `k`-th row is taken, without averaging (which would create flying points at
-//! depth edges). The subsampled intrinsics are exactly `fx/k, fy/k, cx/k, cy/k`, since
-//! subsampled pixel `u'` is full-resolution pixel `k u'`.
-//!
-//! A [`DepthView`] stores the subsampled depth plus per-column and per-row ray factors
-//! `(u - cx)/fx`, `(v - cy)/fy`, so a 3-D point is `(xr[u] z, yr[v] z, z)`: the unprojection is
-//! precomputed once per view while memory stays at 4 bytes per working pixel (77 KB per frame
-//! at 160x120), which matters for sequences of thousands of frames.
-//!
-//! # Speed
-//!
-//! [`score_pair`] is one pass over the current view with `f32` arithmetic and a reusable
-//! per-thread bitmap for distinct hits (no allocation per pair). On the 7-Scenes clip at 160x120
-//! (strongly overlapping pairs, the slow case) it scores about 4,000 pairs/s per core
-//! (`cargo test teacher_speed -- --ignored --nocapture`); [`Teacher::score_pairs`] spreads pairs
-//! over rayon's pool.
+//! The overlap itself (its definition, conventions, working resolution and speed) lives in the
+//! plugin crate, [`gstleangate::overlap`], the one implementation that the teacher and the element
+//! share; [`DepthView`] and [`PairScore`] are that module's. This module adds what needs ground
+//! truth: building views from a [`Sequence`]'s depth images and intrinsics at the working
+//! resolution of a [`TeacherConfig`] ([`DepthViewExt::new`]; the step is
+//! `max(1, round(W / working_width))`), scoring with camera-to-world `nalgebra` poses
+//! ([`score_pair`]), the checks that refuse a sequence whose depth the teacher cannot read, and
+//! [`Teacher`], which holds a sequence's views and poses and spreads pairs over rayon's pool.
 
-use std::cell::Cell;
 use std::fmt;
 use std::io::Write;
 
+use gstleangate::overlap::{self, Pinhole, Rigid};
 use nalgebra::Isometry3;
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 
 use crate::dataset::{DatasetError, DepthImage, Intrinsics, Sequence};
+
+pub use gstleangate::overlap::{DepthView, PairScore};
 
 /// Configuration of the teacher.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -129,109 +101,41 @@ impl From<DatasetError> for TeacherError {
     }
 }
 
-/// Depth at the working resolution with its intrinsics and precomputed ray factors.
-#[derive(Debug, Clone)]
-pub struct DepthView {
-    /// Working width.
-    pub width: u32,
-    /// Working height.
-    pub height: u32,
-    /// Working-resolution intrinsics (`fx/k` etc.; `depth_scale` copied).
-    pub intrinsics: Intrinsics,
-    /// Subsampling step `k` from the full resolution.
-    pub step: u32,
-    /// Depth in metres, row-major, 0.0 = invalid (non-finite or non-positive inputs too).
-    pub depth: Vec<f32>,
-    /// `(u - cx) / fx` per working column.
-    xr: Vec<f32>,
-    /// `(v - cy) / fy` per working row.
-    yr: Vec<f32>,
-    /// Number of valid-depth pixels.
-    pub valid_count: usize,
+/// Builds a [`DepthView`] from the tools' depth images (the plugin's [`DepthView::from_full`]
+/// at the teacher's step); in scope, `DepthView::new(&depth, &intrinsics, &cfg)`.
+pub trait DepthViewExt: Sized {
+    /// Subsamples `depth` (full resolution, intrinsics `intr`) to the working resolution of
+    /// `cfg`: every `k`-th pixel of every `k`-th row, `k = cfg.step_for_width(depth.width)`.
+    fn new(
+        depth: &DepthImage,
+        intr: &Intrinsics,
+        cfg: &TeacherConfig,
+    ) -> Result<Self, TeacherError>;
 }
 
-impl DepthView {
-    /// Subsamples `depth` (full resolution, intrinsics `intr`) to the working resolution.
-    pub fn new(
+impl DepthViewExt for DepthView {
+    fn new(
         depth: &DepthImage,
         intr: &Intrinsics,
         cfg: &TeacherConfig,
     ) -> Result<DepthView, TeacherError> {
-        let (w, h) = (depth.width as usize, depth.height as usize);
-        if depth.data.len() != w * h {
-            return Err(TeacherError::BadDepth(format!(
-                "{} values for {}x{}",
-                depth.data.len(),
-                w,
-                h
-            )));
-        }
-        if w == 0 || h == 0 {
-            return Err(TeacherError::BadDepth("empty image".into()));
-        }
-        if !(intr.fx > 0.0 && intr.fy > 0.0) {
-            return Err(TeacherError::BadDepth("non-positive focal length".into()));
-        }
-        let k = cfg.step_for_width(depth.width) as usize;
-        let (ww, wh) = (w.div_ceil(k), h.div_ceil(k));
-        let mut data = Vec::with_capacity(ww * wh);
-        for v in 0..wh {
-            let row = &depth.data[v * k * w..(v * k + 1) * w];
-            data.extend(row.iter().step_by(k).map(
-                |&d| {
-                    if d.is_finite() && d > 0.0 {
-                        d
-                    } else {
-                        0.0
-                    }
-                },
-            ));
-        }
-        let kf = k as f64;
-        let sub = Intrinsics {
-            fx: intr.fx / kf,
-            fy: intr.fy / kf,
-            cx: intr.cx / kf,
-            cy: intr.cy / kf,
-            depth_scale: intr.depth_scale,
+        let pinhole = Pinhole {
+            fx: intr.fx,
+            fy: intr.fy,
+            cx: intr.cx,
+            cy: intr.cy,
         };
-        Ok(Self::from_parts(ww as u32, wh as u32, sub, k as u32, data))
-    }
-
-    /// Builds a view from depth already at working resolution (no subsampling).
-    fn from_parts(w: u32, h: u32, intr: Intrinsics, step: u32, depth: Vec<f32>) -> DepthView {
-        let xr = (0..w)
-            .map(|u| ((u as f64 - intr.cx) / intr.fx) as f32)
-            .collect();
-        let yr = (0..h)
-            .map(|v| ((v as f64 - intr.cy) / intr.fy) as f32)
-            .collect();
-        let valid_count = depth.iter().filter(|&&d| d > 0.0).count();
-        DepthView {
-            width: w,
-            height: h,
-            intrinsics: intr,
-            step,
-            depth,
-            xr,
-            yr,
-            valid_count,
-        }
-    }
-
-    /// The 3-D point (camera frame) of working pixel `(u, v)`, if its depth is valid.
-    pub fn point(&self, u: u32, v: u32) -> Option<[f32; 3]> {
-        if u >= self.width || v >= self.height {
-            return None;
-        }
-        let z = self.depth[v as usize * self.width as usize + u as usize];
-        (z > 0.0).then(|| [self.xr[u as usize] * z, self.yr[v as usize] * z, z])
+        let step = cfg.step_for_width(depth.width);
+        DepthView::from_full(&depth.data, depth.width, depth.height, pinhole, step)
+            .map_err(|e| TeacherError::BadDepth(e.to_string()))
     }
 }
 
-/// Teacher score of one pair.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct PairScore {
+/// `PairScore` through serde: the plugin crate has no serde, so a field of that type is
+/// (de)serialized with `#[serde(with = "PairScoreSerde")]` (the same four fields by name).
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "PairScore")]
+pub struct PairScoreSerde {
     /// Fraction of the current frame's valid pixels with a valid match in the keyframe.
     pub f_m: f64,
     /// Fraction of the keyframe's valid pixels hit by at least one valid match.
@@ -242,23 +146,19 @@ pub struct PairScore {
     pub tau: f64,
 }
 
-impl PairScore {
-    /// The degenerate score (no valid depth): `S = 0`, `tau = 1`.
-    pub const NOTHING_SHARED: PairScore = PairScore {
-        f_m: 0.0,
-        f_u: 0.0,
-        s: 0.0,
-        tau: 1.0,
-    };
-}
-
-thread_local! {
-    /// Reusable bitmap of keyframe pixels already hit (one bit per working pixel).
-    static HIT_BITMAP: Cell<Vec<u64>> = const { Cell::new(Vec::new()) };
+/// A camera pose (or any rigid transform) in the overlap's plain form.
+pub fn rigid(pose: &Isometry3<f64>) -> Rigid {
+    let m = pose.rotation.to_rotation_matrix().into_inner();
+    let t = pose.translation.vector;
+    Rigid {
+        r: [0, 1, 2].map(|i| [m[(i, 0)], m[(i, 1)], m[(i, 2)]]),
+        t: [t.x, t.y, t.z],
+    }
 }
 
 /// Scores the pair (current `cur` at `cur_pose`, keyframe `key` at `key_pose`); poses are
-/// camera-to-world. Allocation-free after the first call on a thread.
+/// camera-to-world. The relative pose current → keyframe camera is `key_pose⁻¹ cur_pose`
+/// (composed by nalgebra), then [`overlap::score_pair`].
 pub fn score_pair(
     cur: &DepthView,
     cur_pose: &Isometry3<f64>,
@@ -266,89 +166,8 @@ pub fn score_pair(
     key_pose: &Isometry3<f64>,
     max_dist_m: f64,
 ) -> PairScore {
-    if cur.valid_count == 0 || key.valid_count == 0 {
-        return PairScore::NOTHING_SHARED;
-    }
-    // current camera -> keyframe camera
     let rel = key_pose.inverse() * cur_pose;
-    let r = rel.rotation.to_rotation_matrix();
-    let m = r.matrix();
-    let rm: [[f32; 3]; 3] = [
-        [m[(0, 0)] as f32, m[(0, 1)] as f32, m[(0, 2)] as f32],
-        [m[(1, 0)] as f32, m[(1, 1)] as f32, m[(1, 2)] as f32],
-        [m[(2, 0)] as f32, m[(2, 1)] as f32, m[(2, 2)] as f32],
-    ];
-    let t = rel.translation.vector;
-    let (tx, ty, tz) = (t.x as f32, t.y as f32, t.z as f32);
-    let ki = &key.intrinsics;
-    let (kfx, kfy, kcx, kcy) = (ki.fx as f32, ki.fy as f32, ki.cx as f32, ki.cy as f32);
-    let (kw, kh) = (key.width as usize, key.height as usize);
-    let (kwf, khf) = (kw as f32, kh as f32);
-    let max_d2 = (max_dist_m * max_dist_m) as f32;
-    let cw = cur.width as usize;
-
-    // Take the thread's bitmap out of the thread-local so the hot loop works on locals.
-    let mut bm = HIT_BITMAP.with(|b| b.take());
-    let words = (kw * kh).div_ceil(64);
-    bm.clear();
-    bm.resize(words, 0);
-    let mut valid = 0usize;
-    let mut distinct = 0usize;
-    for (v, row) in cur.depth.chunks_exact(cw).enumerate() {
-        let yr = cur.yr[v];
-        // Row-constant parts of R * (x z, y z, z) = z * (R (x, y, 1)).
-        let (b0, b1, b2) = (
-            rm[0][1] * yr + rm[0][2],
-            rm[1][1] * yr + rm[1][2],
-            rm[2][1] * yr + rm[2][2],
-        );
-        for (&z, &xr) in row.iter().zip(&cur.xr) {
-            if z <= 0.0 {
-                continue;
-            }
-            let qz = z * (rm[2][0] * xr + b2) + tz;
-            if qz <= 0.0 {
-                continue;
-            }
-            let qx = z * (rm[0][0] * xr + b0) + tx;
-            let qy = z * (rm[1][0] * xr + b1) + ty;
-            let inv = 1.0 / qz;
-            let uf = kfx * qx * inv + kcx + 0.5;
-            let vf = kfy * qy * inv + kcy + 0.5;
-            // round-to-nearest lands inside iff 0 <= u + 0.5 < W; then truncation is floor
-            if !(uf >= 0.0 && uf < kwf && vf >= 0.0 && vf < khf) {
-                continue;
-            }
-            let ku = (uf as usize).min(kw - 1);
-            let kv = (vf as usize).min(kh - 1);
-            let idx = kv * kw + ku;
-            let kz = key.depth[idx];
-            if kz <= 0.0 {
-                continue;
-            }
-            let dx = key.xr[ku] * kz - qx;
-            let dy = key.yr[kv] * kz - qy;
-            let dz = kz - qz;
-            if dx * dx + dy * dy + dz * dz >= max_d2 {
-                continue;
-            }
-            valid += 1;
-            let (w, b) = (idx >> 6, 1u64 << (idx & 63));
-            let word = &mut bm[w];
-            distinct += (*word & b == 0) as usize;
-            *word |= b;
-        }
-    }
-    HIT_BITMAP.with(|b| b.set(bm));
-    let f_m = valid as f64 / cur.valid_count as f64;
-    let f_u = distinct as f64 / key.valid_count as f64;
-    let s = f_m.min(f_u);
-    PairScore {
-        f_m,
-        f_u,
-        s,
-        tau: 1.0 - s,
-    }
+    overlap::score_pair(cur, key, &rigid(&rel), max_dist_m)
 }
 
 /// All depth views and poses of a sequence, ready to score any pair.
@@ -626,156 +445,80 @@ mod tests {
         TeacherConfig::default()
     }
 
-    /// Ray-casts a scene given as a list of axis-aligned boxes (world frame) plus a plane
-    /// z = `plane_z` (world), camera at `pose` (camera-to-world).
-    fn render(pose: &Isometry3<f64>, plane_z: f64, boxes: &[([f64; 3], [f64; 3])]) -> DepthImage {
-        let k = intr();
-        let mut d = DepthImage::new(W, H);
-        for v in 0..H {
-            for u in 0..W {
-                let dc = Vector3::new((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy, 1.0);
-                let dw = pose.rotation * dc;
-                let o = pose.translation.vector;
-                let mut best = f64::INFINITY;
-                if dw.z.abs() > 1e-12 {
-                    let t = (plane_z - o.z) / dw.z;
-                    if t > 0.0 {
-                        best = t;
-                    }
-                }
-                for (lo, hi) in boxes {
-                    let (mut t0, mut t1) = (0.0f64, f64::INFINITY);
-                    for a in 0..3 {
-                        let inv = 1.0 / dw[a];
-                        let (mut ta, mut tb) = ((lo[a] - o[a]) * inv, (hi[a] - o[a]) * inv);
-                        if ta > tb {
-                            std::mem::swap(&mut ta, &mut tb);
-                        }
-                        t0 = t0.max(ta);
-                        t1 = t1.min(tb);
-                    }
-                    if t0 <= t1 && t0 > 0.0 && t0 < best {
-                        best = t0;
-                    }
-                }
-                // t is the z-depth because the camera-frame ray has z = 1
-                if best.is_finite() {
-                    d.data[(v * W + u) as usize] = best as f32;
-                }
-            }
-        }
-        d
-    }
-
     fn view(d: &DepthImage) -> DepthView {
         DepthView::new(d, &intr(), &cfg()).unwrap()
     }
 
-    #[test]
-    fn identical_frames_give_tau_zero() {
-        let pose = Isometry3::identity();
-        let d = render(&pose, 2.0, &[]);
-        let v = view(&d);
-        let s = score_pair(&v, &pose, &v, &pose, 0.1);
-        assert_eq!(s.s, 1.0);
-        assert_eq!(s.tau, 0.0);
-    }
-
-    #[test]
-    fn turned_away_gives_tau_one() {
-        let p0 = Isometry3::identity();
-        let p1 = Isometry3::from_parts(
-            Translation3::identity(),
-            UnitQuaternion::from_axis_angle(&Vector3::y_axis(), std::f64::consts::PI),
-        );
-        let d0 = render(&p0, 2.0, &[]);
-        let d1 = render(&p1, -2.0, &[]);
-        let s = score_pair(&view(&d1), &p1, &view(&d0), &p0, 0.1);
-        assert_eq!(s.tau, 1.0);
-        assert_eq!(s.f_m, 0.0);
-    }
-
-    #[test]
-    fn sideways_translation_matches_overlap_formula() {
-        let z = 2.0;
-        for &t in &[0.1, 0.3, 0.6] {
-            let p0 = Isometry3::identity();
-            let p1 = Isometry3::translation(t, 0.0, 0.0);
-            let v0 = view(&render(&p0, z, &[]));
-            let v1 = view(&render(&p1, z, &[]));
-            let s = score_pair(&v1, &p1, &v0, &p0, 0.1);
-            let expected = 1.0 - F * t / (z * W as f64);
-            assert!(
-                (s.s - expected).abs() < 0.02,
-                "t={t}: S={} expected {expected}",
-                s.s
-            );
-            assert!((s.f_m - s.f_u).abs() < 0.02);
+    /// A fronto-parallel plane `z` metres ahead of a camera looking along world z.
+    fn plane(z: f32) -> DepthImage {
+        DepthImage {
+            width: W,
+            height: H,
+            data: vec![z; (W * H) as usize],
         }
     }
 
+    // The overlap itself is tested in the plugin crate (`gstleangate::overlap`); these check the
+    // teacher's use of it: poses, views, refusals.
+
     #[test]
-    fn empty_depth_gives_tau_one() {
-        let pose = Isometry3::identity();
-        let full = view(&render(&pose, 2.0, &[]));
+    fn score_pair_is_the_overlap_on_the_relative_pose() {
+        let (z, t) = (2.0, 0.3);
+        let p0 = Isometry3::identity();
+        let p1 = Isometry3::translation(t, 0.0, 0.0);
+        let v = view(&plane(z as f32));
+        let s = score_pair(&v, &p1, &v, &p0, 0.1);
+        let expected = 1.0 - F * t / (z * W as f64);
+        assert!(
+            (s.s - expected).abs() < 0.02,
+            "S={} expected {expected}",
+            s.s
+        );
+        assert_eq!(score_pair(&v, &p0, &v, &p0, 0.1).tau, 0.0);
+        // Any common world frame: the same relative pose, the same score.
+        let g = Isometry3::from_parts(
+            Translation3::new(1.0, -2.0, 0.5),
+            UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.4),
+        );
+        let (q0, q1) = (g * p0, g * p1);
+        let rel = rigid(&(q0.inverse() * q1));
+        assert_eq!(
+            score_pair(&v, &q1, &v, &q0, 0.1),
+            overlap::score_pair(&v, &v, &rel, 0.1)
+        );
+        assert!((score_pair(&v, &q1, &v, &q0, 0.1).s - s.s).abs() < 1e-3);
         let empty = view(&DepthImage::new(W, H));
-        assert_eq!(score_pair(&full, &pose, &empty, &pose, 0.1).tau, 1.0);
-        assert_eq!(score_pair(&empty, &pose, &full, &pose, 0.1).tau, 1.0);
+        assert_eq!(score_pair(&v, &p0, &empty, &p0, 0.1).tau, 1.0);
     }
 
     #[test]
-    fn occluded_points_do_not_match() {
-        // Plane at z = 3; a box in front of it. Two views separated sideways: plane pixels
-        // visible in i but hidden behind the box in j must fail the 3-D distance test.
-        let boxes = [([-0.3, -0.3, 1.3], [0.3, 0.3, 1.7])];
-        let p0 = Isometry3::identity();
-        let p1 = Isometry3::translation(0.4, 0.0, 0.0);
-        let d0 = render(&p0, 3.0, &boxes);
-        let d1 = render(&p1, 3.0, &boxes);
-        let v0 = view(&d0);
-        let v1 = view(&d1);
-        let s = score_pair(&v1, &p1, &v0, &p0, 0.1);
-        // Reference computed by brute force with an explicit visibility test: a point of i
-        // matches if it is within the field of view of j and visible (not behind the box).
-        let k = intr();
-        let rel = p0.inverse() * p1;
-        let (mut ok, mut total, mut occluded) = (0usize, 0usize, 0usize);
-        for v in 0..H {
-            for u in 0..W {
-                let z = d1.data[(v * W + u) as usize] as f64;
-                total += 1;
-                let pc = Vector3::new(
-                    (u as f64 - k.cx) / k.fx * z,
-                    (v as f64 - k.cy) / k.fy * z,
-                    z,
-                );
-                let q = rel * nalgebra::Point3::from(pc);
-                let uu = (k.fx * q.x / q.z + k.cx).round();
-                let vv = (k.fy * q.y / q.z + k.cy).round();
-                if uu < 0.0 || vv < 0.0 || uu >= W as f64 || vv >= H as f64 {
-                    continue;
-                }
-                let kz = d0.data[(vv as u32 * W + uu as u32) as usize] as f64;
-                if kz < q.z - 0.2 {
-                    occluded += 1;
-                    continue;
-                }
-                ok += 1;
-            }
-        }
-        assert!(
-            occluded > 200,
-            "test scene must have occlusion ({occluded})"
+    fn rigid_is_the_isometry() {
+        let iso = Isometry3::from_parts(
+            Translation3::new(0.3, -0.1, 2.0),
+            UnitQuaternion::from_euler_angles(0.2, -0.7, 1.1),
         );
-        let expected = ok as f64 / total as f64;
+        let p = nalgebra::Point3::new(0.5, 1.5, -0.25);
+        let q = iso * p;
+        let r = rigid(&iso).apply([p.x, p.y, p.z]);
         assert!(
-            (s.f_m - expected).abs() < 0.02,
-            "f_m {} expected {expected}",
-            s.f_m
+            (0..3).all(|i| (r[i] - q[i]).abs() < 1e-12),
+            "{r:?} vs {q:?}"
         );
-        // Without the distance test the occluded points would count.
-        let loose = score_pair(&v1, &p1, &v0, &p0, 10.0);
-        assert!(loose.f_m > s.f_m + (occluded as f64 / total as f64) * 0.8);
+    }
+
+    #[test]
+    fn pair_score_serializes_by_field() {
+        #[derive(Serialize, Deserialize, PartialEq, Debug)]
+        struct Row(#[serde(with = "PairScoreSerde")] PairScore);
+        let row = Row(PairScore {
+            f_m: 0.5,
+            f_u: 0.25,
+            s: 0.25,
+            tau: 0.75,
+        });
+        let text = serde_json::to_string(&row).unwrap();
+        assert_eq!(text, r#"{"f_m":0.5,"f_u":0.25,"s":0.25,"tau":0.75}"#);
+        assert_eq!(serde_json::from_str::<Row>(&text).unwrap(), row);
     }
 
     #[test]
@@ -801,7 +544,17 @@ mod tests {
             height: 10,
             data: vec![1.0; 5],
         };
-        assert!(DepthView::new(&bad, &k, &cfg()).is_err());
+        let err = |d: &DepthImage, k: &Intrinsics| match DepthView::new(d, k, &cfg()) {
+            Err(TeacherError::BadDepth(m)) => m,
+            other => panic!("{other:?}"),
+        };
+        assert_eq!(err(&bad, &k), "5 values for 10x10");
+        assert_eq!(err(&DepthImage::new(0, 10), &k), "empty image");
+        let flat = Intrinsics { fy: 0.0, ..k };
+        assert_eq!(err(&d, &flat), "non-positive focal length");
+        // A width below the working width is taken whole.
+        let small = DepthView::new(&DepthImage::new(100, 80), &k, &cfg()).unwrap();
+        assert_eq!((small.width, small.step, small.valid_count), (100, 1, 0));
     }
 
     #[test]

@@ -9,7 +9,7 @@ use super::motion::generate_path;
 use super::render::render_frame;
 use super::*;
 use crate::dataset::{RgbFormat, Sequence};
-use crate::teacher::{score_pair, DepthView, TeacherConfig};
+use crate::teacher::{score_pair, DepthView, DepthViewExt, TeacherConfig};
 
 fn small_cfg(motion: MotionProfile, frames: usize) -> SynthConfig {
     SynthConfig {
