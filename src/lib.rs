@@ -18,6 +18,8 @@
 //! - the geometric prior (chained homographies → the teacher's overlap): module [`geometry`];
 //! - the pair overlap itself from depth and a relative pose (`S = min(f_m, f_u)`, the teacher's
 //!   one implementation): module [`overlap`];
+//! - with depth beside the colour (RGB-D), the pose from tracked corners and that overlap with
+//!   it: module [`metric`] (`leangate eval --depth`; the element does not take depth yet);
 //! - what a frame's utility is made of (the model's score fused with the prior): [`Utility`];
 //! - whether a frame carries a usable picture (junk never becomes a keyframe): module [`quality`];
 //! - the element type [`LeanGate`] and its property enums.
@@ -28,6 +30,7 @@ mod default_model;
 pub mod geometry;
 mod leangate;
 mod meta;
+pub mod metric;
 pub mod overlap;
 mod policy;
 mod preprocess;

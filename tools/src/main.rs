@@ -165,6 +165,15 @@ enum Command {
         #[arg(long, value_name = "DELAY", num_args = 0..=1, default_missing_value = "3",
               value_parser = clap::value_parser!(u16).range(0..=1000))]
         feedback: Option<u16>,
+        /// Gate with depth, as an RGB-D camera would (issue 52, experimental): the `model` row is
+        /// then the metric gate (`gstleangate::metric`): the pose relative to the last keep fitted
+        /// to tracked corners lifted with the keep's depth (never the ground truth), and the
+        /// teacher's own S between the two depth images with it, kept at tau >= threshold; a
+        /// frame whose pose fails falls back to the geometric prior's overlap. Run offline on the
+        /// sequence's colour and depth (the element does not take depth yet). Needs depth
+        /// (640x480) and intrinsics
+        #[arg(long)]
+        depth: bool,
         /// Set a property of the element the model runs in, as gst-launch would
         /// (`--set sharpness-lookback=0`; repeatable): how to judge the gate with other settings.
         /// `mode` stays annotate (the eval reads every frame's verdict).
@@ -464,6 +473,7 @@ fn run(cli: Cli) -> Res {
             precision,
             threshold,
             feedback,
+            depth,
             set,
             json,
             plot,
@@ -515,6 +525,7 @@ fn run(cli: Cli) -> Res {
                         _ => gstleangate::PrecisionChoice::Auto,
                     }),
                     feedback: feedback.map(usize::from),
+                    depth,
                     properties: &set,
                 },
                 threshold,

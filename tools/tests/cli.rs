@@ -3024,3 +3024,37 @@ fn eval_says_when_the_model_failed_on_frames() {
     assert_eq!(r["model_failed_frames"], 0, "{r}");
     assert!(r.get("model_failure").is_none(), "{r}");
 }
+
+/// `eval --depth` (issue 52): the metric gate, its pose fitted to tracked corners lifted with the
+/// keyframe's depth (never the ground truth), judged by the teacher. On tum_fr1_desk it keeps as
+/// many frames as the oracle within 15 % with no late keep, and its utility follows the teacher's
+/// (RMSE below 0.05; the colour-only default's is about 0.10).
+#[test]
+fn eval_depth_gates_with_the_teachers_own_s_from_estimated_poses() {
+    let Some(seq) = shared_data("tum_fr1_desk") else {
+        return;
+    };
+    let v = eval_json(&seq, &["--depth"]);
+    let model = &v["policies"]["model"];
+    let oracle = v["policies"]["oracle"]["kept"].as_f64().unwrap();
+    let kept = model["kept"].as_f64().unwrap();
+    assert!((kept / oracle - 1.0).abs() <= 0.15, "{kept} of {oracle}");
+    assert_eq!(model["late_keeps"], 0, "{model}");
+    assert!(model["utility_rmse"].as_f64().unwrap() < 0.05, "{model}");
+    assert!(v["depth_pose_failures"].as_u64().unwrap() <= 5, "{v}");
+}
+
+#[test]
+fn eval_depth_needs_a_sequence_with_depth() {
+    let Some(clip) = shared_data("cotracker_clips/apple.mp4") else {
+        return;
+    };
+    let out = leangate()
+        .args(["eval", "--depth", "--sequence"])
+        .arg(&clip)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--depth needs a sequence directory"), "{err}");
+}

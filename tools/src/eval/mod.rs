@@ -32,6 +32,7 @@ use crate::dataset::Sequence;
 use crate::teacher::{PairScore, Teacher};
 
 mod baselines;
+pub mod depth;
 mod judge;
 mod model_run;
 pub mod motion;
@@ -303,6 +304,9 @@ pub struct EvalReport {
     /// (the correction the teacher's reports taught it; `model` is that run).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub feedback_offset: Option<f64>,
+    /// With `--depth`: frames whose pose the metric gate could not fit (gated by the fallback).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub depth_pose_failures: Option<usize>,
     pub policies: serde_json::Map<String, serde_json::Value>,
     /// Equal-budget curves (`--sweep`).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -351,6 +355,7 @@ pub fn evaluate(
         judged(&source, path, "--feedback")?;
     }
     let fb = teacher.as_ref().filter(|_| model.feedback.is_some());
+    let with_depth = model.depth;
     let run = run_model(&source, model, threshold, fb, |d| {
         progress("model", d, n_hint)
     })?;
@@ -366,7 +371,22 @@ pub fn evaluate(
     }
     let mut cache = teacher.as_ref().map(TeacherCache::new);
 
-    let model_trace = run.trace();
+    let mut model_trace = run.trace();
+    let mut depth_pose_failures = None;
+    if with_depth {
+        let Source::Sequence(seq) = &source else {
+            return Err(EvalError(format!(
+                "--depth needs a sequence directory with depth and intrinsics, not the video {}",
+                path.display()
+            )));
+        };
+        progress("depth", 0, n);
+        let steps = overlap::steps(&run.thumbs);
+        let d = depth::depth_gate(seq, &run.thumbs, &steps, teacher_cfg, t)?;
+        progress("depth", n, n);
+        depth_pose_failures = Some(d.pose_failures);
+        model_trace = d.trace;
+    }
     let budget = model_trace.kept();
     let mut policies = serde_json::Map::new();
     let mut kept_rows = Vec::new();
@@ -451,6 +471,7 @@ pub fn evaluate(
                 .clone()
                 .filter(|_| run.failed_frames() > 0),
             feedback_offset: run.feedback_offset,
+            depth_pose_failures,
             policies,
             sweep: None,
             reconstruction: None,

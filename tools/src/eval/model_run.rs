@@ -198,6 +198,9 @@ pub struct GateModel<'a> {
     /// previous kept frame (`leangate-feedback`; what MASt3R-SLAM measures on the frames it gets),
     /// this many frames after the keep (its latency).
     pub feedback: Option<usize>,
+    /// `--depth`: the `model` row is the metric gate over the sequence's colour and depth
+    /// ([`super::depth`]).
+    pub depth: bool,
     /// Element properties set after the eval's own (`leangate eval --set`), as text.
     pub properties: &'a [(String, String)],
 }

@@ -192,6 +192,7 @@ mod tests {
             model_failed_frames: 0,
             model_failure: None,
             feedback_offset: None,
+            depth_pose_failures: None,
             policies: rows
                 .iter()
                 .map(|(k, v)| (k.to_string(), v.clone()))

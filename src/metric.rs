@@ -1,0 +1,400 @@
+//! The metric gate: where the camera measures depth beside each colour frame, the teacher's own S
+//! from the frames, with the pose estimated from them (never from ground truth).
+//!
+//! 1. At a keep (the reference), up to [`MAX_POINTS`] corners are picked on its grey picture
+//!    (Shi-Tomasi: the smaller eigenvalue of the gradients' structure tensor over a 5x5 window, the
+//!    strongest of each cell of a [`CELL`]-pixel grid) where its depth is valid, and lifted to 3-D
+//!    points in the reference camera with that depth.
+//! 2. Each later frame, the points are tracked from the previous frame with pyramidal
+//!    Lucas-Kanade ([`crate::geometry::track_with`], [`crate::geometry::LK_CLASSIC`]) and kept
+//!    only when tracking back lands within [`FB_PX`] of where they started.
+//! 3. The current pose relative to the reference is fitted to the tracks by Gauss-Newton on the
+//!    reprojection error with Huber weights (PnP from the previous frame's pose; [`fit_pose`]),
+//!    then refitted on the inliers (within [`INLIER_PX`]); points found to be outliers stop being
+//!    tracked.
+//! 4. S is then the teacher's ([`crate::overlap`]): the current frame's depth moved into the
+//!    reference with that pose, at the working resolution.
+//!
+//! The pose fails (None) when fewer than [`MIN_INLIERS`] points, or fewer than half of those
+//! tracked, agree with it: too few tracks (the view left the reference, motion blur), a
+//! textureless view, depth holes under the corners. The caller then falls back to the colour-only
+//! utility for that frame.
+
+use crate::geometry::{track_with, Pyramid, LK_CLASSIC};
+use crate::overlap::Rigid;
+
+/// Most corners picked on a reference.
+pub const MAX_POINTS: usize = 160;
+/// Side of the grid cells corners are picked from (working pixels).
+pub const CELL: usize = 10;
+/// Forward-backward tracking tolerance (working pixels).
+pub const FB_PX: f32 = 1.0;
+/// Reprojection error (working pixels) under which a track agrees with the pose.
+pub const INLIER_PX: f64 = 2.0;
+/// Fewest agreeing tracks for a pose.
+pub const MIN_INLIERS: usize = 15;
+/// Huber's threshold of the robust fit (working pixels).
+const HUBER_PX: f64 = 1.5;
+
+/// Pinhole intrinsics at the working resolution.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+/// `exp(delta) * pose`, `delta` = (translation, rotation vector): a Gauss-Newton step.
+fn updated(pose: &Rigid, delta: &[f64; 6]) -> Rigid {
+    let w = [delta[3], delta[4], delta[5]];
+    let th = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+    let k = if th > 1e-12 {
+        [w[0] / th, w[1] / th, w[2] / th]
+    } else {
+        [0.0; 3]
+    };
+    let (s, c) = th.sin_cos();
+    let mut dr = [[0.0; 3]; 3];
+    let kx = [[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]];
+    for i in 0..3 {
+        for j in 0..3 {
+            let kk: f64 = (0..3).map(|m| kx[i][m] * kx[m][j]).sum();
+            dr[i][j] = f64::from(u8::from(i == j)) + s * kx[i][j] + (1.0 - c) * kk;
+        }
+    }
+    let d = Rigid {
+        r: dr,
+        t: [delta[0], delta[1], delta[2]],
+    };
+    d.compose(pose)
+}
+
+/// Corners of a grey picture (`w` x `h`) with valid depth (`depth[i] > 0`, metres, same size):
+/// the strongest Shi-Tomasi response of each [`CELL`]-pixel cell, the [`MAX_POINTS`] strongest
+/// of those, away from the border.
+pub fn corners(grey: &[f32], depth: &[f32], w: usize, h: usize) -> Vec<(usize, usize)> {
+    if w < 12 || h < 12 || grey.len() != w * h || depth.len() != w * h {
+        return Vec::new();
+    }
+    let gx = |x: usize, y: usize| grey[y * w + x + 1] - grey[y * w + x - 1];
+    let gy = |x: usize, y: usize| grey[(y + 1) * w + x] - grey[(y - 1) * w + x];
+    let mut best: Vec<(f32, usize, usize)> = Vec::new();
+    let border = 5;
+    for cy in (border..h - border).step_by(CELL) {
+        for cx in (border..w - border).step_by(CELL) {
+            let mut cell: Option<(f32, usize, usize)> = None;
+            for y in cy..(cy + CELL).min(h - border) {
+                for x in cx..(cx + CELL).min(w - border) {
+                    if depth[y * w + x] <= 0.0 {
+                        continue;
+                    }
+                    let (mut a, mut b, mut c) = (0.0f32, 0.0f32, 0.0f32);
+                    for yy in y - 2..=y + 2 {
+                        for xx in x - 2..=x + 2 {
+                            let (dx, dy) = (gx(xx, yy), gy(xx, yy));
+                            a += dx * dx;
+                            b += dx * dy;
+                            c += dy * dy;
+                        }
+                    }
+                    let min_eig = 0.5 * (a + c - ((a - c) * (a - c) + 4.0 * b * b).sqrt());
+                    if cell.is_none_or(|(s, _, _)| min_eig > s) {
+                        cell = Some((min_eig, x, y));
+                    }
+                }
+            }
+            best.extend(cell);
+        }
+    }
+    let top = best.iter().map(|c| c.0).fold(0.0f32, f32::max);
+    best.retain(|c| c.0 > 0.01 * top && c.0 > 0.0);
+    best.sort_by(|a, b| b.0.total_cmp(&a.0));
+    best.truncate(MAX_POINTS);
+    best.into_iter().map(|(_, x, y)| (x, y)).collect()
+}
+
+/// Fit the pose (reference camera -> current camera) to 3-D points of the reference and their
+/// tracked positions in the current picture, starting from `init`. Returns the pose and which
+/// points agree with it (reprojection within [`INLIER_PX`]); None when it does not converge to
+/// [`MIN_INLIERS`] agreeing points, or half of them.
+pub fn fit_pose(
+    cam: &Camera,
+    points: &[[f64; 3]],
+    seen: &[(f32, f32)],
+    init: &Rigid,
+) -> Option<(Rigid, Vec<bool>)> {
+    if points.len() != seen.len() || points.len() < MIN_INLIERS {
+        return None;
+    }
+    let mut pose = *init;
+    let mut use_all = vec![true; points.len()];
+    for round in 0..2 {
+        for _ in 0..if round == 0 { 10 } else { 5 } {
+            let mut hm = [[0.0f64; 6]; 6];
+            let mut g = [0.0f64; 6];
+            let mut n = 0;
+            for ((p, &(u, v)), &on) in points.iter().zip(seen).zip(&use_all) {
+                if !on {
+                    continue;
+                }
+                let q = pose.apply(*p);
+                if q[2] <= 1e-6 {
+                    continue;
+                }
+                let (x, y, z) = (q[0], q[1], q[2]);
+                let iz = 1.0 / z;
+                let eu = cam.fx * x * iz + cam.cx - u as f64;
+                let ev = cam.fy * y * iz + cam.cy - v as f64;
+                let e = (eu * eu + ev * ev).sqrt();
+                let wgt = if e <= HUBER_PX { 1.0 } else { HUBER_PX / e };
+                let ju = [
+                    cam.fx * iz,
+                    0.0,
+                    -cam.fx * x * iz * iz,
+                    -cam.fx * x * y * iz * iz,
+                    cam.fx * (1.0 + x * x * iz * iz),
+                    -cam.fx * y * iz,
+                ];
+                let jv = [
+                    0.0,
+                    cam.fy * iz,
+                    -cam.fy * y * iz * iz,
+                    -cam.fy * (1.0 + y * y * iz * iz),
+                    cam.fy * x * y * iz * iz,
+                    cam.fy * x * iz,
+                ];
+                for i in 0..6 {
+                    g[i] += wgt * (ju[i] * eu + jv[i] * ev);
+                    for j in 0..6 {
+                        hm[i][j] += wgt * (ju[i] * ju[j] + jv[i] * jv[j]);
+                    }
+                }
+                n += 1;
+            }
+            if n < 6 {
+                return None;
+            }
+            let delta = solve6(hm, g.map(|x| -x))?;
+            pose = updated(&pose, &delta);
+            if delta.iter().map(|d| d * d).sum::<f64>() < 1e-12 {
+                break;
+            }
+        }
+        for ((p, &(u, v)), on) in points.iter().zip(seen).zip(use_all.iter_mut()) {
+            let q = pose.apply(*p);
+            *on = q[2] > 1e-6 && {
+                let eu = cam.fx * q[0] / q[2] + cam.cx - u as f64;
+                let ev = cam.fy * q[1] / q[2] + cam.cy - v as f64;
+                eu * eu + ev * ev <= INLIER_PX * INLIER_PX
+            };
+        }
+    }
+    let inliers = use_all.iter().filter(|&&b| b).count();
+    let finite = pose
+        .r
+        .iter()
+        .flatten()
+        .chain(&pose.t)
+        .all(|v| v.is_finite());
+    (finite && inliers >= MIN_INLIERS && 2 * inliers >= points.len()).then_some((pose, use_all))
+}
+
+/// Solve the 6x6 system `a x = b` (Gaussian elimination with partial pivoting); None when
+/// singular.
+fn solve6(mut a: [[f64; 6]; 6], mut b: [f64; 6]) -> Option<[f64; 6]> {
+    for col in 0..6 {
+        let piv = (col..6).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
+        if a[piv][col].abs() < 1e-12 {
+            return None;
+        }
+        a.swap(col, piv);
+        b.swap(col, piv);
+        for row in col + 1..6 {
+            let f = a[row][col] / a[col][col];
+            let pivot_row = a[col];
+            for (v, p) in a[row][col..].iter_mut().zip(&pivot_row[col..]) {
+                *v -= f * p;
+            }
+            b[row] -= f * b[col];
+        }
+    }
+    let mut x = [0.0; 6];
+    for row in (0..6).rev() {
+        let s: f64 = (row + 1..6).map(|k| a[row][k] * x[k]).sum();
+        x[row] = (b[row] - s) / a[row][row];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// Tracks a reference's corners from frame to frame and fits the current pose to them.
+#[derive(Debug, Clone)]
+pub struct PoseTracker {
+    cam: Camera,
+    /// 3-D points of the reference camera still tracked, with where they were last seen.
+    points: Vec<[f64; 3]>,
+    seen: Vec<(f32, f32)>,
+    prev: Option<Pyramid>,
+    /// Reference camera -> the last frame's camera.
+    pose: Rigid,
+    /// Whether the last pose fit held.
+    live: bool,
+}
+
+impl PoseTracker {
+    pub fn new(cam: Camera) -> PoseTracker {
+        PoseTracker {
+            cam,
+            points: Vec::new(),
+            seen: Vec::new(),
+            prev: None,
+            pose: Rigid::IDENTITY,
+            live: false,
+        }
+    }
+
+    pub fn camera(&self) -> &Camera {
+        &self.cam
+    }
+
+    /// This frame (grey picture and depth in metres, `w` x `h`, the camera's working size) is
+    /// the new reference.
+    pub fn set_reference(&mut self, grey: &[f32], depth: &[f32], w: usize, h: usize) {
+        let c = &self.cam;
+        let pts = corners(grey, depth, w, h);
+        self.points = pts
+            .iter()
+            .map(|&(x, y)| {
+                let z = depth[y * w + x] as f64;
+                [
+                    (x as f64 - c.cx) / c.fx * z,
+                    (y as f64 - c.cy) / c.fy * z,
+                    z,
+                ]
+            })
+            .collect();
+        self.seen = pts.iter().map(|&(x, y)| (x as f32, y as f32)).collect();
+        self.prev = Some(Pyramid::new(grey.to_vec(), w, h));
+        self.pose = Rigid::IDENTITY;
+        self.live = !self.points.is_empty();
+    }
+
+    /// Track into this frame's grey picture and fit its pose: reference camera -> this camera.
+    /// None when the pose fails (then tracking is lost until the next reference).
+    pub fn observe(&mut self, grey: &[f32], w: usize, h: usize) -> Option<Rigid> {
+        let cur = Pyramid::new(grey.to_vec(), w, h);
+        let prev = self.prev.replace(cur);
+        if !self.live {
+            return None;
+        }
+        let (prev, cur) = (prev?, self.prev.as_ref()?);
+        let mut keep_pts = Vec::with_capacity(self.points.len());
+        let mut keep_seen = Vec::with_capacity(self.points.len());
+        for (p, &s) in self.points.iter().zip(&self.seen) {
+            let Some(q) = track_with(&prev, cur, s, &LK_CLASSIC) else {
+                continue;
+            };
+            let Some(back) = track_with(cur, &prev, q, &LK_CLASSIC) else {
+                continue;
+            };
+            let (dx, dy) = (back.0 - s.0, back.1 - s.1);
+            if dx * dx + dy * dy <= FB_PX * FB_PX {
+                keep_pts.push(*p);
+                keep_seen.push(q);
+            }
+        }
+        match fit_pose(&self.cam, &keep_pts, &keep_seen, &self.pose) {
+            Some((pose, inlier)) => {
+                self.points = keep_pts
+                    .into_iter()
+                    .zip(&inlier)
+                    .filter_map(|(p, &i)| i.then_some(p))
+                    .collect();
+                self.seen = keep_seen
+                    .into_iter()
+                    .zip(&inlier)
+                    .filter_map(|(s, &i)| i.then_some(s))
+                    .collect();
+                self.pose = pose;
+                Some(pose)
+            }
+            None => {
+                self.live = false;
+                None
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A textured plane 2 m away, seen by a 160x120 camera; `shift` moves the camera sideways
+    /// (metres).
+    fn scene(shift: f64) -> (Vec<f32>, Vec<f32>) {
+        let (w, h) = (160usize, 120usize);
+        let cam = cam();
+        let mut grey = vec![0.0f32; w * h];
+        let depth = vec![2.0f32; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                // The plane's point under pixel (x, y), in world coordinates.
+                let wx = (x as f64 - cam.cx) / cam.fx * 2.0 + shift;
+                let wy = (y as f64 - cam.cy) / cam.fy * 2.0;
+                let v = (wx * 9.0).sin() * (wy * 7.0).cos() + (wx * 3.1 + wy * 4.3).sin();
+                grey[y * w + x] = (128.0 + 60.0 * v) as f32;
+            }
+        }
+        (grey, depth)
+    }
+
+    fn cam() -> Camera {
+        Camera {
+            fx: 130.0,
+            fy: 130.0,
+            cx: 79.5,
+            cy: 59.5,
+        }
+    }
+
+    #[test]
+    fn a_sideways_move_is_recovered_from_tracks_and_depth() {
+        let mut t = PoseTracker::new(cam());
+        let (g0, d0) = scene(0.0);
+        t.set_reference(&g0, &d0, 160, 120);
+        let mut last = None;
+        for k in 1..=5 {
+            let (g, _) = scene(0.01 * k as f64);
+            last = t.observe(&g, 160, 120);
+            assert!(last.is_some(), "frame {k}");
+        }
+        let p = last.unwrap();
+        // The camera moved +5 cm in x: reference points move -5 cm in its frame.
+        assert!((p.t[0] + 0.05).abs() < 0.005, "{p:?}");
+        assert!(p.t[1].abs() < 0.005 && p.t[2].abs() < 0.01, "{p:?}");
+    }
+
+    #[test]
+    fn a_view_without_texture_or_depth_has_no_pose() {
+        let mut t = PoseTracker::new(cam());
+        let flat = vec![100.0f32; 160 * 120];
+        t.set_reference(&flat, &vec![2.0; 160 * 120], 160, 120);
+        assert_eq!(t.observe(&flat, 160, 120), None);
+        let (g, _) = scene(0.0);
+        t.set_reference(&g, &vec![0.0; 160 * 120], 160, 120);
+        assert_eq!(t.observe(&g, 160, 120), None);
+    }
+
+    #[test]
+    fn pose_algebra() {
+        let p = updated(&Rigid::IDENTITY, &[0.1, -0.2, 0.3, 0.05, -0.02, 0.1]);
+        let q = p.compose(&p.inverse());
+        for i in 0..3 {
+            for j in 0..3 {
+                assert!((q.r[i][j] - f64::from(u8::from(i == j))).abs() < 1e-12);
+            }
+            assert!(q.t[i].abs() < 1e-12);
+        }
+    }
+}
