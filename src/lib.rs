@@ -19,7 +19,7 @@
 //! - the pair overlap itself from depth and a relative pose (`S = min(f_m, f_u)`, the teacher's
 //!   one implementation): module [`overlap`];
 //! - with depth beside the colour (RGB-D), the pose from tracked corners and that overlap with
-//!   it: module [`metric`] (`leangate eval --depth`; the element does not take depth yet);
+//!   it: module [`metric`]; the depth a colour buffer carries (`LeanGateDepthMeta`): [`depth`];
 //! - what a frame's utility is made of (the model's score fused with the prior): [`Utility`];
 //! - whether a frame carries a usable picture (junk never becomes a keyframe): module [`quality`];
 //! - the element type [`LeanGate`] and its property enums.
@@ -27,6 +27,7 @@
 use gst::glib;
 
 mod default_model;
+pub mod depth;
 pub mod geometry;
 mod leangate;
 mod meta;
@@ -59,10 +60,11 @@ pub use scorer::{
     Precision, RunStop, Scorer, ScorerError, ScorerOptions, MAX_INPUT_SIDE, MAX_TENSOR_BYTES,
 };
 pub use stats::{ServerStats, StatsMessage, StatsParseError, STATS_MESSAGE};
-pub use utility::{Composed, Utility};
+pub use utility::{Composed, DepthUse, Utility};
 
 fn plugin_init(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     meta::register();
+    depth::register();
     leangate::register(plugin)
 }
 

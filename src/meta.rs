@@ -12,10 +12,12 @@
 //! | `frames-since-keyframe` | guint | frames since that reference (0 for a kept frame) |
 //! | `inference-us` | guint64 | time spent preprocessing and scoring this frame, microseconds |
 //! | `quality` | string | `usable`, or what [`crate::quality::assess`] found: `dark`, `saturated`, `noise` (junk: never kept), `textureless` (utility 0), or `corrupted` (the buffer flagged CORRUPTED or GAP: junk); `usable` when `reject-junk` is off or the frame could not be read |
+//! | `depth` | string | what depth did for the frame (RGB-D input, `LeanGateDepthMeta`): `none` (the stream carries no depth), `used` (the utility is the metric gate's: the teacher's S with the pose fitted from the frames), `missing` (this frame came without depth: gated colour-only), `lost` (its pose could not be fitted: gated colour-only) |
 //! | `screened` | boolean | the model did not run: the geometric prior alone bounded the utility below the threshold (the `screen` property); the frame is dropped unless `warmup`, `max-gap` or a forced keyframe keeps it |
 
 use crate::policy::Reason;
 use crate::quality::Quality;
+use crate::utility::DepthUse;
 
 /// The registered name of the custom meta.
 pub const META_NAME: &str = "LeanGateMeta";
@@ -34,6 +36,7 @@ pub struct GateMeta {
     pub screened: bool,
     /// Whether the frame carries a usable picture ([`crate::quality`]).
     pub quality: Quality,
+    pub depth: DepthUse,
 }
 
 /// Register the custom meta (idempotent). Called from `plugin_init`.
@@ -58,6 +61,7 @@ impl GateMeta {
         s.set("inference-us", self.inference_us);
         s.set("screened", self.screened);
         s.set("quality", self.quality.as_str());
+        s.set("depth", self.depth.as_str());
     }
 
     /// Attach (or overwrite) the meta on a buffer.
@@ -94,6 +98,11 @@ impl GateMeta {
                 .ok()
                 .and_then(Quality::parse)
                 .unwrap_or_default(),
+            depth: s
+                .get::<&str>("depth")
+                .ok()
+                .and_then(DepthUse::parse)
+                .unwrap_or_default(),
         })
     }
 }
@@ -117,6 +126,7 @@ mod tests {
             inference_us: 1234,
             screened: true,
             quality: Quality::Textureless,
+            depth: DepthUse::Lost,
         };
         m.attach(buf.get_mut().unwrap()).unwrap();
         assert_eq!(GateMeta::read(&buf), Some(m.clone()));

@@ -23,6 +23,8 @@
 use crate::geometry::{track_with, Pyramid, LK_CLASSIC};
 use crate::overlap::Rigid;
 
+/// The teacher's distance check (metres): a match counts when its two 3-D points are closer.
+pub const MAX_DIST_M: f64 = 0.1;
 /// Most corners picked on a reference.
 pub const MAX_POINTS: usize = 160;
 /// Side of the grid cells corners are picked from (working pixels).

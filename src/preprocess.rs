@@ -525,6 +525,21 @@ impl Rows {
     }
 }
 
+/// The part of a `src_w` x `src_h` frame the model's picture covers, in source pixels (edges):
+/// `((x_off, x_span), (y_off, y_span))` (stretch: all of it; short-side crop: the centre).
+pub fn crop(src_w: u32, src_h: u32, spec: &TensorSpec) -> ((f64, f64), (f64, f64)) {
+    let (sw, sh) = (src_w as f64, src_h as f64);
+    let (dw, dh) = (spec.width as f64, spec.height as f64);
+    match spec.resize {
+        ResizeMode::Stretch => ((0.0, sw), (0.0, sh)),
+        ResizeMode::ShortSideCrop => {
+            let s = (sw / dw).min(sh / dh);
+            let (cw, ch) = (dw * s, dh * s);
+            (((sw - cw) / 2.0, cw), ((sh - ch) / 2.0, ch))
+        }
+    }
+}
+
 /// Model-side parameters of the tensor.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TensorSpec {
@@ -664,16 +679,7 @@ impl Preprocessor {
                 spec.width, spec.height
             )));
         }
-        let (sw, sh) = (src_w as f64, src_h as f64);
-        let (dw, dh) = (spec.width as f64, spec.height as f64);
-        let (x_off, x_span, y_off, y_span) = match spec.resize {
-            ResizeMode::Stretch => (0.0, sw, 0.0, sh),
-            ResizeMode::ShortSideCrop => {
-                let s = (sw / dw).min(sh / dh);
-                let (cw, ch) = (dw * s, dh * s);
-                ((sw - cw) / 2.0, cw, (sh - ch) / 2.0, ch)
-            }
-        };
+        let ((x_off, x_span), (y_off, y_span)) = crop(src_w, src_h, &spec);
         let x_taps = make_taps(src_w as usize, spec.width as usize, x_off, x_span);
         let y_taps = make_taps(src_h as usize, spec.height as usize, y_off, y_span);
         let x_range = (

@@ -6,6 +6,7 @@
 //! composes it: the element calls it for every frame, and the tests drive it without a pipeline.
 
 use crate::geometry::{grey_from_tensor, Fusion, Pyramid, Tracker};
+use crate::metric::MAX_DIST_M;
 use crate::preprocess::TensorSpec;
 use crate::quality::{measure, Quality};
 
@@ -77,6 +78,92 @@ pub struct Utility {
     /// frame was scored since the reference was set, or an unreadable frame came since. What the
     /// screening with [`Fusion::s_step`] starts from.
     last_score: Option<(f64, u32)>,
+    /// With depth beside the colour (RGB-D): the metric gate ([`crate::metric`]).
+    metric: Metric,
+}
+
+/// What depth did for a frame (the `depth` field of `LeanGateMeta`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum DepthUse {
+    /// No depth in this stream (colour only).
+    #[default]
+    None,
+    /// The utility is the metric gate's: the teacher's S with the pose fitted from the frames.
+    Used,
+    /// The stream carries depth, but this frame came without it: gated colour-only.
+    Missing,
+    /// The frame had depth, but its pose could not be fitted (too few tracks agree, textureless,
+    /// depth holes, no depth at the reference): gated colour-only.
+    Lost,
+}
+
+impl DepthUse {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DepthUse::None => "none",
+            DepthUse::Used => "used",
+            DepthUse::Missing => "missing",
+            DepthUse::Lost => "lost",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<DepthUse> {
+        [
+            DepthUse::None,
+            DepthUse::Used,
+            DepthUse::Missing,
+            DepthUse::Lost,
+        ]
+        .into_iter()
+        .find(|d| d.as_str() == s)
+    }
+}
+
+/// A frame as the metric gate keeps it: its grey picture and depth on the model's grid.
+#[derive(Debug, Clone)]
+struct DepthFrame {
+    grey: Vec<f32>,
+    view: crate::overlap::DepthView,
+    cam: crate::metric::Camera,
+}
+
+/// The metric gate's state: the reference's depth, the pose tracker, the recent frames a keep
+/// may go back to.
+#[derive(Debug, Clone, Default)]
+struct Metric {
+    tracker: Option<crate::metric::PoseTracker>,
+    reference: Option<crate::overlap::DepthView>,
+    /// The last observed frame (None: it had no depth).
+    frame: Option<DepthFrame>,
+    /// The observed frames, newest last, at most [`crate::policy::MAX_LOOKBACK`] + 1.
+    recent: std::collections::VecDeque<Option<DepthFrame>>,
+    /// The last observed frame's metric utility and what depth did for it.
+    tau: Option<f64>,
+    used: DepthUse,
+    /// Whether this stream has carried depth.
+    seen: bool,
+}
+
+impl Metric {
+    /// Make `f` (None: a frame without depth) the reference.
+    fn set_reference(&mut self, f: Option<DepthFrame>) {
+        match f {
+            Some(f) => {
+                let (w, h) = (f.view.width as usize, f.view.height as usize);
+                let t = match self.tracker.take() {
+                    Some(t) if t.camera() == &f.cam => t,
+                    _ => crate::metric::PoseTracker::new(f.cam),
+                };
+                let t = self.tracker.insert(t);
+                t.set_reference(&f.grey, &f.view.depth, w, h);
+                self.reference = Some(f.view);
+            }
+            None => {
+                self.tracker = None;
+                self.reference = None;
+            }
+        }
+    }
 }
 
 impl Utility {
@@ -96,7 +183,88 @@ impl Utility {
             broken_bound: None,
             score: None,
             last_score: None,
+            metric: Metric::default(),
         }
+    }
+
+    /// Give the metric gate this frame's depth (after [`Utility::observe`]): `depth` on the
+    /// model's grid (metres, 0 = no reading; [`crate::depth::DepthInput::on_grid`]) with that
+    /// grid's camera, or None when the frame came without depth; `frame` the model's picture.
+    /// With a reference that has depth, the frame's pose is fitted and [`Utility::metric_tau`]
+    /// is the teacher's own utility with it.
+    pub fn observe_depth(
+        &mut self,
+        frame: (&[f32], &TensorSpec),
+        depth: Option<(Vec<f32>, crate::metric::Camera)>,
+        has_reference: bool,
+    ) {
+        let m = &mut self.metric;
+        let (t, spec) = frame;
+        let (w, h) = (spec.width as usize, spec.height as usize);
+        let f = depth.and_then(|(d, cam)| {
+            let pinhole = crate::overlap::Pinhole {
+                fx: cam.fx,
+                fy: cam.fy,
+                cx: cam.cx,
+                cy: cam.cy,
+            };
+            let view =
+                crate::overlap::DepthView::from_working(d, w as u32, h as u32, pinhole).ok()?;
+            let grey = grey_from_tensor(t, w, h, spec.mean, spec.std);
+            Some(DepthFrame { grey, view, cam })
+        });
+        m.seen |= f.is_some();
+        m.tau = None;
+        m.used = match (&f, m.seen) {
+            (None, true) => DepthUse::Missing,
+            (None, false) => DepthUse::None,
+            (Some(_), _) => DepthUse::Lost,
+        };
+        if let (Some(f), true) = (&f, has_reference) {
+            if let (Some(tracker), Some(key)) = (m.tracker.as_mut(), m.reference.as_ref()) {
+                if let Some(pose) = tracker.observe(&f.grey, w, h) {
+                    let cur_to_key = pose.inverse();
+                    let s = crate::overlap::score_pair(&f.view, key, &cur_to_key, MAX_DIST_M);
+                    m.tau = Some(s.tau);
+                    m.used = DepthUse::Used;
+                }
+            }
+        } else if f.is_some() {
+            // No reference: this frame's depth is the next one's, if it is kept.
+            m.used = DepthUse::Used;
+        }
+        m.frame = f.clone();
+        if m.recent.len() > crate::policy::MAX_LOOKBACK as usize {
+            m.recent.pop_front();
+        }
+        m.recent.push_back(f);
+    }
+
+    /// The frame was not one to track (junk, unreadable): no depth for it, the tracks bridge it.
+    pub fn skip_depth(&mut self) {
+        let m = &mut self.metric;
+        m.tau = None;
+        m.used = if m.seen {
+            DepthUse::Missing
+        } else {
+            DepthUse::None
+        };
+        m.frame = None;
+        if m.recent.len() > crate::policy::MAX_LOOKBACK as usize {
+            m.recent.pop_front();
+        }
+        m.recent.push_back(None);
+    }
+
+    /// The metric gate's utility of the last observed frame (None: no depth, or its pose
+    /// failed: the colour-only utility stands).
+    pub fn metric_tau(&self) -> Option<f64> {
+        self.metric.tau
+    }
+
+    /// What depth did for the last observed frame.
+    pub fn depth_use(&self) -> DepthUse {
+        self.metric.used
     }
 
     /// `Some((score, bound))` once a model score exceeded the bound the model claims for its
@@ -358,6 +526,8 @@ impl Utility {
 
     /// The last observed frame was kept and is the new reference.
     pub fn on_keep(&mut self) {
+        let f = self.metric.frame.clone();
+        self.metric.set_reference(f);
         self.tracker.set_reference();
         self.tau = None;
         (self.score, self.last_score) = (None, None);
@@ -370,6 +540,11 @@ impl Utility {
     /// ([`crate::policy::Decision::kept_back`]): the prior's chain goes on from it (lost when it
     /// was lost at that frame, or that frame is no longer remembered).
     pub fn on_keep_back(&mut self, back: u64) {
+        let f = (self.metric.recent.len() as u64)
+            .checked_sub(1 + back)
+            .and_then(|i| self.metric.recent.get(i as usize).cloned())
+            .flatten();
+        self.metric.set_reference(f);
         let at = (self.recent.len() as u64)
             .checked_sub(1 + back)
             .and_then(|i| self.recent.get(i as usize).copied())
@@ -386,6 +561,7 @@ impl Utility {
 
     /// Forget the stream (start, flush, caps change).
     pub fn clear(&mut self) {
+        self.metric = Metric::default();
         self.tracker.clear();
         self.tau = None;
         (self.score, self.last_score) = (None, None);

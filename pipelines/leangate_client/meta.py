@@ -24,6 +24,8 @@ REASONS = (
 )
 #: The meta's ``quality``: ``usable``, junk (never kept), or ``textureless`` (utility 0).
 QUALITIES = ("usable", "dark", "saturated", "noise", "textureless", "corrupted")
+#: The meta's ``depth``: what depth did for the frame (RGB-D input; ``none`` without depth).
+DEPTH_USES = ("none", "used", "missing", "lost")
 
 #: Keys of the dicts yielded by ``LeanGateSource`` (``frame`` and ``pts`` come from the
 #: stream, the rest from the buffer's LeanGateMeta).
@@ -39,6 +41,7 @@ META_KEYS = (
     "inference_us",
     "screened",
     "quality",
+    "depth",
 )
 
 
@@ -58,6 +61,8 @@ def meta_from_structure(s) -> Dict[str, Any]:
         "screened": bool(s.get_value("screened")) if s.has_field("screened") else False,
         # whether the frame carries a usable picture (the element's `reject-junk`)
         "quality": s.get_value("quality") if s.has_field("quality") else "usable",
+        # what depth did (RGB-D input): none, used (the metric gate's utility), missing, lost
+        "depth": s.get_value("depth") if s.has_field("depth") else "none",
     }
 
 

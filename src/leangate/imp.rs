@@ -15,6 +15,7 @@ use super::{
     ExecutionProviderChoice, GateMode, PrecisionChoice, FEEDBACK_EVENT, FORCE_KEYFRAME_EVENT,
     RESET_EVENT,
 };
+use crate::depth::DepthInput;
 use crate::meta::GateMeta;
 use crate::policy::{Gate, GateConfig, Reason, Score};
 use crate::preprocess::{try_zeroed, PixelFormat, Preprocessor, YuvMatrix};
@@ -81,6 +82,8 @@ struct State {
     /// Unusable `leangate-feedback` reports: counted apart, so that neither kind of warning
     /// silences or is counted as the other.
     feedback_warnings: RateLimit,
+    /// Unusable depth (`LeanGateDepthMeta`), counted apart too.
+    depth_warnings: RateLimit,
 }
 
 /// Posts one warning of a kind at most every WARN_EVERY, counting those held back.
@@ -321,6 +324,19 @@ impl LeanGate {
     fn warn_rate_limited(&self, state: &mut State, out: &mut Outbox, msg: &str) {
         let msg = format!("{msg}; the frame was kept (fail open)");
         match state.frame_warnings.admit(&msg) {
+            Some(admitted) => {
+                gst::warning!(CAT, imp = self, "{admitted}");
+                out.warnings.push(admitted);
+            }
+            None => gst::debug!(CAT, imp = self, "{msg}"),
+        }
+    }
+
+    /// Depth that cannot be used (a malformed `LeanGateDepthMeta`): the frame is gated
+    /// colour-only. Rate-limited apart from the frames' failures.
+    fn warn_depth(&self, state: &mut State, out: &mut Outbox, msg: &str) {
+        let msg = format!("depth ignored: {msg}; the frame is gated colour-only");
+        match state.depth_warnings.admit(&msg) {
             Some(admitted) => {
                 gst::warning!(CAT, imp = self, "{admitted}");
                 out.warnings.push(admitted);
@@ -609,6 +625,37 @@ impl LeanGate {
             Some(fs.screen_step)
         });
         let quality = state.utility.quality();
+        // Depth beside the colour (`LeanGateDepthMeta`): the metric gate's pose and utility.
+        let depth_in = match DepthInput::read(buf) {
+            None => None,
+            Some(Ok(d)) => Some(d),
+            Some(Err(e)) => {
+                self.warn_depth(state, out, &e);
+                None
+            }
+        };
+        if frame_readable && !quality.is_junk() {
+            let spec = state.scorer.info().spec.clone();
+            let grid = match (&depth_in, state.pre.as_ref()) {
+                (Some(d), Some((info, _))) => {
+                    let (xs, ys) = crate::preprocess::crop(info.width(), info.height(), &spec);
+                    let (w, h) = (spec.width as usize, spec.height as usize);
+                    match d.on_grid(info.width(), info.height(), xs, ys, w, h) {
+                        Ok(g) => Some(g),
+                        Err(e) => {
+                            self.warn_depth(state, out, &e);
+                            None
+                        }
+                    }
+                }
+                _ => None,
+            };
+            state
+                .utility
+                .observe_depth((&state.current, &spec), grid, has_reference);
+        } else {
+            state.utility.skip_depth();
+        }
         let mut screened = false;
         let (score, utility) = match pre {
             Err(e) => {
@@ -618,6 +665,11 @@ impl LeanGate {
             // No usable picture: never kept, never the reference (crate::quality).
             Ok(()) if quality.is_junk() => (Score::Junk, f64::NAN),
             Ok(()) if !has_reference => (Score::NoReference, f64::NAN),
+            // With depth and a pose: the teacher's own utility, no model run.
+            Ok(()) if state.utility.metric_tau().is_some() => {
+                let tau = state.utility.metric_tau().unwrap_or(f64::NAN);
+                (Score::Utility(tau), tau)
+            }
             Ok(()) => {
                 let (scorer, reference, current) =
                     (&mut state.scorer, &state.reference, &state.current);
@@ -762,6 +814,7 @@ impl LeanGate {
                 inference_us,
                 screened,
                 quality,
+                depth: state.utility.depth_use(),
             },
             kept_back: decision.kept_back,
         }))
@@ -980,6 +1033,7 @@ impl BaseTransformImpl for LeanGate {
             interval_start: (0, 0, 0),
             frame_warnings: RateLimit::default(),
             feedback_warnings: RateLimit::default(),
+            depth_warnings: RateLimit::default(),
         });
         Ok(())
     }

@@ -165,13 +165,11 @@ enum Command {
         #[arg(long, value_name = "DELAY", num_args = 0..=1, default_missing_value = "3",
               value_parser = clap::value_parser!(u16).range(0..=1000))]
         feedback: Option<u16>,
-        /// Gate with depth, as an RGB-D camera would (issue 52, experimental): the `model` row is
-        /// then the metric gate (`gstleangate::metric`): the pose relative to the last keep fitted
-        /// to tracked corners lifted with the keep's depth (never the ground truth), and the
-        /// teacher's own S between the two depth images with it, kept at tau >= threshold; a
-        /// frame whose pose fails falls back to the geometric prior's overlap. Run offline on the
-        /// sequence's colour and depth (the element does not take depth yet). Needs depth
-        /// (640x480) and intrinsics
+        /// Feed the element each frame's depth beside its colour, as an RGB-D camera would (a
+        /// LeanGateDepthMeta in metres with the sequence's intrinsics): the `model` row is then
+        /// the depth-fed gate (the teacher's own S with the pose fitted from the frames, never
+        /// the ground truth; colour-only where the pose fails; JSON: `depth_pose_failures`).
+        /// Needs depth images and intrinsics.txt
         #[arg(long)]
         depth: bool,
         /// Set a property of the element the model runs in, as gst-launch would

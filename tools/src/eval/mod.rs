@@ -32,7 +32,6 @@ use crate::dataset::Sequence;
 use crate::teacher::{PairScore, Teacher};
 
 mod baselines;
-pub mod depth;
 mod judge;
 mod model_run;
 pub mod motion;
@@ -356,6 +355,14 @@ pub fn evaluate(
     }
     let fb = teacher.as_ref().filter(|_| model.feedback.is_some());
     let with_depth = model.depth;
+    if with_depth {
+        if let Source::Video(v) = &source {
+            return Err(EvalError(format!(
+                "--depth needs a sequence directory with depth and intrinsics, not the video {}",
+                v.display()
+            )));
+        }
+    }
     let run = run_model(&source, model, threshold, fb, |d| {
         progress("model", d, n_hint)
     })?;
@@ -371,22 +378,14 @@ pub fn evaluate(
     }
     let mut cache = teacher.as_ref().map(TeacherCache::new);
 
-    let mut model_trace = run.trace();
-    let mut depth_pose_failures = None;
-    if with_depth {
-        let Source::Sequence(seq) = &source else {
-            return Err(EvalError(format!(
-                "--depth needs a sequence directory with depth and intrinsics, not the video {}",
-                path.display()
-            )));
-        };
-        progress("depth", 0, n);
-        let steps = overlap::steps(&run.thumbs);
-        let d = depth::depth_gate(seq, &run.thumbs, &steps, teacher_cfg, t)?;
-        progress("depth", n, n);
-        depth_pose_failures = Some(d.pose_failures);
-        model_trace = d.trace;
-    }
+    let model_trace = run.trace();
+    // `--depth`: frames the element gated colour-only though they had depth (no pose).
+    let depth_pose_failures = with_depth.then(|| {
+        run.metas
+            .iter()
+            .filter(|m| m.depth == gstleangate::DepthUse::Lost)
+            .count()
+    });
     let budget = model_trace.kept();
     let mut policies = serde_json::Map::new();
     let mut kept_rows = Vec::new();

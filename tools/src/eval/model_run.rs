@@ -401,6 +401,24 @@ pub fn run_model(
             src.link(&gate).map_err(err("link"))?;
             gate.link(&sink).map_err(err("link"))?;
             let seq = seq.clone();
+            // `--depth`: each frame's depth image rides along as an RGB-D camera's would, as
+            // metres (GRAY32F) with the colour camera's intrinsics.
+            let depth_intrinsics = match (model.depth, seq.intrinsics.as_ref()) {
+                (false, _) => None,
+                (true, Some(i)) => Some(i.clone()),
+                (true, None) => {
+                    return Err(EvalError(format!(
+                        "--depth needs {}",
+                        seq.root.join("intrinsics.txt").display()
+                    )))
+                }
+            };
+            if model.depth && seq.frames.iter().all(|f| f.depth.is_none()) {
+                return Err(EvalError(format!(
+                    "--depth needs the sequence's depth images, and {} lists none",
+                    seq.root.display()
+                )));
+            }
             let lock_step = feedback.is_some().then(|| step.clone());
             // Frames held for `sharpness-lookback` leave that many frames later.
             let held = gate.property::<u32>("sharpness-lookback") as usize;
@@ -456,6 +474,25 @@ pub fn run_model(
                             &[3 * w as i32],
                         )
                         .map_err(err("video meta"))?;
+                        if let (Some(intr), Some(_)) = (&depth_intrinsics, &seq.frames[i].depth) {
+                            let d = seq.load_depth_m(i).map_err(err("depth"))?;
+                            let bytes: Vec<u8> =
+                                d.data.iter().flat_map(|v| v.to_le_bytes()).collect();
+                            gstleangate::depth::DepthInput {
+                                depth: gst::Buffer::from_mut_slice(bytes),
+                                format: gstleangate::depth::DepthFormat::Gray32F,
+                                width: d.width,
+                                height: d.height,
+                                stride: 4 * d.width,
+                                scale: 1.0,
+                                fx: intr.fx,
+                                fy: intr.fy,
+                                cx: intr.cx,
+                                cy: intr.cy,
+                            }
+                            .attach(bm)
+                            .map_err(err("depth meta"))?;
+                        }
                         if src.push_buffer(b).is_err() {
                             break; // pipeline stopped (error reported on the bus)
                         }
