@@ -28,6 +28,7 @@ use gst::glib;
 
 mod default_model;
 pub mod depth;
+mod depthmux;
 pub mod geometry;
 mod leangate;
 mod meta;
@@ -65,6 +66,7 @@ pub use utility::{Composed, DepthUse, Utility};
 fn plugin_init(plugin: &gst::Plugin) -> Result<(), glib::BoolError> {
     meta::register();
     depth::register();
+    depthmux::register(plugin)?;
     leangate::register(plugin)
 }
 
