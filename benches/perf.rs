@@ -524,6 +524,42 @@ fn real_frames(n: usize) -> Option<Vec<image::RgbImage>> {
     (!frames.is_empty()).then_some(frames)
 }
 
+/// The first `n` depth images of tum_fr1_desk (16-bit PNG, 5000 units per metre) as
+/// `LeanGateDepthMeta` contents, beside [`real_frames`]' colour (one row per frame, same order).
+fn real_depths(n: usize) -> Option<Vec<gstleangate::depth::DepthInput>> {
+    let dir = PathBuf::from(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../shared/data/tum_fr1_desk/depth"
+    ));
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .ok()?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .collect();
+    files.sort();
+    let depths: Vec<_> = files
+        .iter()
+        .take(n)
+        .filter_map(|p| {
+            let img = image::open(p).ok()?.to_luma16();
+            let (w, h) = img.dimensions();
+            let bytes: Vec<u8> = img.as_raw().iter().flat_map(|v| v.to_le_bytes()).collect();
+            Some(gstleangate::depth::DepthInput {
+                depth: gst::Buffer::from_mut_slice(bytes),
+                format: gstleangate::depth::DepthFormat::Gray16Le,
+                width: w,
+                height: h,
+                stride: 2 * w,
+                scale: 5000.0,
+                fx: 517.3,
+                fy: 516.5,
+                cx: 318.6,
+                cy: 255.3,
+            })
+        })
+        .collect();
+    (!depths.is_empty()).then_some(depths)
+}
+
 fn real_greys(n: usize) -> Option<(Vec<Vec<f32>>, usize, usize)> {
     use gstleangate::{default_model, Scorer, ScorerOptions};
     let frames = real_frames(n)?;
@@ -662,11 +698,15 @@ fn section_scoring(reps: usize) {
     // it runs), the gate.
     // `step`: the model's leangate.score_step in the screening (`screen-step`, the default), or
     // none (`screen-step=0`).
+    // `depth`: each frame's depth image beside it (`LeanGateDepthMeta`): the metric gate, the
+    // model only where the pose fails.
+    let depths = real_depths(frames.len());
     let mut run = |geometry: bool,
                    screen: bool,
                    check: bool,
                    step: bool,
-                   sharp: bool|
+                   sharp: bool,
+                   depth: bool|
      -> (f64, f64, [f64; 4]) {
         let mut utility = Utility::new(info.geometry);
         utility.set_quality_check(check);
@@ -684,7 +724,7 @@ fn section_scoring(reps: usize) {
             (vec![0f32; info.spec.len()], vec![0f32; info.spec.len()]);
         let (t0, c0) = (Instant::now(), thread_cpu_s());
         let mut stages = [0f64; 4];
-        for f in &frames {
+        for (k, f) in frames.iter().enumerate() {
             let s0 = Instant::now();
             pre.run(&RawFrame::rgb(f.as_raw(), w, h), &mut current)
                 .unwrap();
@@ -695,15 +735,33 @@ fn section_scoring(reps: usize) {
                 gate.decide(Score::Junk);
                 continue;
             }
+            if let (true, Some(d)) = (depth, depths.as_ref().and_then(|d| d.get(k))) {
+                let ((xo, xs), (yo, ys)) = gstleangate::crop(w, h, &info.spec);
+                let grid = d
+                    .on_grid(
+                        w,
+                        h,
+                        (xo, xs),
+                        (yo, ys),
+                        info.spec.width as usize,
+                        info.spec.height as usize,
+                    )
+                    .ok();
+                utility.observe_depth((&current[..], &info.spec), grid, has_reference);
+            }
             let s2 = Instant::now();
-            let composed = has_reference.then(|| {
+            let metric = utility.metric_tau().filter(|_| has_reference);
+            let composed = (has_reference && metric.is_none()).then(|| {
                 let model = || scorer.score(&reference, &current).map(f64::from);
                 utility
                     .score_with(threshold, geometry, screen, model)
                     .unwrap()
             });
             let s3 = Instant::now();
-            let score = composed.map_or(Score::NoReference, |c| Score::Utility(c.utility()));
+            let score = match (metric, composed) {
+                (Some(tau), _) => Score::Utility(tau),
+                (None, c) => c.map_or(Score::NoReference, |c| Score::Utility(c.utility())),
+            };
             if gate.decide_with(score, utility.sharpness()).keep {
                 scorer.on_keep(matches!(composed, Some(Composed::Scored { .. })));
                 std::mem::swap(&mut reference, &mut current);
@@ -729,13 +787,17 @@ fn section_scoring(reps: usize) {
         Vec::new(),
         Vec::new(),
     );
+    let mut depthed = Vec::new();
     for _ in 0..reps {
-        alone.push(run(false, false, true, true, true));
-        fused.push(run(true, false, true, true, true));
-        exact.push(run(true, true, true, false, true));
-        screened.push(run(true, true, true, true, true));
-        unchecked.push(run(true, true, false, true, true));
-        blunt.push(run(true, true, true, true, false));
+        alone.push(run(false, false, true, true, true, false));
+        fused.push(run(true, false, true, true, true, false));
+        exact.push(run(true, true, true, false, true, false));
+        screened.push(run(true, true, true, true, true, false));
+        unchecked.push(run(true, true, false, true, true, false));
+        blunt.push(run(true, true, true, true, false, false));
+        if depths.is_some() {
+            depthed.push(run(true, true, true, true, true, true));
+        }
     }
     type Run = (f64, f64, [f64; 4]);
     let wall = |v: &[Run]| median(&v.iter().map(|x| x.0).collect::<Vec<_>>());
@@ -783,6 +845,18 @@ fn section_scoring(reps: usize) {
         "| the default without the sharpness pass and look-back (`sharpness-lookback=0`) | {f:.0} | {:.2} | {fc:.0} |",
         1e3 / f
     );
+    if !depthed.is_empty() {
+        let (g, gc) = (wall(&depthed), cpu(&depthed));
+        println!(
+            "| the default with depth (RGB-D: `LeanGateDepthMeta`, the metric gate; the model where the pose fails) | {g:.0} | {:.2} | {gc:.0} |",
+            1e3 / g
+        );
+        println!(
+            "\nWith depth, per frame: {:.2}x the default's wall time, {:.2}x its CPU time",
+            c / g,
+            cc / gc
+        );
+    }
     println!("\n### Where the default's time goes per frame: microseconds, median of {reps}");
     println!("| stage | µs per frame |");
     println!("|---|---|");

@@ -405,7 +405,7 @@ pub fn run_model(
             // metres (GRAY32F) with the colour camera's intrinsics.
             let depth_intrinsics = match (model.depth, seq.intrinsics.as_ref()) {
                 (false, _) => None,
-                (true, Some(i)) => Some(i.clone()),
+                (true, Some(i)) => Some(*i),
                 (true, None) => {
                     return Err(EvalError(format!(
                         "--depth needs {}",
