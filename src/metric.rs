@@ -6,7 +6,8 @@
 //!    strongest of each cell of a [`CELL`]-pixel grid) where its depth is valid, and lifted to 3-D
 //!    points in the reference camera with that depth.
 //! 2. Each later frame, the points are tracked from the previous frame with pyramidal
-//!    Lucas-Kanade ([`crate::geometry::track_with`], [`crate::geometry::LK_CLASSIC`]) and kept
+//!    Lucas-Kanade ([`crate::geometry::track_with`] with the prior's [`crate::geometry::LK_PRIOR`]:
+//!    7x7 window, up to 5 iterations) and kept
 //!    only when tracking back lands within [`FB_PX`] of where they started.
 //! 3. The current pose relative to the reference is fitted to the tracks by Gauss-Newton on the
 //!    reprojection error with Huber weights (PnP from the previous frame's pose; [`fit_pose`]),
@@ -20,7 +21,7 @@
 //! textureless view, depth holes under the corners. The caller then falls back to the colour-only
 //! utility for that frame.
 
-use crate::geometry::{track_with, Pyramid, LK_CLASSIC};
+use crate::geometry::{track_with, Pyramid, LK_PRIOR};
 use crate::overlap::Rigid;
 
 /// The teacher's distance check (metres): a match counts when its two 3-D points are closer.
@@ -293,10 +294,10 @@ impl PoseTracker {
         let mut keep_pts = Vec::with_capacity(self.points.len());
         let mut keep_seen = Vec::with_capacity(self.points.len());
         for (p, &s) in self.points.iter().zip(&self.seen) {
-            let Some(q) = track_with(&prev, cur, s, &LK_CLASSIC) else {
+            let Some(q) = track_with(&prev, cur, s, &LK_PRIOR) else {
                 continue;
             };
-            let Some(back) = track_with(cur, &prev, q, &LK_CLASSIC) else {
+            let Some(back) = track_with(cur, &prev, q, &LK_PRIOR) else {
                 continue;
             };
             let (dx, dy) = (back.0 - s.0, back.1 - s.1);
