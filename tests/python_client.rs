@@ -3341,3 +3341,141 @@ print(json.dumps(r))
         .collect();
     assert_eq!(serde_json::Value::Array(accepted), expected, "{r}");
 }
+
+/// Issue 52, the Python client's depth input: `leangate-client DIR --depth` gates a TUM-layout
+/// RGB-D directory (the shared 7-Scenes frames) through `leangatedepthmux` into `leangate`,
+/// every frame with its depth (the meta's `depth` "used", counted in the summary), and
+/// `--save-kept` saves its keyframes as usual; the library call does the same.
+#[test]
+fn depth_sequence_directory_is_gated_with_its_depth() {
+    if !python_ok() || !have_elements(&["multifilesrc", "jpegdec", "pngdec", "videoconvert"]) {
+        return;
+    }
+    let Some(seq) = paths::shared_data("7scenes_redkitchen_dev") else {
+        return;
+    };
+    let seq = seq.to_str().unwrap();
+    let ann = client_module(&[seq, "--depth", "--mode", "annotate", "-v"]);
+    assert!(ann.status.success(), "{}", stderr(&ann));
+    let s = summary(&ann);
+    assert_eq!(s["frames-in"], "60");
+    assert_eq!(s["received"], "60");
+    assert!(stderr(&ann)
+        .contains("leangatedepthmux name=m intrinsics=585,585,320,240 depth-scale=1000"));
+    let text = stdout(&ann);
+    let frames: Vec<&str> = text.lines().filter(|l| l.starts_with("frame ")).collect();
+    assert_eq!(frames.len(), 60, "{text}");
+    for (i, l) in frames.iter().enumerate() {
+        assert!(
+            l.starts_with(&format!("frame {i} ")),
+            "frames out of order: {l}"
+        );
+        if i > 0 {
+            assert!(
+                l.ends_with(" depth used"),
+                "frame {i} not gated with depth: {l}"
+            );
+        }
+    }
+    let used: usize = s["depth-used"].parse().unwrap();
+    assert!(used >= 59, "depth-used={used}");
+
+    // --save-kept: the kept frames and their tables, the input named by its directory.
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("kf");
+    let drop = client_module(&[
+        seq,
+        "--depth",
+        "--quiet",
+        "--save-kept",
+        out.to_str().unwrap(),
+    ]);
+    assert!(drop.status.success(), "{}", stderr(&drop));
+    let s = summary(&drop);
+    assert_eq!(s["frames-in"], "60");
+    let kept: usize = s["kept"].parse().unwrap();
+    assert!(kept >= 1 && s["saved"] == s["kept"], "{s:?}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("keyframes.json")).unwrap())
+            .unwrap();
+    assert_eq!(json["source"], seq);
+    assert_eq!(json["frames_in"], 60);
+    assert_eq!(json["frames"].as_array().unwrap().len(), kept);
+    assert!(out.join("kf_000000.jpg").is_file());
+
+    // The library: open_input + attach_depth + SequenceGateSource.
+    let script = r#"
+import sys, collections
+from leangate_client._inputs import open_input, attach_depth, SequenceGateSource
+seq = open_input(sys.argv[1])
+attach_depth(seq)
+src = SequenceGateSource(seq.frames, depth_intrinsics=seq.intrinsics,
+                         depth_scale=seq.depth_scale, mode="annotate", arrays=False)
+with src:
+    metas = [m for _, m in src]
+used = collections.Counter(m["depth"] for m in metas[1:])["used"]
+print([m["frame"] for m in metas] == list(range(60)), seq.depth_scale, used)
+"#;
+    let lib = client_script(script, &[seq]);
+    assert!(lib.status.success(), "{}", stderr(&lib));
+    assert_eq!(stdout(&lib).trim(), "True 1000.0 59");
+}
+
+/// `--depth` without depth to read: a video, a directory without depth.txt, a colour frame
+/// without a depth image: one error line naming what is missing, exit 2, nothing written.
+#[test]
+fn depth_is_refused_without_a_depth_sequence() {
+    if !python_ok() {
+        return;
+    }
+    let Some(seq) = paths::shared_data("7scenes_redkitchen_dev") else {
+        return;
+    };
+    let Some(clip) = paths::shared_data("cotracker_clips/apple.mp4") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("kf");
+    let refused = |input: &Path, what: &str| {
+        let o = client_module(&[
+            input.to_str().unwrap(),
+            "--depth",
+            "--save-kept",
+            out.to_str().unwrap(),
+        ]);
+        assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+        let err = stderr(&o);
+        assert!(err.contains("depth") && err.contains(what), "{err}");
+        assert!(stdout(&o).is_empty());
+        assert!(!out.exists(), "--save-kept DIR created by a refused run");
+    };
+    refused(&clip, "(a video file)");
+    // rgb.txt only: no depth.txt
+    let bare = dir.path().join("bare");
+    std::fs::create_dir(&bare).unwrap();
+    let rgb = std::fs::read_to_string(seq.join("rgb.txt")).unwrap();
+    let rgb_abs: String = rgb
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| {
+            let (t, p) = l.split_once(' ').unwrap();
+            format!("{t} {}\n", seq.join(p).display())
+        })
+        .collect();
+    std::fs::write(bare.join("rgb.txt"), &rgb_abs).unwrap();
+    refused(&bare, "has no depth.txt");
+    // depth.txt lacking the last frame's depth
+    std::fs::write(bare.join("intrinsics.txt"), "585 585 320 240 1000\n").unwrap();
+    let depth = std::fs::read_to_string(seq.join("depth.txt")).unwrap();
+    let mut lines: Vec<String> = depth
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| {
+            let (t, p) = l.split_once(' ').unwrap();
+            format!("{t} {}", seq.join(p).display())
+        })
+        .collect();
+    lines.pop();
+    std::fs::write(bare.join("depth.txt"), lines.join("\n")).unwrap();
+    refused(&bare, "1 of 60 colour frames");
+}

@@ -39,6 +39,8 @@ class FrameRef:
     index: int
     timestamp: Optional[float] = None
     path: Optional[str] = None
+    #: The depth image associated with the frame (``attach_depth``), else None.
+    depth: Optional[str] = None
 
 
 @dataclass
@@ -49,6 +51,8 @@ class InputSequence:
     kind: str
     frames: List[FrameRef] = field(default_factory=list)
     intrinsics: Optional[Tuple[float, float, float, float]] = None
+    #: intrinsics.txt's fifth value (depth units per metre), when it has one.
+    depth_scale: Optional[float] = None
     #: (timestamp, camera centre x, y, z), camera-to-world translations, sorted by time.
     groundtruth: List[Tuple[float, float, float, float]] = field(default_factory=list)
 
@@ -94,6 +98,75 @@ def read_intrinsics(path: str) -> Tuple[float, float, float, float]:
             raise SetupError(f"{path} line {n}: expected `fx fy cx cy depth_scale`") from None
         return fx, fy, cx, cy
     raise SetupError(f"{path}: no intrinsics line")
+
+
+def read_depth_scale(path: str) -> Optional[float]:
+    """The fifth value of intrinsics.txt's first data line (depth units per metre), or None
+    when the line has only four; a value that is not a positive finite number is a SetupError."""
+    for n, parts in _data_lines(path):
+        if len(parts) < 5:
+            return None
+        v = _float_or_none(parts[4])
+        if v is None or v <= 0:
+            raise SetupError(
+                f"{path} line {n}: depth_scale must be a positive number (depth units per "
+                f"metre), not {parts[4]!r}"
+            )
+        return v
+    return None
+
+
+def attach_depth(seq: InputSequence) -> None:
+    """Give each frame of a TUM-layout sequence its depth image: the entry of depth.txt
+    nearest in time (within ``GT_MAX_DIFFERENCE_S``, as TUM's associate.py). Raises SetupError,
+    naming what is missing, unless the directory has rgb.txt, depth.txt and intrinsics.txt with
+    ``fx fy cx cy depth_scale`` and every colour frame has a depth image: a sequence is gated
+    with its depth throughout or not at all."""
+    need = (
+        "needs a TUM-layout RGB-D directory (rgb.txt, depth.txt, intrinsics.txt with "
+        "`fx fy cx cy depth_scale`)"
+    )
+    if seq.kind == "video":
+        raise SetupError(f"depth {need}; {seq.path} is a video file")
+    depth_txt = os.path.join(seq.path, "depth.txt")
+    intr = os.path.join(seq.path, "intrinsics.txt")
+    for what in ("rgb.txt", "depth.txt", "intrinsics.txt"):
+        if not os.path.isfile(os.path.join(seq.path, what)):
+            raise SetupError(f"depth {need}; {seq.path} has no {what}")
+    seq.intrinsics = read_intrinsics(intr)
+    seq.depth_scale = read_depth_scale(intr)
+    if seq.depth_scale is None:
+        raise SetupError(f"depth {need}; {intr} gives no depth_scale (its fifth value)")
+    rows = []
+    for n, parts in _data_lines(depth_txt):
+        t = _float_or_none(parts[0]) if len(parts) >= 2 else None
+        if t is None:
+            raise SetupError(
+                f"{depth_txt} line {n}: expected `timestamp path`, got {' '.join(parts)!r}"
+            )
+        rows.append((t, os.path.join(seq.path, parts[1])))
+    rows.sort()
+    import bisect
+
+    ts = [r[0] for r in rows]
+    missing = []
+    for f in seq.frames:
+        k = bisect.bisect_left(ts, f.timestamp)  # type: ignore[arg-type]
+        near = [j for j in (k - 1, k) if 0 <= j < len(ts)
+                and abs(ts[j] - f.timestamp) <= GT_MAX_DIFFERENCE_S]  # type: ignore[operator]
+        if not near:
+            missing.append(f)
+            continue
+        f.depth = rows[min(near, key=lambda j: abs(ts[j] - f.timestamp))][1]  # type: ignore
+    if missing:
+        raise SetupError(
+            f"depth: {len(missing)} of {len(seq.frames)} colour frames of {seq.path} have no "
+            f"depth image within {GT_MAX_DIFFERENCE_S * 1000:.0f} ms in depth.txt (the first: "
+            f"frame {missing[0].index}, t={missing[0].timestamp}); every frame needs one"
+        )
+    absent = [f.depth for f in seq.frames if not os.path.isfile(f.depth)]  # type: ignore
+    if absent:
+        raise SetupError(f"depth: {len(absent)} depth images not found (the first: {absent[0]})")
 
 
 def open_input(path: str) -> InputSequence:
@@ -146,25 +219,71 @@ class SequenceGateSource(LeanGateSource):
     """``LeanGateSource`` over an image sequence: ``multifilesrc ! decodebin ! leangate ! ...``.
     The images are linked (symlinks, else copies) as ``%06d.EXT`` into a temporary directory so
     that multifilesrc reads them in sequence order at 30 fps; ``meta["frame"]`` is the index in
-    ``frames``. All images must share one format (PNG or JPEG)."""
+    ``frames``. All images must share one format (PNG or JPEG).
 
-    def __init__(self, frames: Sequence[FrameRef], **kwargs):
+    ``depth_intrinsics`` (``(fx, fy, cx, cy)``, e.g. from ``attach_depth``): gate with depth.
+    Every frame must then have its 16-bit depth PNG in ``FrameRef.depth`` (a SetupError
+    otherwise); they are linked the same way and read by a second ``multifilesrc ! pngdec !
+    videoconvert ! capsfilter`` (GRAY16_LE) into ``leangatedepthmux`` (``intrinsics``,
+    ``depth_scale`` units per metre) before the gate, each frame's depth the one of its index
+    (both streams at 30 fps). The meta's ``depth`` then says whether the frame was gated with it
+    (``used``). ``label``: the input's name in messages and keyframes.json (default: the
+    temporary directory of links)."""
+
+    def __init__(
+        self,
+        frames: Sequence[FrameRef],
+        *,
+        depth_intrinsics: Optional[Sequence[float]] = None,
+        depth_scale: float = 1000.0,
+        label: Optional[str] = None,
+        **kwargs,
+    ):
         if not frames:
             raise SetupError("empty image sequence")
         exts = {os.path.splitext(f.path or "")[1].lower() for f in frames}
         exts = {".jpg" if e == ".jpeg" else e for e in exts}
         if len(exts) != 1 or not exts <= {".jpg", ".png"}:
             raise SetupError(f"an image sequence must be all PNG or all JPEG, found {sorted(exts)}")
+        self._depth: Optional[Tuple[str, float]] = None
+        if depth_intrinsics is not None:
+            intr = [float(v) for v in depth_intrinsics]
+            if len(intr) != 4 or not all(math.isfinite(v) for v in intr):
+                raise SetupError(
+                    f"depth_intrinsics must be 4 numbers fx, fy, cx, cy, not {depth_intrinsics!r}"
+                )
+            if not (math.isfinite(depth_scale) and depth_scale > 0):
+                raise SetupError(
+                    f"depth_scale must be positive (units per metre), not {depth_scale!r}"
+                )
+            lacking = [f for f in frames if not f.depth]
+            if lacking:
+                raise SetupError(
+                    f"depth: {len(lacking)} of {len(frames)} frames have no depth image (the "
+                    f"first: frame {lacking[0].index}); every frame needs one"
+                )
+            not_png = sorted(
+                {f.depth for f in frames if not f.depth.lower().endswith(".png")}  # type: ignore
+            )
+            if not_png:
+                raise SetupError(f"depth images must be 16-bit PNG, not {not_png[0]}")
+            self._depth = (",".join(f"{v:g}" for v in intr), float(depth_scale))
         self._ext = exts.pop()
         self._tmp = tempfile.mkdtemp(prefix="leangate-seq-")
         for k, f in enumerate(frames):
-            dst = os.path.join(self._tmp, f"{k:06d}{self._ext}")
-            try:
-                os.symlink(os.path.abspath(f.path), dst)  # type: ignore[arg-type]
-            except OSError:
-                shutil.copyfile(f.path, dst)  # type: ignore[arg-type]
+            links = [(f.path, f"{k:06d}{self._ext}")]
+            if self._depth:
+                links.append((f.depth, f"depth_{k:06d}.png"))
+            for src_path, name in links:
+                dst = os.path.join(self._tmp, name)
+                try:
+                    os.symlink(os.path.abspath(src_path), dst)  # type: ignore[arg-type]
+                except OSError:
+                    shutil.copyfile(src_path, dst)  # type: ignore[arg-type]
         self._count = len(frames)
         super().__init__(self._tmp, **kwargs)
+        if label:  # what messages and keyframes.json call the input (not the temporary links)
+            self.source = label
 
     @staticmethod
     def _check_source(source: str) -> None:
@@ -178,11 +297,23 @@ class SequenceGateSource(LeanGateSource):
     @property
     def description(self) -> str:
         props = " ".join(f"{k}={v}" for k, v in self.gate_properties.items())
-        return (
+        head = (
             f"multifilesrc location={self._tmp}/%06d{self._ext} index=0 "
-            f"stop-index={self._count - 1} caps={self._caps()} ! decodebin ! leangate name=gate "
-            f"{props} ! videoconvert ! appsink name=sink caps=video/x-raw,format=RGB sync=false"
+            f"stop-index={self._count - 1} caps={self._caps()} ! decodebin"
         )
+        if self._depth:
+            head = (
+                f"{head} ! m.sink multifilesrc location={self._tmp}/depth_%06d.png index=0 "
+                f"stop-index={self._count - 1} caps={self._DEPTH_CAPS} ! pngdec ! videoconvert "
+                f"! video/x-raw,format=GRAY16_LE ! m.depth leangatedepthmux name=m "
+                f"intrinsics={self._depth[0]} depth-scale={self._depth[1]:g}"
+            )
+        return (
+            f"{head} ! leangate name=gate {props} ! videoconvert ! appsink name=sink "
+            "caps=video/x-raw,format=RGB sync=false"
+        )
+
+    _DEPTH_CAPS = "image/png,framerate=30/1"
 
     _pipeline_name = "leangate-sequence"
 
@@ -198,7 +329,37 @@ class SequenceGateSource(LeanGateSource):
         pipeline.add(dec)
         if not src.link(dec):
             raise SetupError("cannot link multifilesrc ! decodebin")
-        self._watch_decoder(dec, gate)
+        if not self._depth:
+            self._watch_decoder(dec, gate)
+            return
+        # colour: decodebin ! m.sink; depth: multifilesrc ! pngdec ! videoconvert ! GRAY16_LE
+        # ! m.depth; leangatedepthmux name=m ! leangate
+        if Gst.ElementFactory.find("leangatedepthmux") is None:
+            raise SetupError(
+                f"depth needs the element leangatedepthmux, which the plugin {self.plugin} lacks "
+                "(a build older than RGB-D support)"
+            )
+        mux = _make("leangatedepthmux", "m")
+        _set(mux, "intrinsics", self._depth[0])
+        _set(mux, "depth-scale", self._depth[1])
+        dsrc = _make("multifilesrc", "depth-src")
+        _set(dsrc, "location", os.path.join(self._tmp, "depth_%06d.png"))
+        _set(dsrc, "index", 0)
+        _set(dsrc, "stop-index", self._count - 1)
+        _set(dsrc, "caps", Gst.Caps.from_string(self._DEPTH_CAPS))
+        ddec = _make("pngdec", "depth-dec")
+        dconv = _make("videoconvert", "depth-convert")
+        dcaps = _make("capsfilter", "depth-caps")
+        _set(dcaps, "caps", Gst.Caps.from_string("video/x-raw,format=GRAY16_LE"))
+        for el in (mux, dsrc, ddec, dconv, dcaps):
+            pipeline.add(el)
+        if not (dsrc.link(ddec) and ddec.link(dconv) and dconv.link(dcaps)):
+            raise SetupError("cannot link the depth branch multifilesrc ! pngdec ! videoconvert")
+        if dcaps.get_static_pad("src").link(mux.get_static_pad("depth")) != Gst.PadLinkReturn.OK:
+            raise SetupError("cannot link the depth images to leangatedepthmux's depth pad")
+        if not mux.link(gate):
+            raise SetupError("cannot link leangatedepthmux ! leangate")
+        self._watch_decoder(dec, mux)  # the colour pad is the mux's `sink`
 
     def close(self) -> None:
         super().close()

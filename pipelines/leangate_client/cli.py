@@ -125,7 +125,8 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
     ap.add_argument(
         "input",
         nargs="?",
-        help="video file, URI, or test://PATTERN?num-buffers=N&width=W&height=H (videotestsrc)",
+        help="video file, URI, or test://PATTERN?num-buffers=N&width=W&height=H (videotestsrc); "
+        "with --depth a TUM-layout RGB-D directory",
     )
     ap.add_argument(
         "--source",
@@ -173,6 +174,12 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
     ap.add_argument("--force-every", type=non_negative_int, default=0, metavar="N",
                     help="send a leangate-force-keyframe event upstream after every N received "
                     "frames (what a SLAM process does when it loses tracking)")
+    ap.add_argument("--depth", action="store_true",
+                    help="gate with depth (RGB-D): INPUT is then a TUM-layout directory (rgb.txt, "
+                    "depth.txt of 16-bit PNGs, intrinsics.txt `fx fy cx cy depth_scale`), every "
+                    "colour frame with a depth image within 20 ms; its frames go through "
+                    "leangatedepthmux into leangate. A video, or a directory without them, is "
+                    "refused (exit 2)")
     ap.add_argument("--quiet", action="store_true", help="no per-frame lines, only the summary")
     ap.add_argument("--plugin-path", metavar="PATH",
                     help="libgstleangate.so or its directory, when it is not on GST_PLUGIN_PATH")
@@ -261,12 +268,13 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     out: Optional[AtomicFile] = None
     progress = None
     writer = None
-    kept = forced = 0
+    kept = forced = with_depth = 0
     shapes: List[str] = []
     source = None
     try:
-        source = LeanGateSource(
+        source = _open_source(
             src,
+            args.depth,
             model=args.model,
             threshold=args.threshold,
             mode=args.mode,
@@ -297,6 +305,7 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                         shapes.append(shape)
                     kept += m["keep"]
                     forced += m["reason"] == "forced"
+                    with_depth += m["depth"] == "used"
                     if writer:
                         row = meta_row(m)
                         writer.writerow([csv_value(row[k]) for k in CSV_COLUMNS])
@@ -305,7 +314,8 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                             f"frame {m['frame']} pts {m['pts']} shape {frame.shape} mean "
                             f"{frame.mean():.1f} utility {_fmt_util(m['utility'])} keep "
                             f"{int(m['keep'])} reason {m['reason']} keyframe {m['keyframe_index']} "
-                            f"since {m['frames_since_keyframe']} inference-us {m['inference_us']}",
+                            f"since {m['frames_since_keyframe']} inference-us {m['inference_us']}"
+                            + (f" depth {m['depth']}" if args.depth else ""),
                             flush=True,
                         )
                     if args.force_every and source.received % args.force_every == 0:
@@ -357,11 +367,46 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         f"summary: frames-in={source.frames_in} received={source.received} kept={kept} "
         f"forced={forced} force-events={source.forced_events} mode={args.mode} "
         f"shape={','.join(sorted(shapes)) or '-'}{stats_txt}"
+        + (f" depth-used={with_depth}" if args.depth else "")
         + (f" csv={args.csv}" if args.csv else "")
         + (f" saved={len(saver.rows)} save-dir={saver.directory}" if saver else ""),
         flush=True,
     )
     return 0
+
+
+def _open_source(src: str, depth: bool, **kwargs) -> LeanGateSource:
+    """``LeanGateSource(src, ...)``; with ``depth``, ``src`` must be a TUM-layout RGB-D
+    directory, gated through ``leangatedepthmux`` (``_inputs.SequenceGateSource``)."""
+    if not depth:
+        return LeanGateSource(src, **kwargs)
+    from ._inputs import SequenceGateSource, attach_depth, open_input
+
+    path = _local_path(src)
+    need = (
+        "--depth needs a TUM-layout RGB-D directory (rgb.txt, depth.txt, intrinsics.txt with "
+        "`fx fy cx cy depth_scale`)"
+    )
+    if path is None or not os.path.isdir(path):
+        raise SetupError(
+            f"{need}, not {src}"
+            + (" (a video file)" if path is not None and os.path.isfile(path) else "")
+        )
+    if not os.path.isfile(os.path.join(path, "rgb.txt")):
+        raise SetupError(f"{need}; {path} has no rgb.txt")
+    seq = open_input(path)
+    attach_depth(seq)
+    log.info(
+        "%s: %d frames with depth, intrinsics %s, depth-scale %g",
+        path, len(seq.frames), seq.intrinsics, seq.depth_scale,
+    )
+    return SequenceGateSource(
+        seq.frames,
+        depth_intrinsics=seq.intrinsics,
+        depth_scale=seq.depth_scale,
+        label=path,
+        **kwargs,
+    )
 
 
 def _saving(source: LeanGateSource) -> str:
