@@ -10,23 +10,6 @@ use std::sync::{Arc, Mutex};
 const W: u32 = 64;
 const H: u32 = 48;
 
-/// A frame scored by `red.onnx` at `utility`, sharp or blurred (see tests/element.rs).
-fn red_frame(utility: f64, sharp: bool) -> Vec<u8> {
-    let r = (utility * 255.0).round() as u8;
-    let amp: i32 = if sharp { 100 } else { 20 };
-    (0..W * H)
-        .flat_map(|i| {
-            let (x, y) = (i % W, i / W);
-            let v = if (x / 16 + y / 16) % 2 == 0 {
-                128 + amp
-            } else {
-                128 - amp
-            } as u8;
-            [r, v, v]
-        })
-        .collect()
-}
-
 #[test]
 fn a_keep_settled_at_the_end_of_the_stream_is_logged_with_gstreamer_times() {
     init();
@@ -59,7 +42,8 @@ fn a_keep_settled_at_the_end_of_the_stream_is_logged_with_gstreamer_times() {
         (0.52, false),
     ];
     for (k, &(u, sharp)) in frames.iter().enumerate() {
-        h.push(buffer(red_frame(u, sharp), k as u64 * 33)).unwrap();
+        h.push(buffer(red_frame(W, H, u, sharp), k as u64 * 33))
+            .unwrap();
     }
     h.push_event(gst::event::Eos::new());
     let out = drain(&mut h);

@@ -1698,25 +1698,6 @@ fn refusals(src: &str, what: &str) -> Vec<String> {
         .collect()
 }
 
-/// Issue 53's streams: 64x48 RGB frames scored by `red.onnx` (the utility is the red channel's
-/// mean, 0-1) with a checkerboard of 16-pixel squares in green and blue whose amplitude sets the
-/// sharpness (a blurred frame has a fifth of the sharp one's contrast).
-fn red_frame(utility: f64, sharp: bool) -> Vec<u8> {
-    let r = (utility * 255.0).round() as u8;
-    let amp: i32 = if sharp { 100 } else { 20 };
-    (0..W * H)
-        .flat_map(|i| {
-            let (x, y) = (i % W, i / W);
-            let v = if (x / 16 + y / 16) % 2 == 0 {
-                128 + amp
-            } else {
-                128 - amp
-            } as u8;
-            [r, v, v]
-        })
-        .collect()
-}
-
 /// A harness around `red.onnx` with the default look-back (3 frames held) and `props`.
 fn red_harness(props: &str) -> gst_check::Harness {
     harness(
@@ -1728,7 +1709,7 @@ fn red_harness(props: &str) -> gst_check::Harness {
 /// Push frames (utility, sharp) from frame number `first` on, 33 ms apart.
 fn push_red(h: &mut gst_check::Harness, first: u64, frames: &[(f64, bool)]) {
     for (k, &(u, sharp)) in frames.iter().enumerate() {
-        h.push(buffer(red_frame(u, sharp), (first + k as u64) * 33))
+        h.push(buffer(red_frame(W, H, u, sharp), (first + k as u64) * 33))
             .unwrap();
     }
 }

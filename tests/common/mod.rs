@@ -244,3 +244,22 @@ pub fn app_ends(bin: &impl IsA<gst::Bin>) -> (gst_app::AppSrc, gst_app::AppSink)
         get("out").downcast::<gst_app::AppSink>().unwrap(),
     )
 }
+
+/// Issue 53's streams: 64x48 RGB frames scored by `red.onnx` (the utility is the red channel's
+/// mean, 0-1) with a checkerboard of 16-pixel squares in green and blue whose amplitude sets the
+/// sharpness (a blurred frame has a fifth of the sharp one's contrast).
+pub fn red_frame(w: u32, h: u32, utility: f64, sharp: bool) -> Vec<u8> {
+    let r = (utility * 255.0).round() as u8;
+    let amp: i32 = if sharp { 100 } else { 20 };
+    (0..w * h)
+        .flat_map(|i| {
+            let (x, y) = (i % w, i / w);
+            let v = if (x / 16 + y / 16) % 2 == 0 {
+                128 + amp
+            } else {
+                128 - amp
+            } as u8;
+            [r, v, v]
+        })
+        .collect()
+}
