@@ -245,8 +245,8 @@ pub fn app_ends(bin: &impl IsA<gst::Bin>) -> (gst_app::AppSrc, gst_app::AppSink)
     )
 }
 
-/// Issue 53's streams: 64x48 RGB frames scored by `red.onnx` (the utility is the red channel's
-/// mean, 0-1) with a checkerboard of 16-pixel squares in green and blue whose amplitude sets the
+/// Issue 53's streams: `w` x `h` RGB frames (64x48 there) scored by `red.onnx` (the utility is
+/// the red channel's mean, 0-1) with a checkerboard of 16-pixel squares in green and blue whose amplitude sets the
 /// sharpness (a blurred frame has a fifth of the sharp one's contrast).
 pub fn red_frame(w: u32, h: u32, utility: f64, sharp: bool) -> Vec<u8> {
     let r = (utility * 255.0).round() as u8;
