@@ -216,3 +216,31 @@ fn real_rgbd_frames_through_the_depth_mux_are_gated_with_depth() {
     // The 7-Scenes clip moves little: the oracle keeps its first frame only, and so does this.
     assert!(metas.iter().filter(|m| m.keep).count() <= 2, "{metas:?}");
 }
+
+/// Depth with no reading anywhere (all NaN in GRAY32F, as a sensor gives in the dark or too
+/// close): no corner can be lifted, so no pose; every frame is gated colour-only and says so.
+#[test]
+fn depth_without_readings_is_gated_colour_only() {
+    let (mut h, bus) = rgbd_harness("threshold=0.5");
+    let nan: Vec<u8> = (0..W * H).flat_map(|_| f32::NAN.to_le_bytes()).collect();
+    let d = DepthInput {
+        depth: gst::Buffer::from_mut_slice(nan),
+        format: DepthFormat::Gray32F,
+        width: W,
+        height: H,
+        stride: 4 * W,
+        scale: 1.0,
+        fx: F,
+        fy: F,
+        cx: 79.5,
+        cy: 59.5,
+    };
+    for k in 0..6 {
+        push(&mut h, k, Some(&d));
+    }
+    let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
+    assert_eq!(m.len(), 6);
+    assert!(m[1..].iter().all(|m| m.depth == DepthUse::Lost), "{m:?}");
+    assert!(m[1..].iter().all(|m| m.utility.is_finite()), "the colour-only utility: {m:?}");
+    assert!(bus_warnings(&bus).is_empty());
+}
