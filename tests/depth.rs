@@ -241,6 +241,9 @@ fn depth_without_readings_is_gated_colour_only() {
     let m: Vec<_> = drain(&mut h).iter().map(meta).collect();
     assert_eq!(m.len(), 6);
     assert!(m[1..].iter().all(|m| m.depth == DepthUse::Lost), "{m:?}");
-    assert!(m[1..].iter().all(|m| m.utility.is_finite()), "the colour-only utility: {m:?}");
+    assert!(
+        m[1..].iter().all(|m| m.utility.is_finite()),
+        "the colour-only utility: {m:?}"
+    );
     assert!(bus_warnings(&bus).is_empty());
 }
