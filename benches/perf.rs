@@ -736,18 +736,10 @@ fn section_scoring(reps: usize) {
                 continue;
             }
             if let (true, Some(d)) = (depth, depths.as_ref().and_then(|d| d.get(k))) {
-                let ((xo, xs), (yo, ys)) = gstleangate::crop(w, h, &info.spec);
-                let grid = d
-                    .on_grid(
-                        w,
-                        h,
-                        (xo, xs),
-                        (yo, ys),
-                        info.spec.width as usize,
-                        info.spec.height as usize,
-                    )
-                    .ok();
-                utility.observe_depth((&current[..], &info.spec), grid, has_reference);
+                let frame = (&current[..], &info.spec);
+                utility
+                    .observe_depth(frame, Some(d), (w, h), has_reference)
+                    .unwrap();
             }
             let s2 = Instant::now();
             let metric = utility.metric_tau().filter(|_| has_reference);

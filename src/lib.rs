@@ -51,7 +51,7 @@ pub use leangate::{
 pub use meta::{GateMeta, META_NAME};
 pub use policy::{Decision, Gate, GateConfig, Reason, Score, KEYFRAME_S};
 pub use preprocess::{
-    crop, PixelFormat, PreprocessError, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix,
+    PixelFormat, PreprocessError, Preprocessor, RawFrame, ResizeMode, TensorSpec, YuvMatrix,
 };
 pub use quality::Quality;
 pub use remote::{Backend, Interrupt, RemoteError, RemoteOptions, RemoteScorer};

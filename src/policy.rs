@@ -542,7 +542,7 @@ impl Gate {
     /// keyframe index; `None` when no keep is owed.
     pub fn settle_pending(&mut self) -> Option<(u64, u64)> {
         self.owed?;
-        self.prune(self.position, self.held);
+        // (The candidates are those still held: pruned after every decision.)
         let last = self.position.checked_sub(1)?;
         let Some((p, _)) = self.sharpest_candidate() else {
             self.owed = None;

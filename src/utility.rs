@@ -133,9 +133,9 @@ struct DepthFrame {
 struct Metric {
     tracker: Option<crate::metric::PoseTracker>,
     reference: Option<crate::overlap::DepthView>,
-    /// The last observed frame (None: it had no depth).
-    frame: Option<DepthFrame>,
-    /// The observed frames, newest last, at most [`crate::policy::MAX_LOOKBACK`] + 1.
+    /// The observed frames (None: one without depth), newest last, at most
+    /// [`crate::policy::MAX_LOOKBACK`] + 1: what a keep (the newest) or a keep that went back
+    /// makes the reference.
     recent: std::collections::VecDeque<Option<DepthFrame>>,
     /// The last observed frame's metric utility and what depth did for it.
     tau: Option<f64>,
@@ -145,6 +145,22 @@ struct Metric {
 }
 
 impl Metric {
+    /// The frame just observed.
+    fn remember(&mut self, f: Option<DepthFrame>) {
+        if self.recent.len() > crate::policy::MAX_LOOKBACK as usize {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(f);
+    }
+
+    /// The observed frame `back` frames before the newest (0: the newest), if it had depth.
+    fn frame(&self, back: u64) -> Option<DepthFrame> {
+        (self.recent.len() as u64)
+            .checked_sub(1 + back)
+            .and_then(|i| self.recent.get(i as usize).cloned())
+            .flatten()
+    }
+
     /// Make `f` (None: a frame without depth) the reference.
     fn set_reference(&mut self, f: Option<DepthFrame>) {
         match f {
@@ -187,32 +203,41 @@ impl Utility {
         }
     }
 
-    /// Give the metric gate this frame's depth (after [`Utility::observe`]): `depth` on the
-    /// model's grid (metres, 0 = no reading; [`crate::depth::DepthInput::on_grid`]) with that
-    /// grid's camera, or None when the frame came without depth; `frame` the model's picture.
-    /// With a reference that has depth, the frame's pose is fitted and [`Utility::metric_tau`]
-    /// is the teacher's own utility with it.
+    /// Give the metric gate this frame's depth (after [`Utility::observe`]): `depth` from the
+    /// buffer's `LeanGateDepthMeta` (None: the frame came without it), `src` the colour frame's
+    /// size, `frame` the model's picture made from it. The depth is sampled onto the model's grid
+    /// ([`crate::depth::DepthInput::on_grid`]); with a reference that has depth, the frame's pose
+    /// is fitted and [`Utility::metric_tau`] is the teacher's own utility with it. Errs (the
+    /// frame then counts as without depth) when the depth cannot be read.
     pub fn observe_depth(
         &mut self,
         frame: (&[f32], &TensorSpec),
-        depth: Option<(Vec<f32>, crate::metric::Camera)>,
+        depth: Option<&crate::depth::DepthInput>,
+        src: (u32, u32),
         has_reference: bool,
-    ) {
-        let m = &mut self.metric;
+    ) -> Result<(), String> {
         let (t, spec) = frame;
         let (w, h) = (spec.width as usize, spec.height as usize);
-        let f = depth.and_then(|(d, cam)| {
+        let mut err = None;
+        let f = depth.and_then(|d| {
+            let (xs, ys) = crate::preprocess::crop(src.0, src.1, spec);
+            let (grid, cam) = d
+                .on_grid(src.0, src.1, xs, ys, w, h)
+                .map_err(|e| err = Some(e))
+                .ok()?;
             let pinhole = crate::overlap::Pinhole {
                 fx: cam.fx,
                 fy: cam.fy,
                 cx: cam.cx,
                 cy: cam.cy,
             };
-            let view =
-                crate::overlap::DepthView::from_working(d, w as u32, h as u32, pinhole).ok()?;
+            let view = crate::overlap::DepthView::from_working(grid, w as u32, h as u32, pinhole)
+                .map_err(|e| err = Some(e.to_string()))
+                .ok()?;
             let grey = grey_from_tensor(t, w, h, spec.mean, spec.std);
             Some(DepthFrame { grey, view, cam })
         });
+        let m = &mut self.metric;
         m.seen |= f.is_some();
         m.tau = None;
         m.used = match (&f, m.seen) {
@@ -233,11 +258,8 @@ impl Utility {
             // No reference: this frame's depth is the next one's, if it is kept.
             m.used = DepthUse::Used;
         }
-        m.frame = f.clone();
-        if m.recent.len() > crate::policy::MAX_LOOKBACK as usize {
-            m.recent.pop_front();
-        }
-        m.recent.push_back(f);
+        m.remember(f);
+        err.map_or(Ok(()), Err)
     }
 
     /// The frame was not one to track (junk, unreadable): no depth for it, the tracks bridge it.
@@ -249,11 +271,7 @@ impl Utility {
         } else {
             DepthUse::None
         };
-        m.frame = None;
-        if m.recent.len() > crate::policy::MAX_LOOKBACK as usize {
-            m.recent.pop_front();
-        }
-        m.recent.push_back(None);
+        m.remember(None);
     }
 
     /// The metric gate's utility of the last observed frame (None: no depth, or its pose
@@ -526,7 +544,7 @@ impl Utility {
 
     /// The last observed frame was kept and is the new reference.
     pub fn on_keep(&mut self) {
-        let f = self.metric.frame.clone();
+        let f = self.metric.frame(0);
         self.metric.set_reference(f);
         self.tracker.set_reference();
         self.tau = None;
@@ -540,10 +558,7 @@ impl Utility {
     /// ([`crate::policy::Decision::kept_back`]): the prior's chain goes on from it (lost when it
     /// was lost at that frame, or that frame is no longer remembered).
     pub fn on_keep_back(&mut self, back: u64) {
-        let f = (self.metric.recent.len() as u64)
-            .checked_sub(1 + back)
-            .and_then(|i| self.metric.recent.get(i as usize).cloned())
-            .flatten();
+        let f = self.metric.frame(back);
         self.metric.set_reference(f);
         let at = (self.recent.len() as u64)
             .checked_sub(1 + back)

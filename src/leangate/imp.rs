@@ -626,35 +626,22 @@ impl LeanGate {
         });
         let quality = state.utility.quality();
         // Depth beside the colour (`LeanGateDepthMeta`): the metric gate's pose and utility.
-        let depth_in = match DepthInput::read(buf) {
-            None => None,
-            Some(Ok(d)) => Some(d),
-            Some(Err(e)) => {
-                self.warn_depth(state, out, &e);
-                None
-            }
-        };
-        if frame_readable && !quality.is_junk() {
-            let spec = state.scorer.info().spec.clone();
-            let grid = match (&depth_in, state.pre.as_ref()) {
-                (Some(d), Some((info, _))) => {
-                    let (xs, ys) = crate::preprocess::crop(info.width(), info.height(), &spec);
-                    let (w, h) = (spec.width as usize, spec.height as usize);
-                    match d.on_grid(info.width(), info.height(), xs, ys, w, h) {
-                        Ok(g) => Some(g),
-                        Err(e) => {
-                            self.warn_depth(state, out, &e);
-                            None
-                        }
-                    }
+        let depth =
+            DepthInput::read(buf).and_then(|d| d.map_err(|e| self.warn_depth(state, out, &e)).ok());
+        match (&state.pre, frame_readable && !quality.is_junk()) {
+            (Some((info, _)), true) => {
+                let spec = &state.scorer.info().spec;
+                let src = (info.width(), info.height());
+                let frame = (&state.current[..], spec);
+                if let Err(e) =
+                    state
+                        .utility
+                        .observe_depth(frame, depth.as_ref(), src, has_reference)
+                {
+                    self.warn_depth(state, out, &e);
                 }
-                _ => None,
-            };
-            state
-                .utility
-                .observe_depth((&state.current, &spec), grid, has_reference);
-        } else {
-            state.utility.skip_depth();
+            }
+            _ => state.utility.skip_depth(),
         }
         let mut screened = false;
         let (score, utility) = match pre {
@@ -666,10 +653,7 @@ impl LeanGate {
             Ok(()) if quality.is_junk() => (Score::Junk, f64::NAN),
             Ok(()) if !has_reference => (Score::NoReference, f64::NAN),
             // With depth and a pose: the teacher's own utility, no model run.
-            Ok(()) if state.utility.metric_tau().is_some() => {
-                let tau = state.utility.metric_tau().unwrap_or(f64::NAN);
-                (Score::Utility(tau), tau)
-            }
+            Ok(()) if let Some(tau) = state.utility.metric_tau() => (Score::Utility(tau), tau),
             Ok(()) => {
                 let (scorer, reference, current) =
                     (&mut state.scorer, &state.reference, &state.current);
