@@ -126,6 +126,42 @@ fn mux(props: &str, colour_caps: &gst::Caps, depth_caps: &gst::Caps, live: bool)
     }
 }
 
+/// [`mux`] with 8x8 RGB colour and 4x4 depth of `depth_format` at `fps`, the intrinsics of an
+/// 8x8 camera.
+fn small_mux(depth_format: &str, fps: i32, live: bool) -> Mux {
+    mux(
+        "intrinsics=500,500,3.5,3.5",
+        &rgb_caps(8, 8, fps),
+        &depth_caps(depth_format, 4, 4, fps),
+        live,
+    )
+}
+
+/// Push frames `frames` of a 25 fps stream (40 ms each): colour textures on `m.colour`, or
+/// 4x4 GRAY16_LE depth of value 7 on `m.depth`.
+fn push_colour(m: &Mux, frames: std::ops::Range<u64>) {
+    for i in frames {
+        m.colour
+            .push_buffer(timed(common::texture(8, 8, 1), 40 * MS * i, 40 * MS))
+            .unwrap();
+    }
+}
+
+fn push_depth(m: &Mux, frames: std::ops::Range<u64>) {
+    for i in frames {
+        m.depth
+            .push_buffer(timed(gray16(4, 4, 7), 40 * MS * i, 40 * MS))
+            .unwrap();
+    }
+}
+
+/// The run posted exactly one warning, and it says `what`.
+fn one_warning(msgs: &[gst::Message], what: &str) {
+    let warnings = common::warning_texts(msgs);
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert!(warnings[0].contains(what), "{warnings:?}");
+}
+
 /// Everything the appsink gets until EOS or an error (bounded: a hang fails the test), and the
 /// bus messages; the pipeline is then stopped.
 fn collect(
@@ -333,30 +369,15 @@ fn gaps_in_depth_leave_those_frames_without_depth() {
             "frame {i}"
         );
     }
-    let warnings = common::warning_texts(&msgs);
-    assert_eq!(warnings.len(), 1, "{warnings:?}");
-    assert!(warnings[0].contains("without depth"), "{warnings:?}");
+    one_warning(&msgs, "without depth");
 }
 
 #[test]
 fn depth_ending_first_does_not_stall_colour() {
-    let m = mux(
-        "intrinsics=500,500,3.5,3.5",
-        &rgb_caps(8, 8, 25),
-        &depth_caps("GRAY16_LE", 4, 4, 25),
-        false,
-    );
-    for i in 0..3u64 {
-        m.depth
-            .push_buffer(timed(gray16(4, 4, 7), 40 * MS * i, 40 * MS))
-            .unwrap();
-    }
+    let m = small_mux("GRAY16_LE", 25, false);
+    push_depth(&m, 0..3);
     m.depth.end_of_stream().unwrap();
-    for i in 0..10u64 {
-        m.colour
-            .push_buffer(timed(common::texture(8, 8, 1), 40 * MS * i, 40 * MS))
-            .unwrap();
-    }
+    push_colour(&m, 0..10);
     m.colour.end_of_stream().unwrap();
     let (samples, msgs) = collect(&m.pipeline, &m.out, Duration::from_secs(20));
     assert_eq!(common::error_text(&msgs), None);
@@ -370,24 +391,11 @@ fn depth_ending_first_does_not_stall_colour() {
 
 #[test]
 fn colour_ending_first_ends_the_output() {
-    let m = mux(
-        "intrinsics=500,500,3.5,3.5",
-        &rgb_caps(8, 8, 25),
-        &depth_caps("GRAY16_LE", 4, 4, 25),
-        false,
-    );
-    for i in 0..4u64 {
-        m.colour
-            .push_buffer(timed(common::texture(8, 8, 1), 40 * MS * i, 40 * MS))
-            .unwrap();
-    }
+    let m = small_mux("GRAY16_LE", 25, false);
+    push_colour(&m, 0..4);
     m.colour.end_of_stream().unwrap();
     // Depth goes on (and never ends).
-    for i in 0..30u64 {
-        m.depth
-            .push_buffer(timed(gray16(4, 4, 7), 40 * MS * i, 40 * MS))
-            .unwrap();
-    }
+    push_depth(&m, 0..30);
     let (samples, msgs) = collect(&m.pipeline, &m.out, Duration::from_secs(20));
     assert_eq!(common::error_text(&msgs), None);
     assert_eq!(
@@ -402,12 +410,7 @@ fn colour_ending_first_ends_the_output() {
 /// Colour buffers without a timestamp cannot be matched: they pass without depth, said once.
 #[test]
 fn untimed_colour_passes_without_depth() {
-    let m = mux(
-        "intrinsics=500,500,3.5,3.5",
-        &rgb_caps(8, 8, 25),
-        &depth_caps("GRAY16_LE", 4, 4, 25),
-        false,
-    );
+    let m = small_mux("GRAY16_LE", 25, false);
     for i in 0..3u64 {
         m.depth
             .push_buffer(timed(gray16(4, 4, 7), 40 * MS * i, 40 * MS))
@@ -424,21 +427,14 @@ fn untimed_colour_passes_without_depth() {
     assert!(samples
         .iter()
         .all(|s| depth_of(s.buffer().unwrap()).is_none()));
-    let warnings = common::warning_texts(&msgs);
-    assert_eq!(warnings.len(), 1, "{warnings:?}");
-    assert!(warnings[0].contains("without a timestamp"), "{warnings:?}");
+    one_warning(&msgs, "without a timestamp");
 }
 
 /// Live: a depth source that never delivers does not hold the colour stream (the aggregator's
 /// deadline passes each frame on without depth).
 #[test]
 fn live_colour_flows_when_depth_never_comes() {
-    let m = mux(
-        "intrinsics=500,500,3.5,3.5",
-        &rgb_caps(8, 8, 50),
-        &depth_caps("GRAY16_LE", 4, 4, 50),
-        true,
-    );
+    let m = small_mux("GRAY16_LE", 50, true);
     // do-timestamp stamps with the clock: wait until the live sources are playing.
     let deadline = Instant::now() + Duration::from_secs(5);
     while m.colour.current_state() != gst::State::Playing {
@@ -576,12 +572,7 @@ fn start_needs_intrinsics_and_a_valid_depth_scale() {
 /// A depth format outside the template is refused at negotiation: an error, not a hang.
 #[test]
 fn depth_format_outside_the_template_is_refused() {
-    let m = mux(
-        "intrinsics=500,500,3.5,3.5",
-        &rgb_caps(8, 8, 25),
-        &depth_caps("GRAY8", 4, 4, 25),
-        false,
-    );
+    let m = small_mux("GRAY8", 25, false);
     m.depth
         .push_buffer(timed(vec![0u8; 16], 0, 40 * MS))
         .unwrap();
