@@ -7,9 +7,6 @@ mod common;
 use common::*;
 use std::sync::{Arc, Mutex};
 
-const W: u32 = 64;
-const H: u32 = 48;
-
 #[test]
 fn a_keep_settled_at_the_end_of_the_stream_is_logged_with_gstreamer_times() {
     init();
@@ -25,26 +22,9 @@ fn a_keep_settled_at_the_end_of_the_stream_is_logged_with_gstreamer_times() {
     });
     gst::log::set_active(true);
     gst::log::set_threshold_for_name("leangate", gst::DebugLevel::Trace);
-    let mut h = harness(
-        &format!(
-            "model={} sharpness-lookback=3 mode=annotate name=logtest",
-            fixture("red.onnx")
-        ),
-        &rgb_caps(W, H),
-    );
+    let mut h = red_harness("mode=annotate name=logtest");
     // Frame 5 is due but blurred, its keep owed when the stream ends: it settles on frame 5.
-    let frames = [
-        (0.1, true),
-        (0.1, true),
-        (0.45, true),
-        (0.1, true),
-        (0.1, true),
-        (0.52, false),
-    ];
-    for (k, &(u, sharp)) in frames.iter().enumerate() {
-        h.push(buffer(red_frame(W, H, u, sharp), k as u64 * 33))
-            .unwrap();
-    }
+    push_red(&mut h, 0, &NEARLY_DUE_THEN_BLURRED_DUE);
     h.push_event(gst::event::Eos::new());
     let out = drain(&mut h);
     gst::log::remove_log_function(log);

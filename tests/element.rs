@@ -1698,33 +1698,6 @@ fn refusals(src: &str, what: &str) -> Vec<String> {
         .collect()
 }
 
-/// A harness around `red.onnx` with the default look-back (3 frames held) and `props`.
-fn red_harness(props: &str) -> gst_check::Harness {
-    harness(
-        &format!("model={} sharpness-lookback=3 {props}", fixture("red.onnx")),
-        &rgb_caps(W, H),
-    )
-}
-
-/// Push frames (utility, sharp) from frame number `first` on, 33 ms apart.
-fn push_red(h: &mut gst_check::Harness, first: u64, frames: &[(f64, bool)]) {
-    for (k, &(u, sharp)) in frames.iter().enumerate() {
-        h.push(buffer(red_frame(W, H, u, sharp), (first + k as u64) * 33))
-            .unwrap();
-    }
-}
-
-/// Issue 53, 1: frame 2 sharp and nearly due (0.45), frames 3-4 at 0.1, frame 5 due (0.52) but
-/// blurred, so its keep waits within the margin; then the stream ends.
-const NEARLY_DUE_THEN_BLURRED_DUE: [(f64, bool); 6] = [
-    (0.1, true),
-    (0.1, true),
-    (0.45, true),
-    (0.1, true),
-    (0.1, true),
-    (0.52, false),
-];
-
 fn kept_frames(metas: &[gstleangate::GateMeta]) -> Vec<(usize, Reason, u64)> {
     metas
         .iter()
