@@ -43,12 +43,41 @@ impl DepthFormat {
         }
     }
 
-    fn bytes(self) -> usize {
+    /// Bytes per pixel.
+    pub fn bytes(self) -> usize {
         match self {
             DepthFormat::Gray16Le => 2,
             DepthFormat::Gray32F => 4,
         }
     }
+}
+
+/// Whether `size` bytes hold a `width` x `height` depth image of `format` with rows `stride`
+/// bytes apart; else what is wrong, in a few words.
+pub fn check_layout(
+    format: DepthFormat,
+    width: u32,
+    height: u32,
+    stride: u32,
+    size: usize,
+) -> Result<(), String> {
+    if width == 0 || height == 0 {
+        return Err(format!("empty depth image {width}x{height}"));
+    }
+    let row = width as u64 * format.bytes() as u64;
+    if (stride as u64) < row {
+        return Err(format!(
+            "stride {stride} is below a row of {width} {} pixels",
+            format.as_str()
+        ));
+    }
+    let need = stride as u64 * (height as u64 - 1) + row;
+    if (size as u64) < need {
+        return Err(format!(
+            "{size} bytes of depth for {width}x{height} (stride {stride}) need {need}"
+        ));
+    }
+    Ok(())
 }
 
 /// What a `LeanGateDepthMeta` says.
@@ -125,26 +154,8 @@ impl DepthInput {
             .and_then(DepthFormat::parse)
             .ok_or_else(|| format!("{DEPTH_META_NAME}: `format` must be GRAY16_LE or GRAY32F"))?;
         let (width, height, stride) = (uint("width")?, uint("height")?, uint("stride")?);
-        if width == 0 || height == 0 {
-            return Err(format!(
-                "{DEPTH_META_NAME}: empty depth image {width}x{height}"
-            ));
-        }
-        let row = width as usize * format.bytes();
-        if (stride as usize) < row {
-            return Err(format!(
-                "{DEPTH_META_NAME}: stride {stride} is below a row of {width} {} pixels",
-                format.as_str()
-            ));
-        }
-        let need = stride as usize * (height as usize - 1) + row;
-        if depth.size() < need {
-            return Err(format!(
-                "{DEPTH_META_NAME}: {} bytes of depth for {width}x{height} (stride {stride}) \
-                 need {need}",
-                depth.size()
-            ));
-        }
+        check_layout(format, width, height, stride, depth.size())
+            .map_err(|e| format!("{DEPTH_META_NAME}: {e}"))?;
         let scale = if format == DepthFormat::Gray32F {
             1.0
         } else {

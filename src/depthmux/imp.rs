@@ -126,7 +126,7 @@ impl DepthLayout {
                 .ok_or_else(|| format!("depth caps {caps} have no {name}"))
         };
         let (width, height) = (dim("width")?, dim("height")?);
-        let row = width as u64 * bytes(format) as u64;
+        let row = width as u64 * format.bytes() as u64;
         let stride = u32::try_from((row + 3) & !3)
             .map_err(|_| format!("depth caps {caps}: rows of {row} bytes are too long"))?;
         Ok(DepthLayout {
@@ -135,13 +135,6 @@ impl DepthLayout {
             height,
             stride,
         })
-    }
-}
-
-fn bytes(format: DepthFormat) -> u32 {
-    match format {
-        DepthFormat::Gray16Le => 2,
-        DepthFormat::Gray32F => 4,
     }
 }
 
@@ -554,17 +547,13 @@ impl DepthMux {
                     .map_err(|_| format!("depth buffer shorter than its plane offset {offset}"))?;
             }
         }
-        let row = layout.width as u64 * bytes(layout.format) as u64;
-        let need = stride as u64 * (layout.height as u64 - 1) + row;
-        if (stride as u64) < row || (buffer.size() as u64) < need {
-            return Err(format!(
-                "depth buffer of {} bytes for {}x{} {} (stride {stride}) needs {need}",
-                buffer.size(),
-                layout.width,
-                layout.height,
-                layout.format.as_str()
-            ));
-        }
+        crate::depth::check_layout(
+            layout.format,
+            layout.width,
+            layout.height,
+            stride,
+            buffer.size(),
+        )?;
         if buffer.map_readable().is_err() {
             return Err("the depth buffer cannot be mapped for reading".into());
         }
