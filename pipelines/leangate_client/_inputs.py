@@ -60,16 +60,18 @@ class InputSequence:
         """Ground-truth camera centre nearest to ``t`` (within 20 ms), or None."""
         if t is None or not self.groundtruth:
             return None
-        import bisect
-
-        ts = [g[0] for g in self.groundtruth]
-        k = bisect.bisect_left(ts, t)
-        best = None
-        for j in (k - 1, k):
-            if 0 <= j < len(ts) and abs(ts[j] - t) <= GT_MAX_DIFFERENCE_S:
-                if best is None or abs(ts[j] - t) < abs(ts[best] - t):
-                    best = j
+        best = _nearest([g[0] for g in self.groundtruth], t)
         return None if best is None else tuple(self.groundtruth[best][1:])  # type: ignore
+
+
+def _nearest(ts: List[float], t: float) -> Optional[int]:
+    """Index of the time in sorted ``ts`` nearest to ``t`` within ``GT_MAX_DIFFERENCE_S`` (as
+    TUM's associate.py), or None."""
+    import bisect
+
+    k = bisect.bisect_left(ts, t)
+    near = [j for j in (k - 1, k) if 0 <= j < len(ts) and abs(ts[j] - t) <= GT_MAX_DIFFERENCE_S]
+    return min(near, key=lambda j: abs(ts[j] - t)) if near else None
 
 
 def _data_lines(path: str) -> Iterable[Tuple[int, List[str]]]:
@@ -146,18 +148,14 @@ def attach_depth(seq: InputSequence) -> None:
             )
         rows.append((t, os.path.join(seq.path, parts[1])))
     rows.sort()
-    import bisect
-
     ts = [r[0] for r in rows]
     missing = []
     for f in seq.frames:
-        k = bisect.bisect_left(ts, f.timestamp)  # type: ignore[arg-type]
-        near = [j for j in (k - 1, k) if 0 <= j < len(ts)
-                and abs(ts[j] - f.timestamp) <= GT_MAX_DIFFERENCE_S]  # type: ignore[operator]
-        if not near:
+        j = _nearest(ts, f.timestamp)  # type: ignore[arg-type]
+        if j is None:
             missing.append(f)
             continue
-        f.depth = rows[min(near, key=lambda j: abs(ts[j] - f.timestamp))][1]  # type: ignore
+        f.depth = rows[j][1]
     if missing:
         raise SetupError(
             f"depth: {len(missing)} of {len(seq.frames)} colour frames of {seq.path} have no "
