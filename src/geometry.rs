@@ -491,7 +491,7 @@ pub fn grid(w: usize, h: usize, nx: usize, ny: usize) -> Vec<(f32, f32)> {
 }
 
 /// Solve the n x n system `a x = b` (row-major `a`, partial pivoting); None when singular.
-fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
+pub(crate) fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
     for c in 0..N {
         let p = (c..N).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
         if a[p][c].is_nan() || a[p][c].abs() <= 1e-12 {

@@ -21,7 +21,7 @@
 //! textureless view, depth holes under the corners. The caller then falls back to the colour-only
 //! utility for that frame.
 
-use crate::geometry::{track_with, Pyramid, LK_PRIOR};
+use crate::geometry::{solve, track_with, Pyramid, LK_PRIOR};
 use crate::overlap::Rigid;
 
 /// The teacher's distance check (metres): a match counts when its two 3-D points are closer.
@@ -178,7 +178,7 @@ pub fn fit_pose(
             if n < 6 {
                 return None;
             }
-            let delta = solve6(hm, g.map(|x| -x))?;
+            let delta = solve(hm, g.map(|x| -x))?;
             pose = updated(&pose, &delta);
             if delta.iter().map(|d| d * d).sum::<f64>() < 1e-12 {
                 break;
@@ -201,33 +201,6 @@ pub fn fit_pose(
         .chain(&pose.t)
         .all(|v| v.is_finite());
     (finite && inliers >= MIN_INLIERS && 2 * inliers >= points.len()).then_some((pose, use_all))
-}
-
-/// Solve the 6x6 system `a x = b` (Gaussian elimination with partial pivoting); None when
-/// singular.
-fn solve6(mut a: [[f64; 6]; 6], mut b: [f64; 6]) -> Option<[f64; 6]> {
-    for col in 0..6 {
-        let piv = (col..6).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[piv][col].abs() < 1e-12 {
-            return None;
-        }
-        a.swap(col, piv);
-        b.swap(col, piv);
-        for row in col + 1..6 {
-            let f = a[row][col] / a[col][col];
-            let pivot_row = a[col];
-            for (v, p) in a[row][col..].iter_mut().zip(&pivot_row[col..]) {
-                *v -= f * p;
-            }
-            b[row] -= f * b[col];
-        }
-    }
-    let mut x = [0.0; 6];
-    for row in (0..6).rev() {
-        let s: f64 = (row + 1..6).map(|k| a[row][k] * x[k]).sum();
-        x[row] = (b[row] - s) / a[row][row];
-    }
-    x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
 /// Tracks a reference's corners from frame to frame and fits the current pose to them.
