@@ -16,7 +16,7 @@
 //! From Python: `m = buf.add_custom_meta("LeanGateDepthMeta"); s = m.get_structure()` and set the
 //! fields (the plugin registers the meta when it loads).
 
-use crate::metric::Camera;
+use crate::overlap::Pinhole;
 
 pub const DEPTH_META_NAME: &str = "LeanGateDepthMeta";
 
@@ -200,7 +200,7 @@ impl DepthInput {
         (y_off, y_span): (f64, f64),
         grid_w: usize,
         grid_h: usize,
-    ) -> Result<(Vec<f32>, Camera), String> {
+    ) -> Result<(Vec<f32>, Pinhole), String> {
         let map = self
             .depth
             .map_readable()
@@ -243,7 +243,7 @@ impl DepthInput {
         // The grid's camera: grid pixel centre x maps to source x_off + (x + 0.5) x_span / gw
         // (edges), i.e. source centre coordinate that minus 0.5.
         let (kx, ky) = (gw / x_span, gh / y_span);
-        let cam = Camera {
+        let cam = Pinhole {
             fx: self.fx * kx,
             fy: self.fy * ky,
             cx: (self.cx + 0.5 - x_off) * kx - 0.5,

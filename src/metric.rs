@@ -22,7 +22,7 @@
 //! utility for that frame.
 
 use crate::geometry::{solve, track_with, Pyramid, LK_PRIOR};
-use crate::overlap::Rigid;
+use crate::overlap::{Pinhole, Rigid};
 
 /// The teacher's distance check (metres): a match counts when its two 3-D points are closer.
 pub const MAX_DIST_M: f64 = 0.1;
@@ -38,15 +38,6 @@ pub const INLIER_PX: f64 = 2.0;
 pub const MIN_INLIERS: usize = 15;
 /// Huber's threshold of the robust fit (working pixels).
 const HUBER_PX: f64 = 1.5;
-
-/// Pinhole intrinsics at the working resolution.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Camera {
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-}
 
 /// `exp(delta) * pose`, `delta` = (translation, rotation vector): a Gauss-Newton step.
 fn updated(pose: &Rigid, delta: &[f64; 6]) -> Rigid {
@@ -122,7 +113,7 @@ pub fn corners(grey: &[f32], depth: &[f32], w: usize, h: usize) -> Vec<(usize, u
 /// points agree with it (reprojection within [`INLIER_PX`]); None when it does not converge to
 /// [`MIN_INLIERS`] agreeing points, or half of them.
 pub fn fit_pose(
-    cam: &Camera,
+    cam: &Pinhole,
     points: &[[f64; 3]],
     seen: &[(f32, f32)],
     init: &Rigid,
@@ -206,7 +197,7 @@ pub fn fit_pose(
 /// Tracks a reference's corners from frame to frame and fits the current pose to them.
 #[derive(Debug, Clone)]
 pub struct PoseTracker {
-    cam: Camera,
+    cam: Pinhole,
     /// 3-D points of the reference camera still tracked, with where they were last seen.
     points: Vec<[f64; 3]>,
     seen: Vec<(f32, f32)>,
@@ -218,7 +209,7 @@ pub struct PoseTracker {
 }
 
 impl PoseTracker {
-    pub fn new(cam: Camera) -> PoseTracker {
+    pub fn new(cam: Pinhole) -> PoseTracker {
         PoseTracker {
             cam,
             points: Vec::new(),
@@ -229,7 +220,7 @@ impl PoseTracker {
         }
     }
 
-    pub fn camera(&self) -> &Camera {
+    pub fn camera(&self) -> &Pinhole {
         &self.cam
     }
 
@@ -325,8 +316,8 @@ mod tests {
         (grey, depth)
     }
 
-    fn cam() -> Camera {
-        Camera {
+    fn cam() -> Pinhole {
+        Pinhole {
             fx: 130.0,
             fy: 130.0,
             cx: 79.5,

@@ -124,7 +124,7 @@ impl DepthUse {
 struct DepthFrame {
     grey: Vec<f32>,
     view: crate::overlap::DepthView,
-    cam: crate::metric::Camera,
+    cam: crate::overlap::Pinhole,
 }
 
 /// The metric gate's state: the reference's depth, the pose tracker, the recent frames a keep
@@ -225,13 +225,7 @@ impl Utility {
                 .on_grid(src.0, src.1, xs, ys, w, h)
                 .map_err(|e| err = Some(e))
                 .ok()?;
-            let pinhole = crate::overlap::Pinhole {
-                fx: cam.fx,
-                fy: cam.fy,
-                cx: cam.cx,
-                cy: cam.cy,
-            };
-            let view = crate::overlap::DepthView::from_working(grid, w as u32, h as u32, pinhole)
+            let view = crate::overlap::DepthView::from_working(grid, w as u32, h as u32, cam)
                 .map_err(|e| err = Some(e.to_string()))
                 .ok()?;
             let grey = grey_from_tensor(t, w, h, spec.mean, spec.std);
