@@ -372,6 +372,48 @@ fn gaps_in_depth_leave_those_frames_without_depth() {
     one_warning(&msgs, "without depth");
 }
 
+/// An application that lacks a frame's depth sends a GAP event at its time on the depth pad (as
+/// the Python client's `FrameGate` does): that colour frame leaves without depth at once, without
+/// waiting for a later depth frame or the depth pad's EOS (the last frame here has none).
+#[test]
+fn a_gap_event_lets_the_colour_frame_go_without_depth_at_once() {
+    let m = small_mux("GRAY16_LE", 25, false);
+    let with_depth = |i: u64| (2..6).contains(&i) || (16..19).contains(&i);
+    for i in 0..20u64 {
+        m.colour
+            .push_buffer(timed(common::texture(8, 8, 1), 40 * MS * i, 40 * MS))
+            .unwrap();
+        if with_depth(i) {
+            m.depth
+                .push_buffer(timed(gray16(4, 4, i as u16), 40 * MS * i, 40 * MS))
+                .unwrap();
+        } else {
+            let gap = gst::event::Gap::builder(gst::ClockTime::from_nseconds(40 * MS * i)).build();
+            assert!(m.depth.send_event(gap));
+        }
+    }
+    // Every frame comes out before either pad ends.
+    let mut got = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while got.len() < 20 && Instant::now() < deadline {
+        if let Some(s) = m.out.try_pull_sample(gst::ClockTime::from_mseconds(20)) {
+            let d = depth_of(s.buffer().unwrap())
+                .as_ref()
+                .map(first_depth_value);
+            got.push((pts_ms(&s), d));
+        }
+    }
+    let want: Vec<(u64, Option<f64>)> = (0..20)
+        .map(|i| (40 * i, with_depth(i).then_some(i as f64)))
+        .collect();
+    assert_eq!(got, want);
+    m.colour.end_of_stream().unwrap();
+    m.depth.end_of_stream().unwrap();
+    let (rest, msgs) = collect(&m.pipeline, &m.out, Duration::from_secs(20));
+    assert_eq!(common::error_text(&msgs), None);
+    assert!(rest.is_empty());
+}
+
 #[test]
 fn depth_ending_first_does_not_stall_colour() {
     let m = small_mux("GRAY16_LE", 25, false);

@@ -3479,3 +3479,182 @@ fn depth_is_refused_without_a_depth_sequence() {
     std::fs::write(bare.join("depth.txt"), lines.join("\n")).unwrap();
     refused(&bare, "1 of 60 colour frames");
 }
+
+/// Python: decode the pictures at `paths` to arrays with GStreamer (`decodebin ! videoconvert`
+/// to `fmt`: RGB or GRAY16_LE), the tests' way to get numpy frames without OpenCV.
+const DECODE_PY: &str = r#"
+import os, tempfile, numpy as np
+import gi
+gi.require_version("Gst", "1.0")
+from gi.repository import Gst
+Gst.init(None)
+def decode(paths, fmt):
+    d = tempfile.mkdtemp()
+    ext = os.path.splitext(paths[0])[1]
+    for k, p in enumerate(paths):
+        os.symlink(os.path.abspath(p), f"{d}/{k:06d}{ext}")
+    pl = Gst.parse_launch(
+        f"multifilesrc location={d}/%06d{ext} index=0 stop-index={len(paths) - 1} ! decodebin "
+        f"! videoconvert ! video/x-raw,format={fmt} ! appsink name=s sync=false")
+    s = pl.get_by_name("s")
+    pl.set_state(Gst.State.PLAYING)
+    out = []
+    while len(out) < len(paths):
+        smp = s.emit("try-pull-sample", 10 * Gst.SECOND)
+        assert smp is not None, "decoding stalled"
+        st = smp.get_caps().get_structure(0)
+        w, h = st.get_value("width"), st.get_value("height")
+        b = smp.get_buffer()
+        ok, mi = b.map(Gst.MapFlags.READ)
+        bpp = 3 if fmt == "RGB" else 2
+        stride = (w * bpp + 3) & ~3
+        a = np.frombuffer(mi.data, np.uint8).reshape(h, stride)[:, : w * bpp].copy()
+        b.unmap(mi)
+        out.append(a.reshape(h, w, 3) if fmt == "RGB" else a.view("<u2"))
+    pl.set_state(Gst.State.NULL)
+    return out
+"#;
+
+/// `FrameGate`, the application's frames pushed one at a time with their depth: the same
+/// decisions as the sequence client (`multifilesrc` and `leangatedepthmux`) on the first 150 real
+/// frames of tum_fr1_desk; a frame pushed without depth is gated colour-only (`missing`) and waits for nothing
+/// (the first, a run of ten, the last); raw arrays go in as well as JPEG bytes.
+#[test]
+fn frame_gate_takes_pushed_frames_with_their_depth() {
+    if !python_ok() || !have_elements(&["jpegdec", "pngdec", "videoconvert", "appsrc"]) {
+        return;
+    }
+    let Some(seq) = paths::shared_data("tum_fr1_desk") else {
+        return;
+    };
+    let script = format!(
+        "{DECODE_PY}{}",
+        r#"
+import sys, collections
+from leangate_client import FrameGate
+from leangate_client._inputs import open_input, attach_depth, SequenceGateSource
+seq = open_input(sys.argv[1])
+attach_depth(seq)
+seq.frames = seq.frames[:150]
+depths = decode([f.depth for f in seq.frames], "GRAY16_LE")
+kw = dict(mode="annotate", arrays=False)
+with SequenceGateSource(seq.frames, depth_intrinsics=seq.intrinsics,
+                        depth_scale=seq.depth_scale, **kw) as src:
+    want = [(m["frame"], m["keep"], m["reason"], m["depth"]) for _, m in src]
+def run(images, fmt, skip=()):
+    got = []
+    with FrameGate(depth_intrinsics=seq.intrinsics, depth_scale=seq.depth_scale, **kw) as g:
+        for i, (f, img, d) in enumerate(zip(seq.frames, images, depths)):
+            pts = int(round(f.timestamp * 1e9))
+            out = g.push(img, pts, depth=None if i in skip else d, format=fmt)
+            got += [(m["frame"], m["keep"], m["reason"], m["depth"]) for _, m in out]
+        got += [(m["frame"], m["keep"], m["reason"], m["depth"]) for _, m in g.finish()]
+        assert g.stats.frames_in == len(seq.frames), g.stats
+    return got
+jpegs = [open(f.path, "rb").read() for f in seq.frames]
+same = run(jpegs, "jpeg") == want
+skip = {0, *range(20, 30), len(seq.frames) - 1}
+lacking = run(jpegs, "jpeg", skip)
+order = [r[0] for r in lacking] == list(range(len(seq.frames)))
+marked = all(r[3] == ("none" if r[0] == 0 else "missing") for r in lacking if r[0] in skip)
+others = collections.Counter(r[3] for r in lacking if r[0] not in skip)
+rgb = run(decode([f.path for f in seq.frames], "RGB"), None)
+print(same, order, marked, others["used"] + others["lost"] == len(seq.frames) - len(skip),
+      [r[0] for r in rgb] == list(range(len(seq.frames))), sum(r[1] for r in rgb),
+      sum(r[1] for r in want))
+"#
+    );
+    let out = client_script(&script, &[seq.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = stdout(&out);
+    let v: Vec<&str> = text.split_whitespace().collect();
+    assert_eq!(v[..5], ["True"; 5], "{text}");
+    // Raw RGB arrays: the frames decoded and converted before the gate (JPEG's I420 to RGB),
+    // so its picture differs by rounding: the same keyframes within one.
+    let (rgb, want): (i64, i64) = (v[5].parse().unwrap(), v[6].parse().unwrap());
+    assert!(want >= 2 && (rgb - want).abs() <= 1, "{text}");
+}
+
+/// `FrameGate`: raw arrays of every format it takes, of odd sizes (rows padded to 4 bytes for
+/// GStreamer) and changing size mid-stream, come out of the gate exactly as pushed (annotate mode,
+/// RGB arrays); bad frames and calls raise a clear error before anything is sent, and the gate
+/// goes on with the next good frame.
+#[test]
+fn frame_gate_raw_formats_strides_and_bad_input() {
+    if !python_ok() || !have_elements(&["appsrc", "videoconvert"]) {
+        return;
+    }
+    let script = r#"
+import numpy as np
+from leangate_client import FrameGate, NotRunningError, SetupError
+rng = np.random.default_rng(1)
+def rgb(h, w):
+    return rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+frames = [rgb(61, 83), rgb(61, 83), rgb(40, 30), rgb(41, 17)]
+ok = []
+with FrameGate(mode="annotate", model=None) as g:
+    out = []
+    for k, f in enumerate(frames):
+        out += g.push(f, k * 40_000_000)
+    # the same pictures in other layouts: BGR, BGRx, RGBA
+    out += g.push(np.ascontiguousarray(frames[0][:, :, ::-1]), 200_000_000, format="BGR")
+    bgrx = np.zeros((61, 83, 4), np.uint8); bgrx[..., :3] = frames[0][:, :, ::-1]
+    out += g.push(bgrx, 240_000_000, format="BGRx")
+    rgba = np.full((61, 83, 4), 255, np.uint8); rgba[..., :3] = frames[0]
+    out += g.push(rgba, 280_000_000)
+    errors = []
+    def refused(exc, call, *words):
+        try:
+            call()
+        except exc as e:
+            errors.append(all(w in str(e) for w in words) or str(e))
+        else:
+            errors.append(f"not refused: {words}")
+    refused(ValueError, lambda: g.push(rgb(8, 8), 280_000_000), "pts must increase")
+    refused(TypeError, lambda: g.push(rgb(8, 8), 1.5e9), "int of nanoseconds")
+    refused(ValueError, lambda: g.push(np.zeros((8, 8, 3), np.float32), 3 * 10**8), "format")
+    refused(ValueError, lambda: g.push(np.zeros((8, 8, 2), np.uint8), 3 * 10**8), "(H, W, 3)")
+    refused(ValueError, lambda: g.push(rgb(8, 8), 3 * 10**8, format="GRAY16_BE"), ">u2")
+    refused(ValueError, lambda: g.push(rgb(8, 8), 3 * 10**8, format="GRAY8"), "GRAY8")
+    refused(ValueError, lambda: g.push(b"\xff\xd8", 3 * 10**8), "format='jpeg'")
+    refused(ValueError, lambda: g.push(b"\xff\xd8", 3 * 10**8, format="jpeg"), "takes raw")
+    refused(TypeError, lambda: g.push([[1, 2]], 3 * 10**8), "numpy array")
+    refused(SetupError, lambda: g.push(rgb(8, 8), 3 * 10**8, depth=np.zeros((8, 8), np.uint16)),
+            "depth_intrinsics")
+    out += g.push(frames[0], 320_000_000)  # the gate goes on
+    out += g.finish()
+    refused(NotRunningError, lambda: g.push(rgb(8, 8), 4 * 10**8), "ended")
+back = [f for f, _ in out]
+pts = [m["pts"] for _, m in out]
+print(pts == [k * 40_000_000 for k in (0, 1, 2, 3, 5, 6, 7, 8)] or pts)
+print(all(np.array_equal(a, b) for a, b in zip(back[:4], frames)),
+      all(np.array_equal(b, frames[0]) for b in back[4:]))
+print([m["frame"] for _, m in out] == list(range(8)), g.stats.frames_in)
+print(errors)
+for bad in (dict(depth_intrinsics=(1, 2, 3)), dict(depth_intrinsics=(500, 500, 3, 3), depth_scale=0),
+            dict(queue=0), dict(max_frames=3)):
+    try:
+        FrameGate(**bad)
+        print("accepted", bad)
+    except SetupError as e:
+        print("refused:", str(e).split(" ")[0])
+"#;
+    let out = client_script(script, &[] as &[&str]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = stdout(&out);
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines[0], "True", "{text}");
+    assert_eq!(lines[1], "True True", "{text}");
+    assert_eq!(lines[2], "True 8", "{text}");
+    assert_eq!(lines[3], format!("[{}]", ["True"; 11].join(", ")), "{text}");
+    assert_eq!(
+        &lines[4..],
+        [
+            "refused: depth_intrinsics",
+            "refused: depth_scale",
+            "refused: queue",
+            "refused: FrameGate"
+        ],
+        "{text}"
+    );
+}

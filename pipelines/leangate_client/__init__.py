@@ -40,12 +40,14 @@ from .stats import LeanGateStats  # noqa: E402
 from ._gst import ensure_plugin  # noqa: E402
 from .keyframes import KeptFrameSaver  # noqa: E402
 from .source import LeanGateSource, buffer_to_rgb, parse_test_uri, save_kept  # noqa: E402
+from .push import FrameGate  # noqa: E402
 
 _logging.getLogger(__name__).addHandler(_logging.NullHandler())
 
 __all__ = [
     "__version__",
     "LeanGateSource",
+    "FrameGate",
     "LeanGateStats",
     "KeptFrameSaver",
     "save_kept",

@@ -336,6 +336,8 @@ class LeanGateSource:
         self.forced_events = 0
         self.kept_received = 0  # frames handed out with keep set
         self._index = _FrameIndex()  # for the appsink branch
+        self._sample_caps = None  # the appsink's caps, and their VideoInfo
+        self._sample_info = None
         self._indexes = [self._index]  # every consumer's, filled by the sink-pad probe
         self._input = _InputCounter(self._indexes)
         self._decoder = _DecoderWatch(self.source)
@@ -777,12 +779,10 @@ class LeanGateSource:
 
     # -- iteration -----------------------------------------------------------------------
     def __iter__(self) -> Iterator[Tuple[Any, Dict[str, Any]]]:
-        Gst, GstVideo = _gst.Gst, _gst.GstVideo
+        Gst = _gst.Gst
         if self._closed:
             raise self._state_error("iterating")
         self.start()
-        info = None
-        caps = None
         idle = 0.0
         stopped = False  # the iteration stopped before end-of-stream: shut the pipeline down
         try:
@@ -806,24 +806,7 @@ class LeanGateSource:
                         raise PipelineError(f"no frame and no EOS for {self.timeout_s:.0f} s")
                     continue
                 idle = 0.0
-                buf = sample.get_buffer()
-                sample_caps = sample.get_caps()
-                if caps is None or not sample_caps.is_equal(caps):
-                    caps = sample_caps
-                    info = GstVideo.VideoInfo.new_from_caps(caps)
-                    log.debug("appsink caps: %s", caps.to_string())
-                meta = meta_dict(buf)
-                if meta is None:
-                    raise PipelineError(
-                        f"a buffer arrived without {META_NAME}: something between leangate and "
-                        "the appsink dropped the meta"
-                    )
-                pts = None if buf.pts == Gst.CLOCK_TIME_NONE else int(buf.pts)
-                meta = {"frame": self._index.take(pts), "pts": pts, **meta}
-                frame = buffer_to_rgb(buf, info) if self.arrays else None
-                self.received += 1
-                self.kept_received += meta["keep"]
-                yield frame, meta
+                yield self._take_sample(sample)
         except GeneratorExit:  # the caller stopped iterating: not a failure
             stopped = True
             raise
@@ -836,6 +819,28 @@ class LeanGateSource:
                 # Not left running until the source is collected; with save_kept, close()
                 # (the `with` block's end) decides whether the run is saved.
                 self.close()
+
+    def _take_sample(self, sample) -> Tuple[Any, Dict[str, Any]]:
+        """An appsink sample as the ``(frame, meta)`` pair handed to the caller (counted)."""
+        Gst, GstVideo = _gst.Gst, _gst.GstVideo
+        buf = sample.get_buffer()
+        caps = sample.get_caps()
+        if self._sample_caps is None or not caps.is_equal(self._sample_caps):
+            self._sample_caps = caps
+            self._sample_info = GstVideo.VideoInfo.new_from_caps(caps)
+            log.debug("appsink caps: %s", caps.to_string())
+        meta = meta_dict(buf)
+        if meta is None:
+            raise PipelineError(
+                f"a buffer arrived without {META_NAME}: something between leangate and "
+                "the appsink dropped the meta"
+            )
+        pts = None if buf.pts == Gst.CLOCK_TIME_NONE else int(buf.pts)
+        meta = {"frame": self._index.take(pts), "pts": pts, **meta}
+        frame = buffer_to_rgb(buf, self._sample_info) if self.arrays else None
+        self.received += 1
+        self.kept_received += meta["keep"]
+        return frame, meta
 
     def _drain_bus_quietly(self) -> None:
         if self._bus is None:

@@ -7,8 +7,9 @@
 //! - the depth frame nearest to `c` within `[c - skew, c + skew]` is attached and used up (a depth
 //!   frame serves one colour frame); a later depth frame is waited for only while the one in hand
 //!   lies before `c` (a later one might be nearer);
-//! - when the next depth frame is after `c + skew`, the depth pad is at EOS, or (live) the
-//!   aggregator's deadline for the colour frame passed, the colour buffer leaves without depth.
+//! - when the next depth frame is after `c + skew`, the depth pad is at EOS, a GAP event on the
+//!   depth pad at or after `c` says there is none, or (live) the aggregator's deadline for the
+//!   colour frame passed, the colour buffer leaves without depth.
 //!
 //! The colour buffer is otherwise untouched (same memory, timestamps, flags: made writable only to
 //! add the meta). The stream ends when the colour pad ends. No message is posted with the state
@@ -465,6 +466,11 @@ impl DepthMux {
                     };
                 };
                 if is_gap(&b) {
+                    // A gap at or after the colour frame: the depth stream says it has nothing
+                    // for it (an appsrc that lacks this frame's depth sends one).
+                    if running_time_ns(&self.depth_pad, &b).is_some_and(|g| g >= c) {
+                        return Match::Without;
+                    }
                     continue;
                 }
                 match running_time_ns(&self.depth_pad, &b) {
