@@ -11,7 +11,9 @@
 #      reconstruction consumer (pipelines/reconstruct.py, `leangate eval --reconstruct`), and
 #      evo (`evo_ape`, the SLAM trajectory evaluator, for `eval --trajectory-dir` files; it
 #      brings its own numpy 2, matplotlib, scipy and pandas into this venv);
-#   5. .venv-triton: Debian's /usr/bin/python3 in a venv with nvidia-pytriton (NVIDIA Triton
+#   5. .venv-bag: Debian's python3 with the system's PyGObject and numpy and rosbags (ROS bags for
+#      leangate-client, pipelines/leangate_client/bag.py);
+#   6. .venv-triton: Debian's /usr/bin/python3 in a venv with nvidia-pytriton (NVIDIA Triton
 #      Inference Server, CPU) and onnxruntime, the KServe V2 server the remote-scoring tests and
 #      benchmark start on loopback (scripts/v2_server.py). Debian's python, not pyenv's: the
 #      Python backend bundled in PyTriton loads the interpreter's libpython. If it cannot be
@@ -83,6 +85,16 @@ if [ ! -x .venv-sfm/bin/python ] || ! .venv-sfm/bin/python -c 'import pycolmap, 
   [ -x .venv-sfm/bin/python ] || /usr/bin/python3 -m venv --system-site-packages .venv-sfm
   .venv-sfm/bin/pip install -q --disable-pip-version-check --only-binary=:all: \
     "pycolmap==$PYCOLMAP_VERSION" "evo==$EVO_VERSION"
+fi
+# .venv-bag: Debian's python3 seeing the system's PyGObject and numpy, with rosbags (pure Python:
+# ROS 1 and ROS 2 bags, sqlite3 and MCAP, without ROS) for `leangate-client BAG --topic T --out OUT`
+# (pipelines/leangate_client/bag.py) and its tests (tests/bag.rs).
+ROSBAGS_VERSION=0.11.9
+if [ ! -x .venv-bag/bin/python ] || ! .venv-bag/bin/python -c "import gi, importlib.metadata as m; assert m.version('rosbags') == '$ROSBAGS_VERSION'" 2>/dev/null; then
+  echo "setup: creating .venv-bag (system site packages + rosbags==$ROSBAGS_VERSION)"
+  [ -x .venv-bag/bin/python ] || /usr/bin/python3 -m venv --system-site-packages .venv-bag
+  .venv-bag/bin/pip install -q --disable-pip-version-check --only-binary=:all: \
+    "rosbags==$ROSBAGS_VERSION"
 fi
 PYTRITON_VERSION=0.7.0
 if [ ! -x .venv-triton/bin/python ] || ! .venv-triton/bin/python -c 'import pytriton, onnxruntime' 2>/dev/null; then

@@ -180,6 +180,17 @@ def build_parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
                     "colour frame with a depth image within 20 ms; its frames go through "
                     "leangatedepthmux into leangate. A video, or a directory without them, is "
                     "refused (exit 2)")
+    ap.add_argument("--topic", action="append", metavar="TOPIC",
+                    help="with a ROS bag INPUT (a .bag file or a ROS 2 bag folder): the image "
+                    "topic to gate; given again, the rig's other cameras, of which the message "
+                    "nearest in stamp to each keep is kept (docs/python.md, \"ROS bags\")")
+    ap.add_argument("--out", metavar="OUT",
+                    help="with a ROS bag INPUT: the bag to write (same kind and storage): the "
+                    "kept images, every other topic whole, TOPIC/leangate with the decisions")
+    ap.add_argument("--set", action="append", default=[], metavar="PROPERTY=VALUE",
+                    dest="set_properties",
+                    help="set another property of the element, as gst-launch-1.0 would "
+                    "(e.g. --set sharpness-lookback=0); repeatable")
     ap.add_argument("--quiet", action="store_true", help="no per-frame lines, only the summary")
     ap.add_argument("--plugin-path", metavar="PATH",
                     help="libgstleangate.so or its directory, when it is not on GST_PLUGIN_PATH")
@@ -200,6 +211,12 @@ def main(
     args = ap.parse_args(argv)
     configure_logging(ap.prog, args.verbose)
     args._plugin_fallbacks = plugin_fallbacks
+    args.properties = {}
+    for kv in args.set_properties:
+        k, sep, v = kv.partition("=")
+        if not sep or not k.strip():
+            ap.error(f"--set takes PROPERTY=VALUE, not {kv!r}")
+        args.properties[k.strip()] = v
 
     # SIGTERM and SIGHUP (a service stopped, `timeout`, a closed terminal) end the run the way
     # Ctrl-C does: the pipeline is stopped and a --save-kept run leaves DIR as it was and its
@@ -244,6 +261,21 @@ def _local_path(src: str) -> Optional[str]:
 def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """The run itself (`main`'s body once the arguments are read)."""
     plugin_fallbacks = args._plugin_fallbacks
+    if args.input and args.source == "auto" and "://" not in args.input:
+        from .bag import is_bag
+
+        if is_bag(args.input):
+            from .bag import run_cli
+
+            return run_cli(ap, args)
+    if args.topic or args.out:
+        which = "--topic" if args.topic else "--out"
+        what = (
+            f"{args.input} is not one" if args.input and os.path.exists(args.input)
+            else f"{args.input} does not exist" if args.input else "no INPUT was given"
+        )
+        ap.error(f"{which} applies to a ROS bag (a .bag file, or a ROS 2 bag folder with "
+                 f"metadata.yaml); {what}")
     if args.source == "videotestsrc":
         src = args.input if args.input and args.input.startswith("test://") else "test://ball"
     elif args.input:
@@ -287,6 +319,7 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             stats_interval=args.stats_interval,
             plugin_path=args.plugin_path,
             plugin_fallbacks=plugin_fallbacks,
+            properties=args.properties or None,
             save_kept=args.save_kept,
             save_format=args.format,
             overwrite=args.overwrite,
