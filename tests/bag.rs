@@ -477,6 +477,48 @@ fn bad_bags_are_refused_with_nothing_written() {
     );
 }
 
+/// A rig camera that dropped out: the keeps in the gap stay kept without a partner, counted in
+/// the summary, warned about, and their decisions say `partner:TOPIC none`.
+#[test]
+fn a_keep_without_a_partner_in_range_is_kept_and_counted() {
+    let Some(e) = env() else { return };
+    e.make(
+        "ros1",
+        "gap.bag",
+        &["--frames", "200", "--partner-gap", "60:140", "--no-imu"],
+    );
+    let o = e.client(&[
+        "gap.bag", "--topic", CAM0, "--topic", CAM1, "--out", "kf.bag",
+    ]);
+    assert!(o.status.success());
+    let s = summary(&o);
+    let kept: usize = s["kept"].parse().unwrap();
+    let unmatched: usize = s["rig-unmatched"]
+        .strip_prefix(&format!("{CAM1}:"))
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(unmatched >= 1, "no keep in frames 60..140: {s:?}");
+    assert_eq!(s["rig"], format!("{CAM1}:{}/120", kept - unmatched));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains(&format!(
+            "{unmatched} keep(s) of {CAM0} have no {CAM1} message within half its frame interval \
+             (kept without it)"
+        )),
+        "{err}"
+    );
+    let decisions = e.fixture(&["decisions", "kf.bag"]);
+    assert_eq!(
+        decisions
+            .matches(&format!("\"partner:{CAM1}\": \"none\""))
+            .count(),
+        unmatched,
+        "{decisions}"
+    );
+    assert_eq!(decisions.lines().count(), kept);
+}
+
 /// SIGTERM while the frames are being gated: exit 143, no OUT (and an earlier OUT as it was).
 #[test]
 fn sigterm_mid_run_leaves_no_out() {
