@@ -12,6 +12,11 @@ fails or is interrupted leaves DIR as it was, and a reader sees DIR complete, ol
 ``--csv OUT`` likewise: checked before the run (not the input, not inside the --save-kept DIR,
 its directory exists), written beside OUT and moved over it only when the run succeeds.
 
+A ROS bag as INPUT (a ``.bag`` file, or a ROS 2 bag folder with metadata.yaml / ``*.db3`` /
+``*.mcap``) goes to :mod:`leangate_client.bag`: ``BAG --topic IMAGE_TOPIC [--topic T2 ...] --out
+OUT`` writes a bag with the kept images, every other topic and the decisions (``--topic`` and
+``--out`` are refused with any other input).
+
 Diagnostics go through ``logging`` to stderr (warnings by default; -v info, -vv debug).
 Exit status: 0 on success, 1 on a pipeline error, 2 on a usage/setup error (missing file,
 missing plugin, missing Python bindings, an output that cannot be written), 130 when
