@@ -36,11 +36,11 @@ import shutil
 import statistics
 from array import array
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 from . import _outdir
 from ._bag_image import IMAGE_TYPES, SUPPORTED, ImageError, header_stamp, to_push
-from .errors import PipelineError, SetupError
+from .errors import SetupError
 
 log = logging.getLogger(__name__)
 
@@ -674,80 +674,6 @@ def _write(bag, gated, partners, kept, stamps, partner_keep, partner_of, typesto
     except BaseException:
         out.discard()
         raise
-
-
-# -- the command line ------------------------------------------------------------------------
-#: CLI options that do not apply to a bag (dest, how it is spelled).
-_NOT_FOR_BAGS = (
-    ("save_kept", "--save-kept"), ("csv", "--csv"), ("depth", "--depth"),
-    ("max_frames", "--max-frames"), ("force_every", "--force-every"),
-)
-
-
-def run_cli(ap, args) -> int:
-    """``leangate-client BAG --topic T [--topic T2 ...] --out OUT``: the exit status."""
-    from .cli import _Progress, _Terminated
-
-    for dest, opt in _NOT_FOR_BAGS:
-        if getattr(args, dest, None):
-            ap.error(f"{opt} does not apply to a ROS bag (the kept frames go to --out OUT)")
-    if args.source != "auto":
-        ap.error("--source does not apply to a ROS bag")
-    if not args.out:
-        try:
-            bag = open_bag(args.input)
-            listing = bag.image_topics()
-            bag.close()
-        except SetupError as e:
-            listing = str(e)
-        ap.error(f"a ROS bag needs --topic IMAGE_TOPIC and --out OUT; {listing}")
-    progress = _Progress(ap.prog)
-
-    def on_keep(m):
-        log.info("keep frame %d stamp %d utility %s reason %s keyframe %s", m["frame"],
-                 m["stamp"], "nan" if m["utility"] != m["utility"] else f"{m['utility']:.6f}",
-                 m["reason"], m["keyframe_index"])
-
-    try:
-        summary = gate_bag(
-            args.input, args.topic or [], args.out, overwrite=args.overwrite,
-            progress=progress.update, on_keep=on_keep,
-            model=args.model, threshold=args.threshold, mode=args.mode, warmup=args.warmup,
-            max_gap=args.max_gap, execution_provider=args.execution_provider,
-            precision=args.precision, stats_interval=args.stats_interval,
-            properties=args.properties or None, plugin_path=args.plugin_path,
-            plugin_fallbacks=args._plugin_fallbacks,
-        )
-    except SetupError as e:
-        _end(progress)
-        log.error("%s", e)
-        return 2
-    except PipelineError as e:
-        _end(progress)
-        log.error("pipeline error: %s", e)
-        return 1
-    except _Terminated as e:
-        _end(progress)
-        log.error("terminated: nothing written to %s", args.out)
-        return 128 + int(e.args[0])
-    except KeyboardInterrupt:
-        _end(progress)
-        log.error("interrupted: nothing written to %s", args.out)
-        return 130
-    except OSError as e:  # writing OUT (ENOSPC, permissions)
-        _end(progress)
-        log.error("--out %s: %s (nothing written)", args.out, e.strerror or e)
-        return 2
-    progress.update(f"{summary.topic}: {summary.frames_in} frames gated, {summary.kept} kept; "
-                    f"{summary.out} written", final=True)
-    print(summary.line(), flush=True)
-    return 0
-
-
-def _end(progress) -> None:
-    if progress.drawn and progress.tty:
-        progress.stream.write("\n")
-        progress.stream.flush()
 
 
 __all__ = ["gate_bag", "open_bag", "is_bag", "check_topics", "check_output", "BagSummary",

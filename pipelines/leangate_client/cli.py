@@ -270,9 +270,7 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         from .bag import is_bag
 
         if is_bag(args.input):
-            from .bag import run_cli
-
-            return run_cli(ap, args)
+            return _run_bag(ap, args)
     if args.topic or args.out:
         which = "--topic" if args.topic else "--out"
         what = (
@@ -445,6 +443,82 @@ def _open_source(src: str, depth: bool, **kwargs) -> LeanGateSource:
         label=path,
         **kwargs,
     )
+
+
+# -- ROS bags ------------------------------------------------------------------------
+#: CLI options that do not apply to a bag (dest, how it is spelled).
+_NOT_FOR_BAGS = (
+    ("save_kept", "--save-kept"), ("csv", "--csv"), ("depth", "--depth"),
+    ("max_frames", "--max-frames"), ("force_every", "--force-every"),
+)
+
+
+def _run_bag(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """``leangate-client BAG --topic T [--topic T2 ...] --out OUT`` (leangate_client.bag): the
+    exit status."""
+    from .bag import gate_bag, open_bag
+
+    for dest, opt in _NOT_FOR_BAGS:
+        if getattr(args, dest, None):
+            ap.error(f"{opt} does not apply to a ROS bag (the kept frames go to --out OUT)")
+    if args.source != "auto":
+        ap.error("--source does not apply to a ROS bag")
+    if not args.out:
+        try:
+            bag = open_bag(args.input)
+            listing = bag.image_topics()
+            bag.close()
+        except SetupError as e:
+            listing = str(e)
+        ap.error(f"a ROS bag needs --topic IMAGE_TOPIC and --out OUT; {listing}")
+    progress = _Progress(ap.prog)
+
+    def on_keep(m):
+        log.info(
+            "keep frame %d stamp %d utility %s reason %s keyframe %s", m["frame"], m["stamp"],
+            _fmt_util(m["utility"]), m["reason"], m["keyframe_index"],
+        )
+
+    try:
+        summary = gate_bag(
+            args.input, args.topic or [], args.out, overwrite=args.overwrite,
+            progress=progress.update, on_keep=on_keep,
+            model=args.model, threshold=args.threshold, mode=args.mode, warmup=args.warmup,
+            max_gap=args.max_gap, execution_provider=args.execution_provider,
+            precision=args.precision, stats_interval=args.stats_interval,
+            properties=args.properties or None, plugin_path=args.plugin_path,
+            plugin_fallbacks=args._plugin_fallbacks,
+        )
+    except SetupError as e:
+        _end_progress(progress)
+        log.error("%s", e)
+        return 2
+    except PipelineError as e:
+        _end_progress(progress)
+        log.error("pipeline error: %s", e)
+        return 1
+    except _Terminated as e:
+        _end_progress(progress)
+        log.error("terminated: nothing written to %s", args.out)
+        return 128 + int(e.args[0])
+    except KeyboardInterrupt:
+        _end_progress(progress)
+        log.error("interrupted: nothing written to %s", args.out)
+        return 130
+    except OSError as e:  # writing OUT (ENOSPC, permissions)
+        _end_progress(progress)
+        log.error("--out %s: %s (nothing written)", args.out, e.strerror or e)
+        return 2
+    progress.update(f"{summary.topic}: {summary.frames_in} frames gated, {summary.kept} kept; "
+                    f"{summary.out} written", final=True)
+    print(summary.line(), flush=True)
+    return 0
+
+
+def _end_progress(progress) -> None:
+    if progress.drawn and progress.tty:
+        progress.stream.write("\n")
+        progress.stream.flush()
 
 
 def _saving(source: LeanGateSource) -> str:
