@@ -38,6 +38,14 @@ pub const INLIER_PX: f64 = 2.0;
 pub const MIN_INLIERS: usize = 15;
 /// Huber's threshold of the robust fit (working pixels).
 const HUBER_PX: f64 = 1.5;
+/// Below this many tracked points, a frame whose pose held adds its own corners (lifted with its
+/// depth, carried into the reference's camera by the pose): the tracks last as the view moves
+/// off the reference.
+pub const REPLENISH_BELOW: usize = MAX_POINTS / 2;
+/// Frames in a row whose pose may fail (a blurred frame, a sudden jolt) before tracking is lost
+/// until the next reference: the tracks wait on the last frame that held, and the next frame is
+/// tracked from it.
+pub const MAX_MISSES: u32 = 3;
 
 /// `exp(delta) * pose`, `delta` = (translation, rotation vector): a Gauss-Newton step.
 fn updated(pose: &Rigid, delta: &[f64; 6]) -> Rigid {
@@ -204,8 +212,11 @@ pub struct PoseTracker {
     prev: Option<Pyramid>,
     /// Reference camera -> the last frame's camera.
     pose: Rigid,
-    /// Whether the last pose fit held.
+    /// Whether tracking goes on (the reference had points, and no more than [`MAX_MISSES`] frames
+    /// in a row failed since the last pose that held).
     live: bool,
+    /// Frames in a row whose pose failed; `prev` and `seen` are still the last good frame's.
+    misses: u32,
 }
 
 impl PoseTracker {
@@ -217,6 +228,7 @@ impl PoseTracker {
             prev: None,
             pose: Rigid::IDENTITY,
             live: false,
+            misses: 0,
         }
     }
 
@@ -227,41 +239,61 @@ impl PoseTracker {
     /// This frame (grey picture and depth in metres, `w` x `h`, the camera's working size) is
     /// the new reference.
     pub fn set_reference(&mut self, grey: &[f32], depth: &[f32], w: usize, h: usize) {
-        let c = &self.cam;
         let pts = corners(grey, depth, w, h);
-        self.points = pts
-            .iter()
-            .map(|&(x, y)| {
-                let z = depth[y * w + x] as f64;
-                [
-                    (x as f64 - c.cx) / c.fx * z,
-                    (y as f64 - c.cy) / c.fy * z,
-                    z,
-                ]
-            })
-            .collect();
+        self.points = pts.iter().map(|&p| self.lift(p, depth, w)).collect();
         self.seen = pts.iter().map(|&(x, y)| (x as f32, y as f32)).collect();
         self.prev = Some(Pyramid::new(grey.to_vec(), w, h));
         self.pose = Rigid::IDENTITY;
         self.live = !self.points.is_empty();
+        self.misses = 0;
+    }
+
+    /// The 3-D point (this camera's frame) at pixel `(x, y)` of a depth picture `w` wide.
+    fn lift(&self, (x, y): (usize, usize), depth: &[f32], w: usize) -> [f64; 3] {
+        let c = &self.cam;
+        let z = depth[y * w + x] as f64;
+        [(x as f64 - c.cx) / c.fx * z, (y as f64 - c.cy) / c.fy * z, z]
+    }
+
+    /// New corners of the frame just fitted (not within a cell of a tracked point), lifted with
+    /// its depth and carried into the reference camera by the inverse of its pose.
+    fn replenish(&mut self, grey: &[f32], depth: &[f32], w: usize, h: usize) {
+        let to_ref = self.pose.inverse();
+        let near = |x: f32, y: f32, s: &[(f32, f32)]| {
+            s.iter()
+                .any(|&(sx, sy)| (sx - x).abs() < CELL as f32 && (sy - y).abs() < CELL as f32)
+        };
+        for p in corners(grey, depth, w, h) {
+            if self.points.len() >= MAX_POINTS {
+                break;
+            }
+            let (x, y) = (p.0 as f32, p.1 as f32);
+            if near(x, y, &self.seen) {
+                continue;
+            }
+            let q = to_ref.apply(self.lift(p, depth, w));
+            self.points.push(q);
+            self.seen.push((x, y));
+        }
     }
 
     /// Track into this frame's grey picture and fit its pose: reference camera -> this camera.
-    /// None when the pose fails (then tracking is lost until the next reference).
-    pub fn observe(&mut self, grey: &[f32], w: usize, h: usize) -> Option<Rigid> {
-        let cur = Pyramid::new(grey.to_vec(), w, h);
-        let prev = self.prev.replace(cur);
+    /// None when the pose fails: the tracks then wait on the last frame whose pose held, and the
+    /// next frame is tracked from there; after more than [`MAX_MISSES`] failures in a row,
+    /// tracking is lost until the next reference.
+    pub fn observe(&mut self, grey: &[f32], depth: &[f32], w: usize, h: usize) -> Option<Rigid> {
         if !self.live {
             return None;
         }
-        let (prev, cur) = (prev?, self.prev.as_ref()?);
+        let cur = Pyramid::new(grey.to_vec(), w, h);
+        let prev = self.prev.as_ref()?;
         let mut keep_pts = Vec::with_capacity(self.points.len());
         let mut keep_seen = Vec::with_capacity(self.points.len());
         for (p, &s) in self.points.iter().zip(&self.seen) {
-            let Some(q) = track_with(&prev, cur, s, &LK_PRIOR) else {
+            let Some(q) = track_with(prev, &cur, s, &LK_PRIOR) else {
                 continue;
             };
-            let Some(back) = track_with(cur, &prev, q, &LK_PRIOR) else {
+            let Some(back) = track_with(&cur, prev, q, &LK_PRIOR) else {
                 continue;
             };
             let (dx, dy) = (back.0 - s.0, back.1 - s.1);
@@ -283,10 +315,16 @@ impl PoseTracker {
                     .filter_map(|(s, &i)| i.then_some(s))
                     .collect();
                 self.pose = pose;
+                self.prev = Some(cur);
+                self.misses = 0;
+                if self.points.len() < REPLENISH_BELOW && depth.len() == w * h {
+                    self.replenish(grey, depth, w, h);
+                }
                 Some(pose)
             }
             None => {
-                self.live = false;
+                self.misses += 1;
+                self.live = self.misses <= MAX_MISSES;
                 None
             }
         }
@@ -332,8 +370,8 @@ mod tests {
         t.set_reference(&g0, &d0, 160, 120);
         let mut last = None;
         for k in 1..=5 {
-            let (g, _) = scene(0.01 * k as f64);
-            last = t.observe(&g, 160, 120);
+            let (g, d) = scene(0.01 * k as f64);
+            last = t.observe(&g, &d, 160, 120);
             assert!(last.is_some(), "frame {k}");
         }
         let p = last.unwrap();
@@ -347,10 +385,57 @@ mod tests {
         let mut t = PoseTracker::new(cam());
         let flat = vec![100.0f32; 160 * 120];
         t.set_reference(&flat, &vec![2.0; 160 * 120], 160, 120);
-        assert_eq!(t.observe(&flat, 160, 120), None);
+        assert_eq!(t.observe(&flat, &vec![2.0; 160 * 120], 160, 120), None);
         let (g, _) = scene(0.0);
         t.set_reference(&g, &vec![0.0; 160 * 120], 160, 120);
-        assert_eq!(t.observe(&g, 160, 120), None);
+        assert_eq!(t.observe(&g, &vec![0.0; 160 * 120], 160, 120), None);
+    }
+
+    /// The camera slides 3 m along the plane, more than a view's width: the reference's corners
+    /// leave the picture, the corners the tracked frames add carry the pose to the end.
+    #[test]
+    fn tracks_are_replenished_as_the_view_leaves_the_reference() {
+        let mut t = PoseTracker::new(cam());
+        let (g0, d0) = scene(0.0);
+        t.set_reference(&g0, &d0, 160, 120);
+        let mut last = None;
+        for k in 1..=300 {
+            let (g, d) = scene(0.01 * k as f64);
+            last = t.observe(&g, &d, 160, 120);
+            assert!(last.is_some(), "frame {k}");
+        }
+        let p = last.unwrap();
+        assert!((p.t[0] + 3.0).abs() < 0.06, "{p:?}");
+        assert!(p.t[1].abs() < 0.03 && p.t[2].abs() < 0.03, "{p:?}");
+    }
+
+    /// A frame whose pose fails (here a featureless one, as a blurred frame) is skipped: the next
+    /// frame is tracked from the last one that held. More than MAX_MISSES in a row lose tracking
+    /// until the next reference.
+    #[test]
+    fn a_few_failed_frames_are_bridged_more_lose_tracking() {
+        let flat = vec![100.0f32; 160 * 120];
+        let two = vec![2.0f32; 160 * 120];
+        for misses in [1, MAX_MISSES, MAX_MISSES + 1] {
+            let mut t = PoseTracker::new(cam());
+            let (g0, d0) = scene(0.0);
+            t.set_reference(&g0, &d0, 160, 120);
+            for k in 1..=3 {
+                let (g, d) = scene(0.01 * k as f64);
+                assert!(t.observe(&g, &d, 160, 120).is_some());
+            }
+            for _ in 0..misses {
+                assert_eq!(t.observe(&flat, &two, 160, 120), None);
+            }
+            let (g, d) = scene(0.04);
+            let p = t.observe(&g, &d, 160, 120);
+            if misses <= MAX_MISSES {
+                let p = p.expect("tracked from the last good frame");
+                assert!((p.t[0] + 0.04).abs() < 0.005, "{p:?}");
+            } else {
+                assert_eq!(p, None, "{misses} misses in a row");
+            }
+        }
     }
 
     #[test]

@@ -241,7 +241,7 @@ impl Utility {
         };
         if let (Some(f), true) = (&f, has_reference) {
             if let (Some(tracker), Some(key)) = (m.tracker.as_mut(), m.reference.as_ref()) {
-                if let Some(pose) = tracker.observe(&f.grey, w, h) {
+                if let Some(pose) = tracker.observe(&f.grey, &f.view.depth, w, h) {
                     let cur_to_key = pose.inverse();
                     let s = crate::overlap::score_pair(&f.view, key, &cur_to_key, MAX_DIST_M);
                     m.tau = Some(s.tau);
