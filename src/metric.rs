@@ -252,7 +252,11 @@ impl PoseTracker {
     fn lift(&self, (x, y): (usize, usize), depth: &[f32], w: usize) -> [f64; 3] {
         let c = &self.cam;
         let z = depth[y * w + x] as f64;
-        [(x as f64 - c.cx) / c.fx * z, (y as f64 - c.cy) / c.fy * z, z]
+        [
+            (x as f64 - c.cx) / c.fx * z,
+            (y as f64 - c.cy) / c.fy * z,
+            z,
+        ]
     }
 
     /// New corners of the frame just fitted (not within a cell of a tracked point), lifted with

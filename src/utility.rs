@@ -10,8 +10,12 @@ use crate::metric::MAX_DIST_M;
 use crate::preprocess::TensorSpec;
 use crate::quality::{measure, Quality};
 
-/// The most the consumer's feedback ([`Utility::feedback`]) raises the utility.
+/// The most the consumer's feedback ([`Utility::feedback`]) raises the utility (and the most its
+/// sum goes below 0).
 pub const FEEDBACK_LIMIT: f64 = 0.3;
+/// How far below 0 the feedback's sum goes before it lowers the utility: the noise of single
+/// reports on a stream whose keeps come on time stays within it.
+pub const FEEDBACK_DEAD_BAND: f64 = 0.1;
 
 /// How far a score may exceed the model's `leangate.score_max` by rounding (the graph computes in
 /// f32) before the claim counts as broken.
@@ -54,6 +58,8 @@ pub struct Utility {
     /// The consumer's reports accumulated (`rate * (tau − threshold)` each, within
     /// ±[`FEEDBACK_LIMIT`]); the utility gets its positive part ([`Utility::offset`]).
     feedback: f64,
+    /// The most the feedback lowers the utility (the element's `feedback-lower`; 0: never).
+    feedback_lower: f64,
     /// Whether frames are checked for a usable picture ([`Utility::set_quality_check`]).
     no_quality_check: bool,
     /// The last observed frame's quality ([`crate::quality::assess`]).
@@ -190,6 +196,7 @@ impl Utility {
             tracker: Tracker::new(),
             tau: None,
             feedback: 0.0,
+            feedback_lower: 0.0,
             no_quality_check: false,
             quality: Quality::Usable,
             sharpness: None,
@@ -320,10 +327,25 @@ impl Utility {
         self.sharpness
     }
 
-    /// What the consumer's feedback adds to every utility (0 until feedback arrives, never
-    /// negative).
+    /// What the consumer's feedback adds to every utility (0 until feedback arrives): the sum's
+    /// positive part, or, below [`FEEDBACK_DEAD_BAND`] under 0, the rest of it down to
+    /// `-feedback_lower`.
     pub fn offset(&self) -> f64 {
-        self.feedback.max(0.0)
+        if self.feedback >= 0.0 {
+            self.feedback
+        } else {
+            -(-self.feedback - FEEDBACK_DEAD_BAND).clamp(0.0, self.feedback_lower)
+        }
+    }
+
+    /// The most the feedback may lower the utility (`feedback-lower`, within 0 to
+    /// [`FEEDBACK_LIMIT`]; 0, the default, never lowers it).
+    pub fn set_feedback_lower(&mut self, lower: f64) {
+        self.feedback_lower = if lower.is_finite() {
+            lower.clamp(0.0, FEEDBACK_LIMIT)
+        } else {
+            0.0
+        };
     }
 
     /// The consumer's feedback on a kept frame: `tau` = 1 − S that it measured between that frame
@@ -902,6 +924,45 @@ mod tests {
         assert_eq!(u.feedback(0.0, 0.5, 0.0).unwrap(), FEEDBACK_LIMIT);
         u.reset_feedback();
         assert_eq!(u.compose(0.4, true).0, 0.4);
+    }
+
+    #[test]
+    fn feedback_lowers_the_utility_past_its_dead_band_within_feedback_lower() {
+        let mut u = Utility::new(None);
+        u.observe(Some((&frame(0.0), &spec())), false, true);
+        // feedback-lower 0 (the default): early keeps never lower the utility.
+        for _ in 0..10 {
+            assert_eq!(u.feedback(0.2, 0.5, 0.2).unwrap(), 0.0);
+        }
+        assert_eq!(u.compose(0.6, true).0, 0.6);
+        u.reset_feedback();
+        u.set_feedback_lower(0.15);
+        // Each keep measured at tau 0.2 moves the sum by -0.06: the first stays within the dead
+        // band (-0.1), the second lowers the utility by what lies beyond it, ...
+        assert_eq!(u.feedback(0.2, 0.5, 0.2).unwrap(), 0.0);
+        assert!((u.feedback(0.2, 0.5, 0.2).unwrap() + 0.02).abs() < 1e-12);
+        assert!((u.compose(0.6, true).0 - 0.58).abs() < 1e-12);
+        // ... down to feedback-lower however many come (a consumer that always says "early").
+        for _ in 0..50 {
+            u.feedback(0.0, 0.5, 0.2).unwrap();
+        }
+        assert!((u.offset() + 0.15).abs() < 1e-12);
+        assert!((u.compose(0.6, true).0 - 0.45).abs() < 1e-12);
+        assert_eq!(u.compose(0.1, true).0, 0.0, "within [0, 1]");
+        // Late keeps bring it back up at the same rate.
+        for _ in 0..5 {
+            u.feedback(1.0, 0.5, 0.2).unwrap();
+        }
+        assert!((u.offset() - 0.2).abs() < 1e-12);
+        // A bad setting is taken as 0 or the limit.
+        u.reset_feedback();
+        u.set_feedback_lower(f64::NAN);
+        for _ in 0..10 {
+            u.feedback(0.0, 0.5, 0.2).unwrap();
+        }
+        assert_eq!(u.offset(), 0.0);
+        u.set_feedback_lower(5.0);
+        assert!((u.offset() + (FEEDBACK_LIMIT - FEEDBACK_DEAD_BAND)).abs() < 1e-12);
     }
 
     #[test]

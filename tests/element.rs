@@ -1393,6 +1393,65 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
     assert_eq!(offset(&e), 0.0);
 }
 
+/// Feedback both ways: with `feedback-lower`, a consumer that reports every keep as early lowers
+/// the utility, by what the sum lies below its dead band (0.1) and at most `feedback-lower`; a
+/// consumer that says "early" after every frame, whatever happens (broken or lying), cannot stop
+/// the gate keeping: the first frame and `max-gap` keep as ever. With the default (0) the same
+/// reports change nothing.
+#[test]
+fn feedback_lowers_the_utility_within_feedback_lower_and_a_hostile_consumer_cannot_stop_keeps() {
+    let (w, h) = (160, 120);
+    let run = |lower: f64| {
+        let mut hs = harness(
+            &format!(
+                "model={} mode=annotate threshold=0.5 max-gap=50 sharpness-lookback=0 \
+                 feedback-lower={lower}",
+                fixture("mad_geometry.onnx")
+            ),
+            &rgb_caps(w, h),
+        );
+        let e = hs.element().unwrap();
+        let early = || {
+            gst::event::CustomUpstream::new(
+                gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
+                    .field("tau", 0.0)
+                    .build(),
+            )
+        };
+        let mut offsets = Vec::new();
+        for k in 0..100u64 {
+            hs.push(buffer(panned(w, h, 2.0 * k as f32), k * 33))
+                .unwrap();
+            offsets.push(e.property::<f64>("feedback-offset"));
+            assert!(hs.push_upstream_event(early()));
+        }
+        let m: Vec<_> = drain(&mut hs).iter().map(meta).collect();
+        (m, offsets)
+    };
+    // A 2 px/frame pan: utility 2k/160 at k frames from the reference, 0.5 at 40 frames.
+    let (plain, offsets) = run(0.0);
+    assert!(offsets.iter().all(|&o| o == 0.0), "{offsets:?}");
+    let kept: Vec<usize> = (0..plain.len()).filter(|&i| plain[i].keep).collect();
+    assert_eq!(kept, [0, 40, 80], "the plain gate");
+    let (low, offsets) = run(0.3);
+    // The sum goes -0.1 a report (rate 0.2 * (0 - 0.5)): past the dead band from the 2nd report,
+    // then down to -(0.3 - 0.1) = -0.2 (the sum stops at -0.3).
+    assert_eq!(offsets[1], 0.0);
+    assert!((offsets[2] + 0.1).abs() < 1e-9, "{offsets:?}");
+    assert!((offsets[99] + 0.2).abs() < 1e-9, "{offsets:?}");
+    let kept: Vec<usize> = (0..low.len()).filter(|&i| low[i].keep).collect();
+    assert_eq!(low[0].reason, Reason::First);
+    // Lowered by 0.2, the utility would reach 0.5 at 56 frames (2k/160 - 0.2): max-gap keeps
+    // the 51st.
+    assert_eq!(kept, [0, 51], "{kept:?}");
+    assert_eq!(low[51].reason, Reason::MaxGap);
+    assert!(
+        (low[30].utility - (60.0 / 160.0 - 0.2)).abs() < 0.02,
+        "{}",
+        low[30].utility
+    );
+}
+
 #[test]
 fn bad_feedback_and_failing_frames_warn_apart() {
     // nan.onnx fails on every frame it scores (kept, fail open, a rate-limited warning). An

@@ -365,7 +365,9 @@ class FrameGate(LeanGateSource):
         deadline = time.monotonic() + self.timeout_s
         srcs = [s for s in (self._src, self._depth_src) if s is not None]
         while any(s.get_property("current-level-buffers") >= self.queue for s in srcs):
-            self._collect(out, 20)
+            # Short waits: in drop mode few frames reach the appsink, and the room comes from
+            # the appsrc draining, not from a sample arriving.
+            self._collect(out, 1)
             if time.monotonic() > deadline:
                 raise PipelineError(
                     f"no frame went into the gate for {self.timeout_s:.0f} s (the pipeline is "

@@ -585,6 +585,9 @@ impl LeanGate {
         // The threshold in force for this frame: the reports are measured against it, and the
         // frame is screened and gated by it below.
         let threshold = state.gate.config().threshold;
+        state.utility.set_feedback_lower(fs.feedback_lower);
+        self.feedback_offset
+            .store(state.utility.offset().to_bits(), Ordering::Relaxed);
         for report in feedback {
             match report.and_then(|(tau, rate)| state.utility.feedback(tau, threshold, rate)) {
                 Ok(offset) => self

@@ -35,6 +35,7 @@ const DEFAULT_SCREEN: bool = true;
 const DEFAULT_SCREEN_STEP: f64 = SCREEN_STEP_FROM_MODEL;
 const DEFAULT_REJECT_JUNK: bool = true;
 const DEFAULT_FEEDBACK_RATE: f64 = 0.2;
+const DEFAULT_FEEDBACK_LOWER: f64 = 0.0;
 const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
 const DEFAULT_SERVER_MAX_IN_FLIGHT: u32 = 16;
 
@@ -67,6 +68,8 @@ pub(super) struct Settings {
     pub(super) screen_step: f64,
     pub(super) reject_junk: bool,
     pub(super) feedback_rate: f64,
+    /// The most the feedback lowers the utility (0: never; at most [`FEEDBACK_LIMIT`]).
+    pub(super) feedback_lower: f64,
     /// Remote scoring (crate::remote): the V2 server's URL; None = local ONNX Runtime.
     pub(super) server: Option<String>,
     pub(super) server_model: Option<String>,
@@ -103,6 +106,7 @@ impl Default for Settings {
             screen_step: DEFAULT_SCREEN_STEP,
             reject_junk: DEFAULT_REJECT_JUNK,
             feedback_rate: DEFAULT_FEEDBACK_RATE,
+            feedback_lower: DEFAULT_FEEDBACK_LOWER,
             server: None,
             server_model: None,
             server_timeout_ms: DEFAULT_SERVER_TIMEOUT_MS,
@@ -127,6 +131,7 @@ pub(super) struct FrameSettings {
     pub(super) screen: bool,
     pub(super) screen_step: f64,
     pub(super) reject_junk: bool,
+    pub(super) feedback_lower: f64,
 }
 
 impl From<&Settings> for FrameSettings {
@@ -144,6 +149,7 @@ impl From<&Settings> for FrameSettings {
             screen: s.screen,
             screen_step: s.screen_step,
             reject_junk: s.reject_junk,
+            feedback_lower: s.feedback_lower,
         }
     }
 }
@@ -495,14 +501,29 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
             .blurb("Frames kept since start (read-only)")
             .read_only()
             .build(),
+        glib::ParamSpecDouble::builder("feedback-lower")
+            .nick("Feedback lower")
+            .blurb(
+                "The most the consumer's leangate-feedback lowers the utility: once the \
+                 feedback sum (see feedback-rate) is below -0.1, the utility is lowered by \
+                 what lies beyond, up to this. 0: never lowered (only raised). \
+                 max-gap and the first frame keep as ever, so a consumer that reports early \
+                 keeps without end cannot stop the gate keeping",
+            )
+            .minimum(0.0)
+            .maximum(FEEDBACK_LIMIT)
+            .default_value(DEFAULT_FEEDBACK_LOWER)
+            .mutable_playing()
+            .build(),
         glib::ParamSpecDouble::builder("feedback-offset")
             .nick("Feedback offset")
             .blurb(
                 "What the consumer's leangate-feedback events add to every frame's \
-                 utility now (0 to 0.3; 0 without feedback; back to 0 at start, at a \
-                 new stream and when the caps change; read-only; see feedback-rate)",
+                 utility now (-feedback-lower to 0.3; 0 without feedback; back to 0 at \
+                 start, at a new stream and when the caps change; read-only; see \
+                 feedback-rate)",
             )
-            .minimum(0.0)
+            .minimum(-FEEDBACK_LIMIT)
             .maximum(FEEDBACK_LIMIT)
             .default_value(0.0)
             .read_only()
@@ -643,6 +664,10 @@ impl LeanGate {
                     settings.feedback_rate = value.get().expect("type checked upstream");
                     None
                 }
+                "feedback-lower" => {
+                    settings.feedback_lower = value.get().expect("type checked upstream");
+                    None
+                }
                 "server" => {
                     settings.server = value.get().expect("type checked upstream");
                     None
@@ -716,6 +741,7 @@ impl LeanGate {
             "screen-step" => settings.screen_step.to_value(),
             "reject-junk" => settings.reject_junk.to_value(),
             "feedback-rate" => settings.feedback_rate.to_value(),
+            "feedback-lower" => settings.feedback_lower.to_value(),
             "feedback-offset" => {
                 f64::from_bits(self.feedback_offset.load(Ordering::Relaxed)).to_value()
             }
