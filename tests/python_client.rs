@@ -164,12 +164,19 @@ fn read_csv(path: &Path) -> Vec<Row> {
     let mut lines = text.lines();
     assert_eq!(
         lines.next(),
-        Some("frame,pts_ns,utility,keep,reason,keyframe_index,frames_since_keyframe,inference_us")
+        Some(
+            "frame,pts_ns,utility,keep,reason,keyframe_index,frames_since_keyframe,inference_us,\
+             depth"
+        )
     );
     lines
         .map(|l| {
             let f: Vec<&str> = l.split(',').collect();
-            assert_eq!(f.len(), 8, "row {l:?}");
+            assert_eq!(f.len(), 9, "row {l:?}");
+            assert!(
+                ["none", "used", "missing", "lost"].contains(&f[8]),
+                "row {l:?}"
+            );
             Row {
                 frame: f[0].parse().unwrap(),
                 pts: f[1].parse().unwrap(),
@@ -1418,7 +1425,10 @@ fn check_saved(dir: &Path, ext: &str) -> Vec<Vec<String>> {
     let mut lines = text.lines();
     assert_eq!(
         lines.next(),
-        Some("image,frame,pts_ns,utility,reason,keyframe_index,frames_since_keyframe,inference_us")
+        Some(
+            "image,frame,pts_ns,utility,reason,keyframe_index,frames_since_keyframe,inference_us,\
+             depth"
+        )
     );
     let rows: Vec<Vec<String>> = lines
         .map(|l| l.split(',').map(String::from).collect())
@@ -1433,8 +1443,9 @@ fn check_saved(dir: &Path, ext: &str) -> Vec<Vec<String>> {
         .map(|i| format!("kf_{i:06}.{ext}"))
         .collect();
     for (i, (r, j)) in rows.iter().zip(frames).enumerate() {
-        assert_eq!(r.len(), 8, "{r:?}");
+        assert_eq!(r.len(), 9, "{r:?}");
         assert_eq!(r[0], expected[i]);
+        assert_eq!(j["depth"], r[8].as_str());
         assert_eq!(j["image"], r[0].as_str());
         assert_eq!(j["frame"].as_u64(), Some(r[1].parse().unwrap()), "{j}");
         assert_eq!(j["pts_ns"].as_u64(), Some(r[2].parse().unwrap()), "{j}");
@@ -2340,7 +2351,8 @@ def snapshot(p):
                     del r["inference_us"]
                 data = json.dumps(doc).encode()
             elif n == "keyframes.csv":
-                data = b"\n".join(l.rsplit(b",", 1)[0] for l in data.splitlines())
+                data = b"\n".join(b",".join(f for i, f in enumerate(l.split(b",")) if i != 7)
+                                 for l in data.splitlines())  # column 7: inference_us
             out[os.path.relpath(q, p)] = hashlib.sha1(data).hexdigest()
     return out
 
@@ -3402,6 +3414,12 @@ fn depth_sequence_directory_is_gated_with_its_depth() {
     assert_eq!(json["frames_in"], 60);
     assert_eq!(json["frames"].as_array().unwrap().len(), kept);
     assert!(out.join("kf_000000.jpg").is_file());
+    let csv = std::fs::read_to_string(out.join("keyframes.csv")).unwrap();
+    assert!(csv.lines().next().unwrap().ends_with(",depth"), "{csv}");
+    assert!(
+        csv.lines().skip(1).all(|l| l.ends_with(",used")),
+        "every keyframe gated with depth: {csv}"
+    );
 
     // The library: open_input + attach_depth + SequenceGateSource.
     let script = r#"

@@ -199,7 +199,7 @@ class KeptFrameSaver:
     ``kf_000000.jpg``, ``kf_000001.jpg``, ... (or ``.png``), and at ``finish`` the tables
     ``keyframes.csv`` and ``keyframes.json`` with one row per image: ``image``, ``frame`` (index
     in the input stream), ``pts_ns``, ``utility`` (empty / null for the `first` frame),
-    ``reason``, ``keyframe_index``, ``frames_since_keyframe``, ``inference_us``.
+    ``reason``, ``keyframe_index``, ``frames_since_keyframe``, ``inference_us``, ``depth``.
 
     A run is all or nothing: the images and tables are written into a staging directory beside
     ``directory`` (same filesystem; inside it when the parent is on another one or cannot be

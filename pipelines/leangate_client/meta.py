@@ -85,6 +85,7 @@ ROW_COLUMNS = (
     "keyframe_index",
     "frames_since_keyframe",
     "inference_us",
+    "depth",
 )
 
 
@@ -100,6 +101,7 @@ def meta_row(meta: Dict[str, Any]) -> Dict[str, Any]:
         "keyframe_index": meta["keyframe_index"],
         "frames_since_keyframe": meta["frames_since_keyframe"],
         "inference_us": meta["inference_us"],
+        "depth": meta.get("depth", "none"),
     }
 
 
