@@ -339,7 +339,8 @@ impl Utility {
     }
 
     /// The most the feedback may lower the utility (`feedback-lower`, within 0 to
-    /// [`FEEDBACK_LIMIT`]; 0, the default, never lowers it).
+    /// [`FEEDBACK_LIMIT`]; 0, a new `Utility`'s, never lowers it; the element sets its
+    /// `feedback-lower`, 0.15 by default).
     pub fn set_feedback_lower(&mut self, lower: f64) {
         self.feedback_lower = if lower.is_finite() {
             lower.clamp(0.0, FEEDBACK_LIMIT)
@@ -355,10 +356,11 @@ impl Utility {
     /// `rate * (tau − threshold)` to a sum kept within ±[`FEEDBACK_LIMIT`], and the utility is
     /// raised by the sum's positive part ([`Utility::offset`]): a per-stream correction where
     /// the scene's depth or parallax, which the pictures do not show, makes the utility read
-    /// low. The utility is never lowered, so feedback never makes a keep come later than without
-    /// it (lowering it let the noise of single reports delay keeps into late ones where the
-    /// default is already right), and the sum itself may go below 0, so that noise does not
-    /// ratchet the offset up on a stream where keeps come on time (`training/experiments/NOTEBOOK.md`).
+    /// low. Below 0 the sum lowers the utility only past [`FEEDBACK_DEAD_BAND`] and by at most
+    /// `feedback_lower` ([`Utility::set_feedback_lower`]): lowering it freely let the noise of
+    /// single reports delay keeps into late ones where the default is already right, and the
+    /// sum going below 0 keeps that noise from ratcheting the offset up on a stream where keeps
+    /// come on time (`training/experiments/NOTEBOOK.md`).
     /// Returns the new offset; a `tau` outside [0, 1] (or not a number) is refused and changes
     /// nothing.
     pub fn feedback(&mut self, tau: f64, threshold: f64, rate: f64) -> Result<f64, String> {
@@ -930,7 +932,7 @@ mod tests {
     fn feedback_lowers_the_utility_past_its_dead_band_within_feedback_lower() {
         let mut u = Utility::new(None);
         u.observe(Some((&frame(0.0), &spec())), false, true);
-        // feedback-lower 0 (the default): early keeps never lower the utility.
+        // feedback-lower 0 (a new Utility's): early keeps never lower the utility.
         for _ in 0..10 {
             assert_eq!(u.feedback(0.2, 0.5, 0.2).unwrap(), 0.0);
         }

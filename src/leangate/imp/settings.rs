@@ -35,7 +35,7 @@ const DEFAULT_SCREEN: bool = true;
 const DEFAULT_SCREEN_STEP: f64 = SCREEN_STEP_FROM_MODEL;
 const DEFAULT_REJECT_JUNK: bool = true;
 const DEFAULT_FEEDBACK_RATE: f64 = 0.2;
-const DEFAULT_FEEDBACK_LOWER: f64 = 0.0;
+const DEFAULT_FEEDBACK_LOWER: f64 = 0.15;
 const DEFAULT_SERVER_TIMEOUT_MS: u32 = 1000;
 const DEFAULT_SERVER_MAX_IN_FLIGHT: u32 = 16;
 
@@ -439,7 +439,8 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
                  between a kept frame and the previous keyframe moves a sum by \
                  rate * (tau - threshold) (within +-0.3): up when that keep came late, \
                  down when early; the utility is raised by the sum's positive part \
-                 (feedback-offset), never lowered. 0 ignores feedback. Without feedback \
+                 (feedback-offset) and lowered, at most by feedback-lower, by what lies \
+                 below -0.1. 0 ignores feedback. Without feedback \
                  events nothing changes",
             )
             .minimum(0.0)
