@@ -73,32 +73,76 @@ fn updated(pose: &Rigid, delta: &[f64; 6]) -> Rigid {
 }
 
 /// Corners of a grey picture (`w` x `h`) with valid depth (`depth[i] > 0`, metres, same size):
-/// the strongest Shi-Tomasi response of each [`CELL`]-pixel cell, the [`MAX_POINTS`] strongest
-/// of those, away from the border.
+/// the strongest Shi-Tomasi response (5x5 window) of each [`CELL`]-pixel cell, the
+/// [`MAX_POINTS`] strongest of those, away from the border.
 pub fn corners(grey: &[f32], depth: &[f32], w: usize, h: usize) -> Vec<(usize, usize)> {
+    corners_except(grey, depth, w, h, &[])
+}
+
+/// [`corners`], skipping the cells that hold one of `taken` (pixel positions): a corner there
+/// would lie within a cell of that point.
+fn corners_except(
+    grey: &[f32],
+    depth: &[f32],
+    w: usize,
+    h: usize,
+    taken: &[(f32, f32)],
+) -> Vec<(usize, usize)> {
+    const BORDER: usize = 5;
     if w < 12 || h < 12 || grey.len() != w * h || depth.len() != w * h {
         return Vec::new();
     }
-    let gx = |x: usize, y: usize| grey[y * w + x + 1] - grey[y * w + x - 1];
-    let gy = |x: usize, y: usize| grey[(y + 1) * w + x] - grey[(y - 1) * w + x];
+    let cells_x = (w - 2 * BORDER).div_ceil(CELL);
+    let cells_y = (h - 2 * BORDER).div_ceil(CELL);
+    let mut skip = vec![false; cells_x * cells_y];
+    for &(x, y) in taken {
+        let (cx, cy) = (
+            (x - BORDER as f32) / CELL as f32,
+            (y - BORDER as f32) / CELL as f32,
+        );
+        if cx >= 0.0 && cy >= 0.0 && (cx as usize) < cells_x && (cy as usize) < cells_y {
+            skip[cy as usize * cells_x + cx as usize] = true;
+        }
+    }
+    // Gradient products, then their 5x5 sums: along rows first, then down the columns.
+    let mut prod = vec![[0.0f32; 3]; w * h];
+    for y in 1..h - 1 {
+        for x in 1..w - 1 {
+            let i = y * w + x;
+            let (dx, dy) = (grey[i + 1] - grey[i - 1], grey[i + w] - grey[i - w]);
+            prod[i] = [dx * dx, dx * dy, dy * dy];
+        }
+    }
+    let mut rows = vec![[0.0f32; 3]; w * h];
+    for y in BORDER - 2..h - BORDER + 2 {
+        for x in BORDER..w - BORDER {
+            let mut s = [0.0f32; 3];
+            for p in &prod[y * w + x - 2..=y * w + x + 2] {
+                for k in 0..3 {
+                    s[k] += p[k];
+                }
+            }
+            rows[y * w + x] = s;
+        }
+    }
     let mut best: Vec<(f32, usize, usize)> = Vec::new();
-    let border = 5;
-    for cy in (border..h - border).step_by(CELL) {
-        for cx in (border..w - border).step_by(CELL) {
+    for (ci, cy) in (BORDER..h - BORDER).step_by(CELL).enumerate() {
+        for (cj, cx) in (BORDER..w - BORDER).step_by(CELL).enumerate() {
+            if skip[ci * cells_x + cj] {
+                continue;
+            }
             let mut cell: Option<(f32, usize, usize)> = None;
-            for y in cy..(cy + CELL).min(h - border) {
-                for x in cx..(cx + CELL).min(w - border) {
+            for y in cy..(cy + CELL).min(h - BORDER) {
+                for x in cx..(cx + CELL).min(w - BORDER) {
                     if depth[y * w + x] <= 0.0 {
                         continue;
                     }
-                    let (mut a, mut b, mut c) = (0.0f32, 0.0f32, 0.0f32);
+                    let [mut a, mut b, mut c] = [0.0f32; 3];
                     for yy in y - 2..=y + 2 {
-                        for xx in x - 2..=x + 2 {
-                            let (dx, dy) = (gx(xx, yy), gy(xx, yy));
-                            a += dx * dx;
-                            b += dx * dy;
-                            c += dy * dy;
-                        }
+                        let r = rows[yy * w + x];
+                        a += r[0];
+                        b += r[1];
+                        c += r[2];
                     }
                     let min_eig = 0.5 * (a + c - ((a - c) * (a - c) + 4.0 * b * b).sqrt());
                     if cell.is_none_or(|(s, _, _)| min_eig > s) {
@@ -267,7 +311,7 @@ impl PoseTracker {
             s.iter()
                 .any(|&(sx, sy)| (sx - x).abs() < CELL as f32 && (sy - y).abs() < CELL as f32)
         };
-        for p in corners(grey, depth, w, h) {
+        for p in corners_except(grey, depth, w, h, &self.seen) {
             if self.points.len() >= MAX_POINTS {
                 break;
             }
@@ -365,6 +409,70 @@ mod tests {
             cx: 79.5,
             cy: 59.5,
         }
+    }
+
+    /// The Shi-Tomasi response of pixel (x, y) straight from its definition.
+    fn response(grey: &[f32], w: usize, x: usize, y: usize) -> f32 {
+        let (mut a, mut b, mut c) = (0.0f32, 0.0f32, 0.0f32);
+        for yy in y - 2..=y + 2 {
+            for xx in x - 2..=x + 2 {
+                let i = yy * w + xx;
+                let (dx, dy) = (grey[i + 1] - grey[i - 1], grey[i + w] - grey[i - w]);
+                a += dx * dx;
+                b += dx * dy;
+                c += dy * dy;
+            }
+        }
+        0.5 * (a + c - ((a - c) * (a - c) + 4.0 * b * b).sqrt())
+    }
+
+    /// Each corner is its cell's strongest response by the definition (holes in the depth
+    /// skipped), corners come strongest first, and cells that hold a taken point give none.
+    #[test]
+    fn corners_are_each_cells_strongest_response() {
+        let (w, h) = (160usize, 120usize);
+        let (grey, mut depth) = scene(0.3);
+        for y in 40..70 {
+            for x in 20..90 {
+                depth[y * w + x] = 0.0;
+            }
+        }
+        let pts = corners(&grey, &depth, w, h);
+        assert!(pts.len() > 100, "{} corners", pts.len());
+        let mut last = f32::INFINITY;
+        for &(x, y) in &pts {
+            assert!(
+                depth[y * w + x] > 0.0,
+                "corner ({x}, {y}) in a hole of the depth"
+            );
+            let r = response(&grey, w, x, y);
+            assert!(r <= last * 1.0001, "corners out of order at ({x}, {y})");
+            last = r;
+            let (cx, cy) = (5 + (x - 5) / CELL * CELL, 5 + (y - 5) / CELL * CELL);
+            for yy in cy..(cy + CELL).min(h - 5) {
+                for xx in cx..(cx + CELL).min(w - 5) {
+                    if depth[yy * w + xx] > 0.0 {
+                        let other = response(&grey, w, xx, yy);
+                        assert!(other <= r * 1.0001, "({xx}, {yy}) beats ({x}, {y})");
+                    }
+                }
+            }
+        }
+        let taken: Vec<(f32, f32)> = pts[..40]
+            .iter()
+            .map(|&(x, y)| (x as f32 + 0.5, y as f32))
+            .collect();
+        let rest = corners_except(&grey, &depth, w, h, &taken);
+        for &(x, y) in &rest {
+            assert!(
+                !taken
+                    .iter()
+                    .any(|&(tx, ty)| (tx as usize - 5) / CELL == (x - 5) / CELL
+                        && (ty as usize - 5) / CELL == (y - 5) / CELL),
+                "({x}, {y}) shares a cell with a taken point"
+            );
+        }
+        assert!(rest.len() >= pts.len() - 40, "{} corners left", rest.len());
     }
 
     #[test]
