@@ -317,3 +317,17 @@ def _set(el, prop: str, value: Any) -> None:
         raise SetupError(
             f"bad value {value!r} for {_factory_name(el)} property {prop}{known} ({e})"
         ) from None
+
+
+def _depth_mux(plugin: str, intrinsics: str, depth_scale: float):
+    """A `leangatedepthmux` named `m` with the camera's intrinsics and depth scale; a clear
+    SetupError when the loaded plugin has no such element."""
+    if Gst.ElementFactory.find("leangatedepthmux") is None:
+        raise SetupError(
+            f"depth needs the element leangatedepthmux, which the plugin {plugin} lacks "
+            "(a build older than RGB-D support)"
+        )
+    mux = _make("leangatedepthmux", "m")
+    _set(mux, "intrinsics", intrinsics)
+    _set(mux, "depth-scale", depth_scale)
+    return mux

@@ -15,7 +15,7 @@ from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
 
 from . import _gst
 from .errors import PipelineError, SetupError
-from ._gst import _make, _set
+from ._gst import _depth_mux, _make, _set
 from .source import LeanGateSource, buffer_to_rgb
 from ._colmap import import_pycolmap
 from ._outdir import OUTPUT_SUBDIRS, _make_owned_dir, check_output_subdir
@@ -332,14 +332,7 @@ class SequenceGateSource(LeanGateSource):
             return
         # colour: decodebin ! m.sink; depth: multifilesrc ! pngdec ! videoconvert ! GRAY16_LE
         # ! m.depth; leangatedepthmux name=m ! leangate
-        if Gst.ElementFactory.find("leangatedepthmux") is None:
-            raise SetupError(
-                f"depth needs the element leangatedepthmux, which the plugin {self.plugin} lacks "
-                "(a build older than RGB-D support)"
-            )
-        mux = _make("leangatedepthmux", "m")
-        _set(mux, "intrinsics", self._depth[0])
-        _set(mux, "depth-scale", self._depth[1])
+        mux = _depth_mux(self.plugin, self._depth[0], self._depth[1])
         dsrc = _make("multifilesrc", "depth-src")
         _set(dsrc, "location", os.path.join(self._tmp, "depth_%06d.png"))
         _set(dsrc, "index", 0)

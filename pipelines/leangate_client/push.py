@@ -27,9 +27,9 @@ import time
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from . import _gst
-from ._gst import _make, _set
+from ._gst import _depth_mux, _make, _set
 from .errors import PipelineError, SetupError
-from .source import LeanGateSource, log
+from .source import LeanGateSource
 
 #: Raw formats ``push`` takes, with the (channels, numpy dtype) an array of each has.
 RAW_FORMATS: Dict[str, Tuple[int, str]] = {
@@ -260,14 +260,7 @@ class FrameGate(LeanGateSource):
         pipeline.add(self._src)
         target = gate
         if self._depth:
-            if Gst.ElementFactory.find("leangatedepthmux") is None:
-                raise SetupError(
-                    f"depth needs the element leangatedepthmux, which the plugin {self.plugin} "
-                    "lacks (a build older than RGB-D support)"
-                )
-            mux = _make("leangatedepthmux", "m")
-            _set(mux, "intrinsics", self._depth[0])
-            _set(mux, "depth-scale", self._depth[1])
+            mux = _depth_mux(self.plugin, self._depth[0], self._depth[1])
             self._depth_src = self._appsrc("depth-src")
             pipeline.add(mux)
             pipeline.add(self._depth_src)
