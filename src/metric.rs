@@ -475,18 +475,24 @@ mod tests {
         assert!(rest.len() >= pts.len() - 40, "{} corners left", rest.len());
     }
 
-    #[test]
-    fn a_sideways_move_is_recovered_from_tracks_and_depth() {
+    /// The camera slides sideways 1 cm a frame for `frames` frames from the reference; every
+    /// frame's pose must hold. The last pose.
+    fn slide(frames: usize) -> Rigid {
         let mut t = PoseTracker::new(cam());
         let (g0, d0) = scene(0.0);
         t.set_reference(&g0, &d0, 160, 120);
         let mut last = None;
-        for k in 1..=5 {
+        for k in 1..=frames {
             let (g, d) = scene(0.01 * k as f64);
             last = t.observe(&g, &d, 160, 120);
             assert!(last.is_some(), "frame {k}");
         }
-        let p = last.unwrap();
+        last.unwrap()
+    }
+
+    #[test]
+    fn a_sideways_move_is_recovered_from_tracks_and_depth() {
+        let p = slide(5);
         // The camera moved +5 cm in x: reference points move -5 cm in its frame.
         assert!((p.t[0] + 0.05).abs() < 0.005, "{p:?}");
         assert!(p.t[1].abs() < 0.005 && p.t[2].abs() < 0.01, "{p:?}");
@@ -507,16 +513,7 @@ mod tests {
     /// leave the picture, the corners the tracked frames add carry the pose to the end.
     #[test]
     fn tracks_are_replenished_as_the_view_leaves_the_reference() {
-        let mut t = PoseTracker::new(cam());
-        let (g0, d0) = scene(0.0);
-        t.set_reference(&g0, &d0, 160, 120);
-        let mut last = None;
-        for k in 1..=300 {
-            let (g, d) = scene(0.01 * k as f64);
-            last = t.observe(&g, &d, 160, 120);
-            assert!(last.is_some(), "frame {k}");
-        }
-        let p = last.unwrap();
+        let p = slide(300);
         assert!((p.t[0] + 3.0).abs() < 0.06, "{p:?}");
         assert!(p.t[1].abs() < 0.03 && p.t[2].abs() < 0.03, "{p:?}");
     }
