@@ -47,7 +47,7 @@ enum Command {
         /// Number of frames (1 to 1000000).
         #[arg(long, default_value_t = 300, value_parser = args::synth_frames)]
         frames: usize,
-        /// Camera path: static, pan, shaky, walk, rotate, bursts, mixed, or replay:FILE (a TUM
+        /// Camera path: static, pan, shaky, walk, rotate, bursts, mixed, orbit, or replay:FILE (a TUM
         /// trajectory `t tx ty tz qx qy qz qw`, or a NeRF transforms.json), placed in the room and
         /// resampled to --fps.
         #[arg(long, default_value = "mixed")]

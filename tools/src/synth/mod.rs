@@ -23,8 +23,10 @@
 //!
 //! [`MotionProfile`] selects the camera path, integrated at 4 sub-steps per frame from smoothed
 //! velocity / angular-rate targets (so paths are continuous and human-like): `static` (tremor
-//! only), `pan`, `shaky`, `walk`, `rotate`, `bursts` (pauses and bursts), and `mixed` (random
-//! segments of 1.5 to 4 s of all the others; the default). Alternatively [`replay`] replays a
+//! only), `pan`, `shaky`, `walk`, `rotate`, `bursts` (pauses and bursts), `mixed` (random
+//! segments of 1.5 to 4 s of the six before it; the default), and `orbit` (a handheld orbit,
+//! aimed at a textured cube 0.6 to 0.9 m away placed for it: a near object before the room's far
+//! walls, as in TUM's teddy sequence). Alternatively [`replay`] replays a
 //! real camera trajectory (TUM `groundtruth.txt`, NeRF `transforms.json`), placed in the room and
 //! resampled to the frame rate (`--motion replay:FILE`).
 //!

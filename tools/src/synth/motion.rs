@@ -27,14 +27,17 @@ pub enum MotionProfile {
     Rotate,
     /// Pauses (1.2 s) and fast bursts (0.8 s).
     Bursts,
-    /// Random segments of 1.5 to 4 s of all the others.
+    /// Random segments of 1.5 to 4 s of all the others but `orbit`.
     #[default]
     Mixed,
+    /// Handheld orbit (15 to 30 deg/s) around a textured object 0.6 to 0.9 m away, aimed at it:
+    /// a near object before the room's far walls, the parallax a homography cannot follow.
+    Orbit,
 }
 
 impl MotionProfile {
-    /// All profiles, `mixed` last.
-    pub const ALL: [MotionProfile; 7] = [
+    /// All profiles; `mixed` draws its segments from the first six.
+    pub const ALL: [MotionProfile; 8] = [
         MotionProfile::Static,
         MotionProfile::Pan,
         MotionProfile::Shaky,
@@ -42,6 +45,7 @@ impl MotionProfile {
         MotionProfile::Rotate,
         MotionProfile::Bursts,
         MotionProfile::Mixed,
+        MotionProfile::Orbit,
     ];
 
     /// Lower-case name, as accepted by [`FromStr`].
@@ -54,6 +58,7 @@ impl MotionProfile {
             MotionProfile::Rotate => "rotate",
             MotionProfile::Bursts => "bursts",
             MotionProfile::Mixed => "mixed",
+            MotionProfile::Orbit => "orbit",
         }
     }
 }
@@ -73,7 +78,7 @@ impl FromStr for MotionProfile {
             .find(|p| p.name().eq_ignore_ascii_case(s.trim()))
             .ok_or_else(|| {
                 format!(
-                    "unknown motion `{s}` (expected one of: static, pan, shaky, walk, rotate, bursts, mixed)"
+                    "unknown motion `{s}` (expected one of: static, pan, shaky, walk, rotate, bursts, mixed, orbit)"
                 )
             })
     }
@@ -112,6 +117,61 @@ fn wrap_angle(a: f64) -> f64 {
     (a + PI).rem_euclid(2.0 * PI) - PI
 }
 
+/// The object an `orbit` path circles: its centre and half size (metres), and the orbit's
+/// radius about its vertical axis. Inside the camera region, which furniture keeps clear of.
+pub(crate) fn orbit_target(scene: &Scene, seed: u64) -> (Vector3<f64>, f64, f64) {
+    let mut rng = SplitMix64::new(seed ^ 0x0B17_0B17);
+    let (rlo, rhi) = scene.camera_region;
+    // the path breathes to 1.1 radii and stays in the region (0.9 m wide at the least)
+    let half_span = 0.5 * (rhi[0] - rlo[0]).min(rhi[1] - rlo[1]);
+    let radius = rng.range(0.6, 0.9).min(half_span / 1.1 - 0.01);
+    let centre = Vector3::new(
+        rng.range(rlo[0] + 1.1 * radius, rhi[0] - 1.1 * radius),
+        rng.range(rlo[1] + 1.1 * radius, rhi[1] - 1.1 * radius),
+        rng.range(0.85, 1.1),
+    );
+    (centre, rng.range(0.12, 0.25), radius)
+}
+
+/// An `orbit` path: the camera circles [`orbit_target`] at its radius (breathing by +-10 %), at
+/// 15 to 30 deg/s that wanders with time, 0.35 to 0.6 m above the object's centre, aimed at it
+/// with a few degrees of handheld error, and turns back now and then (every 3 to 6 s).
+fn orbit_path(scene: &Scene, fps: f64, frames: usize, seed: u64) -> Vec<Isometry3<f64>> {
+    let (c, _, radius) = orbit_target(scene, seed);
+    let mut rng = SplitMix64::new(seed ^ 0x0B17_5EED);
+    let dt = 1.0 / (fps * SUBSTEPS as f64);
+    let deg = PI / 180.0;
+    let s = rng.next_u64();
+    let rate = rng.range(15.0, 30.0) * deg;
+    let lift = rng.range(0.35, 0.6);
+    let mut theta = rng.range(-PI, PI);
+    let mut dir = if rng.f64() < 0.5 { 1.0 } else { -1.0 };
+    let mut turn_at = rng.range(3.0, 6.0);
+    let mut speed = 0.0f64;
+    (0..frames * SUBSTEPS + SUBSTEPS)
+        .map(|k| {
+            let t = k as f64 * dt;
+            let n = |c: u64, f: f64| noise1(t * f, s ^ c.wrapping_mul(0x1234_5678_9ABC));
+            if t >= turn_at {
+                dir = -dir;
+                turn_at += rng.range(3.0, 6.0);
+            }
+            let target = dir * rate * (1.0 + 0.4 * n(1, 0.3));
+            speed += (target - speed) * (1.0 - (-dt / 0.4f64).exp());
+            theta += speed * dt;
+            let r = radius * (1.0 + 0.1 * n(2, 0.2));
+            let pos = c
+                + Vector3::new(r * theta.cos(), r * theta.sin(), lift + 0.05 * n(3, 0.3))
+                + Vector3::new(n(20, 3.0), n(21, 3.1), n(22, 2.9)) * 0.0008;
+            let to = c - pos;
+            let aim = 3.0 * deg;
+            let yaw = to.y.atan2(to.x) + aim * n(4, 0.5);
+            let pitch = to.z.atan2(to.xy().norm()) + aim * n(5, 0.5);
+            pose_from_angles(pos, yaw, pitch, 2.0 * deg * n(6, 0.3))
+        })
+        .collect()
+}
+
 /// Generates `n_samples` camera poses at `SUBSTEPS` samples per frame (frame `i` is sample
 /// `SUBSTEPS * i`), plus the motion segments.
 pub(crate) fn generate_path(
@@ -121,6 +181,10 @@ pub(crate) fn generate_path(
     frames: usize,
     seed: u64,
 ) -> (Vec<Isometry3<f64>>, Vec<Segment>) {
+    if profile == MotionProfile::Orbit {
+        let segments = vec![Segment { start: 0, profile }];
+        return (orbit_path(scene, fps, frames, seed), segments);
+    }
     let mut rng = SplitMix64::new(seed ^ 0xCA3E_8A7A);
     let dt = 1.0 / (fps * SUBSTEPS as f64);
     let n_samples = frames * SUBSTEPS + SUBSTEPS;
@@ -179,7 +243,7 @@ pub(crate) fn generate_path(
         let n = |c: u64, f: f64| noise1(t * f, s ^ c.wrapping_mul(0x1234_5678_9ABC));
         // targets: forward, lateral, vertical speed, yaw rate, pitch, roll, smoothing time
         let (mut tf, mut tl, mut tz, mut tyr, tp, tr, tc) = match seg.profile {
-            MotionProfile::Static | MotionProfile::Mixed => {
+            MotionProfile::Static | MotionProfile::Mixed | MotionProfile::Orbit => {
                 (0.0, 0.0, 0.0, 0.0, base_pitch, 0.0, 0.3)
             }
             MotionProfile::Pan => (

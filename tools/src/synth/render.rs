@@ -8,7 +8,7 @@ use nalgebra::Isometry3;
 use rayon::prelude::*;
 
 use super::materials::load_textures;
-use super::motion::{generate_path, interpolate, MotionProfile, Segment, SUBSTEPS};
+use super::motion::{generate_path, interpolate, orbit_target, MotionProfile, Segment, SUBSTEPS};
 use super::noise::{mix64, noise1};
 use super::replay::{replay_path, Placement, Replay};
 use super::sensor::{self, FrameSensor, SensorConfig, SensorParams};
@@ -393,13 +393,17 @@ pub fn render_sequence(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, Sy
         Some(dir) => load_textures(dir)?,
         None => Vec::new(),
     };
-    let scene = Scene::with_textures(cfg.seed, &textures);
+    let mut scene = Scene::with_textures(cfg.seed, &textures);
     let PathSamples {
         samples,
         segments,
         placement,
         frames,
     } = path_samples(cfg, &scene)?;
+    if cfg.replay.is_none() && cfg.motion == MotionProfile::Orbit {
+        let (centre, half, _) = orbit_target(&scene, cfg.seed);
+        scene.add_object(centre, half, cfg.seed);
+    }
     if frames < cfg.frames {
         eprintln!(
             "synth: the replayed trajectory covers {frames} of the {} frames asked for (replay end `stop`)",

@@ -108,7 +108,7 @@ impl FromStr for MotionSpec {
             Some(_) => Err("`replay:` needs a file: replay:FILE".into()),
             None => s.parse::<MotionProfile>().map(MotionSpec::Profile).map_err(|_| {
                 format!(
-                    "unknown motion `{s}` (expected static, pan, shaky, walk, rotate, bursts, mixed or replay:FILE)"
+                    "unknown motion `{s}` (expected static, pan, shaky, walk, rotate, bursts, mixed, orbit or replay:FILE)"
                 )
             }),
         }

@@ -1,7 +1,7 @@
 //! The scene (room, furniture, lights, materials) and the ray caster.
 
 use image::RgbImage;
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Vector3};
 use rayon::prelude::*;
 
 use super::materials::{Material, Pattern, TextureImage};
@@ -60,6 +60,25 @@ fn boxes_overlap_xy(a_lo: [f64; 2], a_hi: [f64; 2], b_lo: [f64; 2], b_hi: [f64; 
 }
 
 impl Scene {
+    /// Adds a textured cube of half size `half` centred at `centre` (metres), the object an
+    /// `orbit` path circles (its random material from `seed`).
+    pub(crate) fn add_object(&mut self, centre: Vector3<f64>, half: f64, seed: u64) {
+        if self.boxes.len() >= MAX_BOXES {
+            return;
+        }
+        let mut rng = SplitMix64::new(seed ^ 0x00B1_EC70);
+        self.materials
+            .push(Material::random(&mut rng, self.images.len(), None));
+        let side = (self.materials.len() - 1) as u16;
+        let (lo, hi) = (centre.add_scalar(-half), centre.add_scalar(half));
+        self.boxes.push(Aabb {
+            lo: [lo.x as f32, lo.y as f32, lo.z as f32],
+            hi: [hi.x as f32, hi.y as f32, hi.z as f32],
+            side,
+            top: side,
+        });
+    }
+
     /// A random room from `seed`, with procedural textures only.
     pub fn new(seed: u64) -> Scene {
         Self::with_textures(seed, &[])
