@@ -15,7 +15,15 @@ use crate::quality::{measure, Quality};
 pub const FEEDBACK_LIMIT: f64 = 0.3;
 /// How far below 0 the feedback's sum goes before it lowers the utility: the noise of single
 /// reports on a stream whose keeps come on time stays within it.
-pub const FEEDBACK_DEAD_BAND: f64 = 0.1;
+pub const FEEDBACK_DEAD_BAND: f64 = 0.05;
+/// The first reports count for more than the rate: report `n` (0 for the first since the stream
+/// began) moves the sum by at least `FEEDBACK_FIRST_GAIN / (1 + n)` of its error, so that a few
+/// keeps teach a stream its correction (a running mean of what they measured) and later ones,
+/// at the rate, only track it.
+pub const FEEDBACK_FIRST_GAIN: f64 = 0.7;
+/// One report's error (`tau - threshold`) counts within ±this: a keep that a sudden jump of the
+/// view made very late says that the gate was late, not by how much its utility reads low.
+pub const FEEDBACK_ERROR_CLIP: f64 = 0.25;
 
 /// How far a score may exceed the model's `leangate.score_max` by rounding (the graph computes in
 /// f32) before the claim counts as broken.
@@ -55,9 +63,12 @@ pub struct Utility {
     tracker: Tracker,
     /// The tracker's `tau_geo` of the last observed frame, once asked for.
     tau: Option<Option<f64>>,
-    /// The consumer's reports accumulated (`rate * (tau − threshold)` each, within
-    /// ±[`FEEDBACK_LIMIT`]); the utility gets its positive part ([`Utility::offset`]).
+    /// The consumer's reports accumulated (`gain * (tau − threshold)` each, within
+    /// ±[`FEEDBACK_LIMIT`]; [`Utility::feedback`]); the utility gets its positive part, and
+    /// below 0 what lies past the dead band ([`Utility::offset`]).
     feedback: f64,
+    /// How many reports the sum holds (since the stream began).
+    feedback_reports: u32,
     /// The most the feedback lowers the utility (the element's `feedback-lower`; 0: never).
     feedback_lower: f64,
     /// Whether frames are checked for a usable picture ([`Utility::set_quality_check`]).
@@ -196,6 +207,7 @@ impl Utility {
             tracker: Tracker::new(),
             tau: None,
             feedback: 0.0,
+            feedback_reports: 0,
             feedback_lower: 0.0,
             no_quality_check: false,
             quality: Quality::Usable,
@@ -353,23 +365,29 @@ impl Utility {
     /// and its previous keyframe (MASt3R-SLAM computes S for every frame it tracks). The gate
     /// means to keep a frame when tau reaches `threshold`; a keep measured above it came late
     /// (the utility reads low on this stream), below it early. Each report adds
-    /// `rate * (tau − threshold)` to a sum kept within ±[`FEEDBACK_LIMIT`], and the utility is
-    /// raised by the sum's positive part ([`Utility::offset`]): a per-stream correction where
-    /// the scene's depth or parallax, which the pictures do not show, makes the utility read
-    /// low. Below 0 the sum lowers the utility only past [`FEEDBACK_DEAD_BAND`] and by at most
-    /// `feedback_lower` ([`Utility::set_feedback_lower`]): lowering it freely let the noise of
-    /// single reports delay keeps into late ones where the default is already right, and the
-    /// sum going below 0 keeps that noise from ratcheting the offset up on a stream where keeps
-    /// come on time (`training/experiments/NOTEBOOK.md`).
+    /// `gain * (tau − threshold)` to a sum kept within ±[`FEEDBACK_LIMIT`], the error counted
+    /// within ±[`FEEDBACK_ERROR_CLIP`] and the gain `rate`, or for the first reports of a stream
+    /// more ([`FEEDBACK_FIRST_GAIN`]` / (1 + n)` for report n), so that a short stream is
+    /// corrected within a few keeps. The utility is raised by the sum's positive part
+    /// ([`Utility::offset`]): a per-stream correction where the scene's depth or parallax,
+    /// which the pictures do not show, makes the utility read low. Below 0 the sum lowers the
+    /// utility only past [`FEEDBACK_DEAD_BAND`] and by at most `feedback_lower`
+    /// ([`Utility::set_feedback_lower`]): lowering it freely let the noise of single reports
+    /// delay keeps into late ones where the default is already right, and the sum going below
+    /// 0 keeps that noise from ratcheting the offset up on a stream where keeps come on time
+    /// (`training/experiments/NOTEBOOK.md`). A `rate` of 0 (or not a number) ignores the report.
     /// Returns the new offset; a `tau` outside [0, 1] (or not a number) is refused and changes
     /// nothing.
     pub fn feedback(&mut self, tau: f64, threshold: f64, rate: f64) -> Result<f64, String> {
         if !(0.0..=1.0).contains(&tau) {
             return Err(format!("its `tau` {tau} is outside [0, 1]"));
         }
-        if rate.is_finite() && threshold.is_finite() {
-            self.feedback =
-                (self.feedback + rate * (tau - threshold)).clamp(-FEEDBACK_LIMIT, FEEDBACK_LIMIT);
+        if rate > 0.0 && threshold.is_finite() {
+            let first = FEEDBACK_FIRST_GAIN / (1.0 + f64::from(self.feedback_reports));
+            let error = (tau - threshold).clamp(-FEEDBACK_ERROR_CLIP, FEEDBACK_ERROR_CLIP);
+            self.feedback = (self.feedback + rate.min(1.0).max(first) * error)
+                .clamp(-FEEDBACK_LIMIT, FEEDBACK_LIMIT);
+            self.feedback_reports = self.feedback_reports.saturating_add(1);
         }
         Ok(self.offset())
     }
@@ -377,6 +395,7 @@ impl Utility {
     /// Forget the feedback (a new stream: start, stream-start, caps change).
     pub fn reset_feedback(&mut self) {
         self.feedback = 0.0;
+        self.feedback_reports = 0;
     }
 
     /// `u` with the feedback's offset, within [0, 1]; `u` itself while the offset is 0.
@@ -895,21 +914,30 @@ mod tests {
         assert!(step.last_score.is_none());
     }
 
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() < 1e-12
+    }
+
     #[test]
     fn feedback_raises_the_utility_by_what_came_late_within_its_limit() {
         let mut u = Utility::new(None);
         u.observe(Some((&frame(0.0), &spec())), false, true);
         assert_eq!(u.compose(0.4, true).0, 0.4, "no feedback, no change");
-        // A keep measured at tau 0.7 came late: the utility reads low, so it is raised.
-        assert!((u.feedback(0.7, 0.5, 0.4).unwrap() - 0.08).abs() < 1e-12);
-        assert!((u.compose(0.4, true).0 - 0.48).abs() < 1e-12);
-        // One measured early takes some back, never below the model's own utility; the sum
-        // goes on below 0 (-0.14), so it takes more than one late report to raise it again.
-        assert!((u.feedback(0.45, 0.5, 0.4).unwrap() - 0.06).abs() < 1e-12);
-        assert_eq!(u.feedback(0.0, 0.5, 0.4).unwrap(), 0.0);
-        assert_eq!(u.compose(0.4, true).0, 0.4);
-        assert_eq!(u.feedback(0.75, 0.5, 0.4).unwrap(), 0.0);
-        assert!((u.feedback(0.75, 0.5, 0.4).unwrap() - 0.06).abs() < 1e-12);
+        // A keep measured at tau 0.7 came late: the utility reads low, so it is raised. The
+        // first report counts at FEEDBACK_FIRST_GAIN (0.7), above the rate.
+        assert!(close(u.feedback(0.7, 0.5, 0.2).unwrap(), 0.14));
+        assert!(close(u.compose(0.4, true).0, 0.54));
+        // The second at 0.7 / 2, the third at 0.7 / 3, both above the rate ...
+        assert!(close(u.feedback(0.6, 0.5, 0.2).unwrap(), 0.175));
+        assert!(close(u.feedback(0.5, 0.5, 0.2).unwrap(), 0.175));
+        // ... and from the fourth on (0.7 / 4 < 0.2) at the rate: one measured early takes
+        // some back.
+        assert!(close(u.feedback(0.45, 0.5, 0.2).unwrap(), 0.165));
+        // One report's error counts within +-FEEDBACK_ERROR_CLIP (0.25), late or early.
+        assert!(close(u.feedback(1.0, 0.5, 0.2).unwrap(), 0.215));
+        assert!(close(u.feedback(0.0, 0.5, 0.2).unwrap(), 0.165));
+        // A rate above the first reports' gain counts as it is (within 1).
+        assert!(close(u.feedback(0.6, 0.5, 0.9).unwrap(), 0.255));
         for _ in 0..50 {
             u.feedback(1.0, 0.5, 0.4).unwrap();
         }
@@ -919,13 +947,16 @@ mod tests {
             u.compose(f64::NAN, true).0.is_nan(),
             "a failed score stays failed"
         );
-        // Refused: not a tau; rate 0 ignores feedback.
+        // Refused: not a tau; rate 0 (or not a number) ignores feedback.
         for bad in [f64::NAN, -0.1, 1.5, f64::INFINITY] {
             assert!(u.feedback(bad, 0.5, 0.4).is_err());
         }
         assert_eq!(u.feedback(0.0, 0.5, 0.0).unwrap(), FEEDBACK_LIMIT);
+        assert_eq!(u.feedback(0.0, 0.5, f64::NAN).unwrap(), FEEDBACK_LIMIT);
+        // A new stream forgets the sum and the count: its first report counts at 0.7 again.
         u.reset_feedback();
         assert_eq!(u.compose(0.4, true).0, 0.4);
+        assert!(close(u.feedback(0.7, 0.5, 0.2).unwrap(), 0.14));
     }
 
     #[test]
@@ -939,23 +970,24 @@ mod tests {
         assert_eq!(u.compose(0.6, true).0, 0.6);
         u.reset_feedback();
         u.set_feedback_lower(0.15);
-        // Each keep measured at tau 0.2 moves the sum by -0.06: the first stays within the dead
-        // band (-0.1), the second lowers the utility by what lies beyond it, ...
-        assert_eq!(u.feedback(0.2, 0.5, 0.2).unwrap(), 0.0);
-        assert!((u.feedback(0.2, 0.5, 0.2).unwrap() + 0.02).abs() < 1e-12);
-        assert!((u.compose(0.6, true).0 - 0.58).abs() < 1e-12);
+        // A keep measured at tau 0.45 moves the sum by 0.7 * -0.05: within the dead band
+        // (-0.05), nothing lowered; the next, at tau 0.4, by 0.35 * -0.1 lowers the utility by
+        // what lies beyond it, ...
+        assert_eq!(u.feedback(0.45, 0.5, 0.2).unwrap(), 0.0);
+        assert!(close(u.feedback(0.4, 0.5, 0.2).unwrap(), -0.02));
+        assert!(close(u.compose(0.6, true).0, 0.58));
         // ... down to feedback-lower however many come (a consumer that always says "early").
         for _ in 0..50 {
             u.feedback(0.0, 0.5, 0.2).unwrap();
         }
-        assert!((u.offset() + 0.15).abs() < 1e-12);
-        assert!((u.compose(0.6, true).0 - 0.45).abs() < 1e-12);
+        assert!(close(u.offset(), -0.15));
+        assert!(close(u.compose(0.6, true).0, 0.45));
         assert_eq!(u.compose(0.1, true).0, 0.0, "within [0, 1]");
-        // Late keeps bring it back up at the same rate.
-        for _ in 0..5 {
+        // Late keeps bring it back up at the rate, each error within the clip (0.2 * 0.25).
+        for _ in 0..10 {
             u.feedback(1.0, 0.5, 0.2).unwrap();
         }
-        assert!((u.offset() - 0.2).abs() < 1e-12);
+        assert!(close(u.offset(), 0.2));
         // A bad setting is taken as 0 or the limit.
         u.reset_feedback();
         u.set_feedback_lower(f64::NAN);
@@ -964,7 +996,7 @@ mod tests {
         }
         assert_eq!(u.offset(), 0.0);
         u.set_feedback_lower(5.0);
-        assert!((u.offset() + (FEEDBACK_LIMIT - FEEDBACK_DEAD_BAND)).abs() < 1e-12);
+        assert!(close(u.offset(), -(FEEDBACK_LIMIT - FEEDBACK_DEAD_BAND)));
     }
 
     #[test]
@@ -980,9 +1012,9 @@ mod tests {
         let bound = u.screen(1.0, true).unwrap();
         let t = bound + 0.05; // screened before the feedback, not after it
         assert!(u.screen(t, true).is_some());
-        u.feedback(0.75, 0.5, 0.4).unwrap(); // offset +0.1
-        assert!((u.compose(0.5, true).0 - (plain + 0.1)).abs() < 1e-9);
-        assert!((u.screen(1.0, true).unwrap() - (bound + 0.1)).abs() < 1e-9);
+        u.feedback(0.75, 0.5, 0.4).unwrap(); // the first report: offset 0.7 * 0.25
+        assert!((u.compose(0.5, true).0 - (plain + 0.175)).abs() < 1e-9);
+        assert!((u.screen(1.0, true).unwrap() - (bound + 0.175)).abs() < 1e-9);
         assert!(u.screen(t, true).is_none());
     }
 }

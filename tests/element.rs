@@ -1308,7 +1308,8 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
     assert_eq!(offset(&e), 0.0);
     assert!(hs.push_upstream_event(feedback(tau(0.75))));
     push(&mut hs, 4);
-    assert!((offset(&e) - 0.05).abs() < 1e-12, "{}", offset(&e));
+    // The first report of a stream counts at 0.7 (above the rate): 0.7 * (0.75 - 0.5).
+    assert!((offset(&e) - 0.175).abs() < 1e-12, "{}", offset(&e));
     // Refused, the offset unchanged: not a number, out of range, absent (the first one carries
     // 1 MB besides, which the warning must not repeat: it names the problem in a few words).
     let junk = "x".repeat(1 << 20);
@@ -1324,7 +1325,7 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
         assert!(hs.push_upstream_event(feedback(bad)));
     }
     push(&mut hs, 1);
-    assert!((offset(&e) - 0.05).abs() < 1e-12);
+    assert!((offset(&e) - 0.175).abs() < 1e-12);
     let warnings: Vec<String> = bus_warnings(&bus);
     assert_eq!(warnings.len(), 1, "rate-limited: {warnings:?}");
     let w0 = &warnings[0];
@@ -1342,37 +1343,38 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
     assert!(hs.push_upstream_event(feedback(tau(1.0))));
     e.set_property("feedback-rate", 0.3);
     push(&mut hs, 1);
-    assert!((offset(&e) - 0.05).abs() < 1e-12, "{}", offset(&e));
+    assert!((offset(&e) - 0.175).abs() < 1e-12, "{}", offset(&e));
     let m: Vec<_> = drain(&mut hs).iter().map(meta).collect();
     assert_eq!(m.len(), 10);
     let geo = |k: usize| 2.0 * k as f64 / w as f64;
     for (k, meta) in m.iter().enumerate().skip(1) {
-        let want = geo(k) + if k >= 4 { 0.05 } else { 0.0 };
+        let want = geo(k) + if k >= 4 { 0.175 } else { 0.0 };
         assert!(
             (meta.utility - want).abs() < 0.02,
             "frame {k}: {} against {want}",
             meta.utility
         );
     }
-    // A float `tau` counts too, and an integer one (0 or 1).
+    // A float `tau` counts too (the second report: at 0.7 / 2, above the rate 0.3), and an
+    // integer one (0 or 1; the third: at the rate, 0.3, its error within 0.25), up to the limit.
     let single = gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
         .field("tau", 0.75f32)
         .build();
     assert!(hs.push_upstream_event(feedback(single)));
     push(&mut hs, 1);
-    assert!((offset(&e) - 0.125).abs() < 1e-9, "{}", offset(&e));
+    assert!((offset(&e) - 0.2625).abs() < 1e-9, "{}", offset(&e));
     let int = gst::Structure::builder(gstleangate::FEEDBACK_EVENT)
         .field("tau", 1i32)
         .build();
     assert!(hs.push_upstream_event(feedback(int)));
     push(&mut hs, 1);
-    assert!((offset(&e) - 0.275).abs() < 1e-9, "{}", offset(&e));
+    assert!((offset(&e) - 0.3).abs() < 1e-9, "{}", offset(&e));
     // A flush (a seek) stays in the stream: the offset stays.
     assert!(hs.push_event(gst::event::FlushStart::new()));
     assert!(hs.push_event(gst::event::FlushStop::new(true)));
     let segment = || gst::event::Segment::new(&gst::FormattedSegment::<gst::ClockTime>::new());
     assert!(hs.push_event(segment()));
-    assert!((offset(&e) - 0.275).abs() < 1e-9, "{}", offset(&e));
+    assert!((offset(&e) - 0.3).abs() < 1e-9, "{}", offset(&e));
     // A new stream (stream-start) may be another scene: forgotten.
     assert!(hs.push_event(gst::event::StreamStart::new("another scene")));
     assert_eq!(offset(&e), 0.0);
@@ -1380,7 +1382,8 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
     push(&mut hs, 2);
     assert!(hs.push_upstream_event(feedback(tau(1.0))));
     push(&mut hs, 1);
-    assert!((offset(&e) - 0.15).abs() < 1e-9, "{}", offset(&e));
+    // ... its first report counts at 0.7 again.
+    assert!((offset(&e) - 0.175).abs() < 1e-9, "{}", offset(&e));
     drain(&mut hs);
     // New caps: new pictures, the feedback about the old ones is forgotten, also reports that
     // arrived after the last frame of the old caps.
@@ -1394,7 +1397,7 @@ fn feedback_from_the_consumer_corrects_the_utility_and_bad_feedback_only_warns()
 }
 
 /// Feedback both ways: with `feedback-lower`, a consumer that reports every keep as early lowers
-/// the utility, by what the sum lies below its dead band (0.1) and at most `feedback-lower`; a
+/// the utility, by what the sum lies below its dead band (0.05) and at most `feedback-lower`; a
 /// consumer that says "early" after every frame, whatever happens (broken or lying), cannot stop
 /// the gate keeping: the first frame and `max-gap` keep as ever. With the default (0) the same
 /// reports change nothing.
@@ -1434,19 +1437,21 @@ fn feedback_lowers_the_utility_within_feedback_lower_and_a_hostile_consumer_cann
     let kept: Vec<usize> = (0..plain.len()).filter(|&i| plain[i].keep).collect();
     assert_eq!(kept, [0, 40, 80], "the plain gate");
     let (low, offsets) = run(0.3);
-    // The sum goes -0.1 a report (rate 0.2 * (0 - 0.5)): past the dead band from the 2nd report,
-    // then down to -(0.3 - 0.1) = -0.2 (the sum stops at -0.3).
-    assert_eq!(offsets[1], 0.0);
-    assert!((offsets[2] + 0.1).abs() < 1e-9, "{offsets:?}");
-    assert!((offsets[99] + 0.2).abs() < 1e-9, "{offsets:?}");
+    // Each report's error is -0.5, counted as -0.25 (the clip): the first report (gain 0.7)
+    // takes the sum to -0.175, past the dead band (-0.05), the second (gain 0.35) to -0.2625,
+    // the third to the sum's floor -0.3, and the utility is lowered by -(0.3 - 0.05) = -0.25.
+    assert_eq!(offsets[0], 0.0);
+    assert!((offsets[1] + 0.125).abs() < 1e-9, "{offsets:?}");
+    assert!((offsets[2] + 0.2125).abs() < 1e-9, "{offsets:?}");
+    assert!((offsets[99] + 0.25).abs() < 1e-9, "{offsets:?}");
     let kept: Vec<usize> = (0..low.len()).filter(|&i| low[i].keep).collect();
     assert_eq!(low[0].reason, Reason::First);
-    // Lowered by 0.2, the utility would reach 0.5 at 56 frames (2k/160 - 0.2): max-gap keeps
+    // Lowered by 0.25, the utility would reach 0.5 at 60 frames (2k/160 - 0.25): max-gap keeps
     // the 51st.
     assert_eq!(kept, [0, 51], "{kept:?}");
     assert_eq!(low[51].reason, Reason::MaxGap);
     assert!(
-        (low[30].utility - (60.0 / 160.0 - 0.2)).abs() < 0.02,
+        (low[30].utility - (60.0 / 160.0 - 0.25)).abs() < 0.02,
         "{}",
         low[30].utility
     );

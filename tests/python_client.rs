@@ -742,8 +742,8 @@ fn feedback_reaches_the_gate_and_a_bad_tau_is_refused() {
         return;
     }
     // The appsink holds at most 8 frames, so a report sent while frame 2 is handled reaches the
-    // gate well before frame 60; tau 0.75 at threshold 0.5 with the default rate 0.2 moves the
-    // gate's utility up by 0.05 (feedback-offset).
+    // gate well before frame 60; tau 0.75 at threshold 0.5, the stream's first report (counted
+    // at 0.7, above the default rate 0.2), moves the gate's utility up by 0.175 (feedback-offset).
     let script = r#"
 import json, sys
 from leangate_client import LeanGateSource, FEEDBACK_EVENT
@@ -773,10 +773,10 @@ print(json.dumps(out))
     let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
     assert_eq!(v["event"], "leangate-feedback");
     assert_eq!(v["before"], 0.0);
-    assert!((v["after"].as_f64().unwrap() - 0.05).abs() < 1e-9, "{v}");
+    assert!((v["after"].as_f64().unwrap() - 0.175).abs() < 1e-9, "{v}");
     // The EOS statistics carry it too (a typed field, not an unknown extra).
     assert!(
-        (v["stats_offset"].as_f64().unwrap() - 0.05).abs() < 1e-9,
+        (v["stats_offset"].as_f64().unwrap() - 0.175).abs() < 1e-9,
         "{v}"
     );
     assert_eq!(v["stats_extra"], serde_json::json!({}));

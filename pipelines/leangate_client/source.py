@@ -513,10 +513,11 @@ class LeanGateSource:
     def feedback(self, tau: float) -> bool:
         """Report what the SLAM measured on a kept frame: ``tau`` = 1 - S between it and the
         keyframe before it (MASt3R-SLAM's match fractions, S = min(f_m, f_u)). Each report adds
-        ``feedback-rate * (tau - threshold)`` to a sum (a keep reported above the threshold came
-        late, one below came early) whose positive part raises the gate's utility from the next
-        frame it processes (at most 0.3); more than 0.1 below 0 it lowers it by the rest, at most
-        the element's ``feedback-lower`` (0.15);
+        ``gain * (tau - threshold)`` to a sum (a keep reported above the threshold came late, one
+        below came early; the error within +-0.25; the gain ``feedback-rate``, or for the
+        stream's first reports more, report n at least 0.7 / (1 + n)) whose positive part raises
+        the gate's utility from the next frame it processes (at most 0.3); more than 0.05 below 0
+        it lowers it by the rest, at most the element's ``feedback-lower`` (0.15);
         ``gate.get_property("feedback-offset")`` says where it stands. Raises ValueError for a
         tau outside [0, 1]. Returns and raises as ``force_keyframe``: True when the report
         reached the gate, False when it could not, NotRunningError before start, after

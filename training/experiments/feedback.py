@@ -8,16 +8,25 @@ model's `leangate.geometry`). The gate is replayed from ten start frames as `lea
 --phases 10` runs it; after each keep the teacher's tau of that keep reaches the gate `--delays`
 frames later and moves the correction by one of three rules:
 
-  sum+       the element's rule: a sum moved by rate * (tau - threshold) within +-0.3, the utility
+  sum+       the first rule: a sum moved by rate * (tau - threshold) within +-0.3, the utility
              raised by its positive part;
   floor      an offset moved the same way, kept within 0..0.3;
-  symmetric  an offset moved the same way, within +-0.3 (the utility may go down).
+  symmetric  an offset moved the same way, within +-0.3 (the utility may go down);
+  both       the element's rule now (`Utility::feedback`): the sum moved by
+             gain * clip(tau - threshold, +-CLIP), gain = max(rate, FIRST / (1 + n)) for report n;
+             raised by the sum's positive part, lowered by what lies below -BAND, at most LOWER.
+             Each of --first-gains x --clips x --bands is one variant.
 
-Prints, per rule, rate and delay, each sequence's kept / oracle and late keeps and the sums
-(`training/experiments/NOTEBOOK.md`, "Feedback from the SLAM", has the tables that chose the default).
+Prints, per rule, rate and delay, each sequence's kept / oracle and late keeps and the sums; with
+`--fit NAME,...` also the sums over those sequences and over the others apart (choose on the fit
+set, report on the rest), and which of each set leave the issue's band (kept within 15 % of the
+oracle, or within one keyframe a run where the oracle keeps fewer than seven).
+(`training/experiments/NOTEBOOK.md`, "Feedback from the SLAM" and "Feedback: the first reports
+count more", has the tables that chose the default).
 
-Usage: python -m training.experiments.feedback SEQ [SEQ ...] [--rules sum+,floor,symmetric]
-       [--rates 0.2,0.3,0.4] [--delays 3,10] [--phases 10]
+Usage: python -m training.experiments.feedback SEQ [SEQ ...] [--rules sum+,floor,symmetric,both]
+       [--rates 0.2,0.3,0.4] [--delays 3,10] [--phases 10] [--first-gains 0.7] [--clips 0.25]
+       [--bands 0.05] [--lower 0.15] [--fit NAME,...]
 """
 import argparse
 import os
@@ -29,7 +38,7 @@ from ..fuse import replay, sequence_data
 from ..quantize import metadata
 
 LIMIT = 0.3
-RULES = ("sum+", "floor", "symmetric")
+RULES = ("sum+", "floor", "symmetric", "both")
 
 
 def fusion_weights(models):
@@ -62,9 +71,11 @@ class Feedback:
     report of a keep at frame i reaches the gate before frame i + 1 + `delay`, as in `leangate
     eval --feedback`, and moves the correction by `rule` (module docstring)."""
 
-    def __init__(self, rule, rate, delay, threshold=0.5):
+    def __init__(self, rule, rate, delay, threshold=0.5, first=0.0, clip=None, band=0.0, lower=LIMIT):
         self.rule, self.rate, self.delay, self.threshold = rule, rate, delay, threshold
+        self.first, self.clip, self.band, self.lower = first, clip, band, lower
         self.acc = 0.0
+        self.n = 0
         self.pending = []
 
     def report(self, i, tau):
@@ -72,10 +83,24 @@ class Feedback:
 
     def offset(self, i):
         while self.pending and self.pending[0][0] <= i:
-            step = self.rate * (self.pending.pop(0)[1] - self.threshold)
+            error = self.pending.pop(0)[1] - self.threshold
+            if self.rule == "both":
+                error = min(max(error, -self.clip), self.clip) if self.clip is not None else error
+                step = max(self.rate, self.first / (1 + self.n)) * error
+            else:
+                step = self.rate * error
+            self.n += 1
             lo = 0.0 if self.rule == "floor" else -LIMIT
             self.acc = min(max(self.acc + step, lo), LIMIT)
+        if self.rule == "both":
+            return self.acc if self.acc >= 0 else -min(max(-self.acc - self.band, 0.0), self.lower)
         return max(self.acc, 0.0) if self.rule == "sum+" else self.acc
+
+
+def outside_band(kept, oracle, phases):
+    """Whether a sequence's keep count leaves the issue's band: more than 15 % from the oracle's,
+    and more than one keyframe a run from it where the oracle keeps fewer than seven a run."""
+    return abs(kept / oracle - 1) > 0.15 and (oracle >= 7 * phases or abs(kept - oracle) > phases)
 
 
 def main():
@@ -87,6 +112,11 @@ def main():
     ap.add_argument("--phases", type=int, default=10, help="start frames per sequence")
     ap.add_argument("--models", default=MODELS_DIR)
     ap.add_argument("--tables", default=os.path.join(DATA_ROOT, "evals", "feedback"))
+    ap.add_argument("--first-gains", default="0.7", help="rule both: FIRST values")
+    ap.add_argument("--clips", default="0.25", help="rule both: CLIP values (none: no clip)")
+    ap.add_argument("--bands", default="0.05", help="rule both: BAND values")
+    ap.add_argument("--lower", type=float, default=0.15, help="rule both: LOWER (feedback-lower)")
+    ap.add_argument("--fit", default="", help="names (folder names) of the sequences the rule is chosen on")
     a = ap.parse_args()
     rules = [r for r in a.rules.split(",") if r]
     bad = [r for r in rules if r not in RULES]
@@ -95,8 +125,12 @@ def main():
     try:
         rates = [float(x) for x in a.rates.split(",")]
         delays = [int(x) for x in a.delays.split(",")]
+        firsts = [float(x) for x in a.first_gains.split(",")]
+        clips = [None if x == "none" else float(x) for x in a.clips.split(",")]
+        bands = [float(x) for x in a.bands.split(",")]
     except ValueError as e:
-        raise SystemExit(f"--rates / --delays: {e}")
+        raise SystemExit(f"--rates / --delays / --first-gains / --clips / --bands: {e}")
+    fit = {x for x in a.fit.split(",") if x}
     if a.phases < 1:
         raise SystemExit("--phases must be at least 1")
     w = fusion_weights(a.models)
@@ -105,24 +139,38 @@ def main():
         label, tab = sequence_table(seq, a.tables, a.models)
         data.append((label, fused(tab, w), tab["tau"]))
 
-    def row(label, rule, rate, delay):
-        cells, K, O, L = [], 0, 0, 0
+    def row(label, rule, rate, delay, **kw):
+        cells, sums = [], {True: [0, 0, 0, []], False: [0, 0, 0, []]}
         for name, u, tau in data:
             n = tau.shape[0]
             k = l = o = 0
             for p in range(a.phases):
-                fb = Feedback(rule, rate, delay) if rule else None
+                fb = Feedback(rule, rate, delay, **kw) if rule else None
                 kk, ll, _, _ = replay(u, tau, 0.5, p, n - 1, fb)
                 k, l, o = k + kk, l + ll, o + replay(tau, tau, 0.5, p, n - 1)[0]
             cells.append(f"{name} {k}/{o} ({k / o:.2f}), {l} late")
-            K, O, L = K + k, O + o, L + l
-        print(f"{label:<24} sum {K}/{O} ({K / O:.3f}), {L} late | " + "; ".join(cells))
+            t = sums[name.split("/")[-1] in fit]
+            t[0], t[1], t[2] = t[0] + k, t[1] + o, t[2] + l
+            if outside_band(k, o, a.phases):
+                t[3].append(f"{name.split('/')[-1]} {k / o:.2f}")
+        parts = [(f"fit", sums[True]), ("held out", sums[False])] if fit else [("sum", sums[False])]
+        print(f"{label:<36} " + " | ".join(
+            f"{what} {K}/{O} ({K / O:.3f}), {L} late, outside the band: {', '.join(out) or 'none'}"
+            for what, (K, O, L, out) in parts if O))
+        print("    " + "; ".join(cells))
 
     row("without feedback", None, 0.0, 0)
     for rule in rules:
         for rate in rates:
             for delay in delays:
-                row(f"{rule} rate {rate} delay {delay}", rule, rate, delay)
+                if rule != "both":
+                    row(f"{rule} rate {rate} delay {delay}", rule, rate, delay)
+                    continue
+                for first in firsts:
+                    for clip in clips:
+                        for band in bands:
+                            row(f"both rate {rate} delay {delay} first {first} clip {clip} band {band}",
+                                rule, rate, delay, first=first, clip=clip, band=band, lower=a.lower)
 
 
 if __name__ == "__main__":

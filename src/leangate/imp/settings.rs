@@ -437,11 +437,12 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
                 "How far each leangate-feedback event moves the utility: a consumer \
                  (e.g. the SLAM behind the gate) that reports tau = 1 - S it measured \
                  between a kept frame and the previous keyframe moves a sum by \
-                 rate * (tau - threshold) (within +-0.3): up when that keep came late, \
-                 down when early; the utility is raised by the sum's positive part \
-                 (feedback-offset) and lowered, at most by feedback-lower, by what lies \
-                 below -0.1. 0 ignores feedback. Without feedback \
-                 events nothing changes",
+                 rate * (tau - threshold) (the error within +-0.25, the sum within +-0.3; \
+                 a stream's first reports count more, report n at least 0.7 / (1 + n)): \
+                 up when that keep came late, down when early; the utility is raised by \
+                 the sum's positive part (feedback-offset) and lowered, at most by \
+                 feedback-lower, by what lies below -0.05. 0 ignores feedback. Without \
+                 feedback events nothing changes",
             )
             .minimum(0.0)
             .maximum(1.0)
@@ -506,7 +507,7 @@ pub(super) fn specs() -> Vec<glib::ParamSpec> {
             .nick("Feedback lower")
             .blurb(
                 "The most the consumer's leangate-feedback lowers the utility: once the \
-                 feedback sum (see feedback-rate) is below -0.1, the utility is lowered by \
+                 feedback sum (see feedback-rate) is below -0.05, the utility is lowered by \
                  what lies beyond, up to this. 0: never lowered (only raised). \
                  max-gap and the first frame keep as ever, so a consumer that reports early \
                  keeps without end cannot stop the gate keeping",
