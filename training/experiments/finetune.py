@@ -18,7 +18,11 @@ FP32 split and pair models (`<out>/leangate-s*.onnx`). Then `training.quantize -
 `training.fuse --write` and `leangate eval` (training/README.md). `training.experiments.head_loso` validates the
 procedure leave-one-sequence-out.
 
+`--extra SEQ` (repeatable) adds whole sequences to the fitting data, e.g. the near-object orbit scenes
+of `leangate synth --motion orbit` (NOTEBOOK: "Near objects: the head fine-tuned on orbit scenes").
+
 Usage: python -m training.experiments.finetune [--out out/train-data/finetune] [--steps 1500] [--lr 1e-4]
+       [--extra SEQ ...]
 """
 import argparse
 import os
@@ -170,8 +174,15 @@ def main():
     ap.add_argument("--lr", type=float, default=1e-4)
     ap.add_argument("--fit-horizon", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--extra", action="append", default=[], metavar="SEQ",
+                    help="a further sequence with depth and poses, fitted on whole (repeatable; e.g. "
+                         "`leangate synth --motion orbit` scenes: near objects)")
     a = ap.parse_args()
     seqs = {name: os.path.join(SHARED, name) for name in FINETUNE_PARTS}
+    extra = {os.path.basename(os.path.normpath(x)): x for x in a.extra}
+    if set(extra) & set(seqs) or len(extra) != len(a.extra):
+        raise SystemExit("--extra: each sequence once, and none of the fitting parts' sequences")
+    seqs.update(extra)
     for name, seq in seqs.items():
         if not os.path.isdir(seq):
             raise SystemExit(f"{seq} is missing: build it first (training/README.md, the importers)")
@@ -182,7 +193,9 @@ def main():
     tabs = load_tables(seqs, a.models, a.tables)
     feats = features(a.models, seqs)
     spans = {name: ALL_SPLITS[name][part] for name, part in FINETUNE_PARTS.items()}
-    print("fine-tuning on " + ", ".join(f"{n} {FINETUNE_PARTS[n]} {a_}-{b}" for n, (a_, b) in spans.items()), flush=True)
+    spans.update({name: (0, len(read_list(seq)) - 1) for name, seq in extra.items()})
+    print("fine-tuning on " + ", ".join(f"{n} {FINETUNE_PARTS.get(n, 'whole')} {a_}-{b}" for n, (a_, b) in spans.items()),
+          flush=True)
     model = finetune_head(shipped, feats, tabs, spans, a.steps, a.lr, a.seed, a.fit_horizon,
                           log=lambda m: print(m, flush=True))
     os.makedirs(a.out, exist_ok=True)
