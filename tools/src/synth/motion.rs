@@ -122,7 +122,7 @@ fn wrap_angle(a: f64) -> f64 {
 pub(crate) fn orbit_target(scene: &Scene, seed: u64) -> (Vector3<f64>, f64, f64) {
     let mut rng = SplitMix64::new(seed ^ 0x0B17_0B17);
     let (rlo, rhi) = scene.camera_region;
-    // the path breathes to 1.1 radii and stays in the region (0.9 m wide at the least)
+    // the path breathes to 1.1 radii and stays in the region (at least 1.6 m wide: radius >= 0.72)
     let half_span = 0.5 * (rhi[0] - rlo[0]).min(rhi[1] - rlo[1]);
     let radius = rng.range(0.6, 0.9).min(half_span / 1.1 - 0.01);
     let centre = Vector3::new(
